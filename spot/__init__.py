@@ -1,0 +1,18 @@
+"""spot: offline preference-based RL with attention-guided subgoals (SPOT) and its baselines.
+
+Importing ``spot`` sets one XLA flag before jax is imported (if jax is not imported yet): jaxlib
+0.10.2 on CPU crashes in transformer training at batch 256 with ``YNNPACK operation failed`` unless
+the YNN reduce fusion is turned off (see docs/install.md). Nothing else happens at import.
+"""
+
+import os as _os
+
+_YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-LIBRARY_FUSION_TYPE_REDUCE"
+if _YNN_FLAG not in _os.environ.get("XLA_FLAGS", ""):
+    _os.environ["XLA_FLAGS"] = (_os.environ.get("XLA_FLAGS", "") + " " + _YNN_FLAG).strip()
+
+__version__ = "0.1.0"
+
+
+class SpotError(Exception):
+    """A user error (bad file, key, value). The CLI prints the message and exits with code 2."""

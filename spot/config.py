@@ -1,0 +1,419 @@
+"""Run configuration: one frozen dataclass per stage, composed into :class:`ExperimentConfig`.
+
+Resolution order (later wins): dataclass defaults (the paper's values) < method preset
+(``method=spot`` etc.) < budget preset (``budget=small`` etc.) < YAML file < ``a.b=value``
+overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
+
+Every field carries ``help`` text and, where it applies, ``choices`` or a numeric ``range``;
+:func:`resolve` validates everything and raises :class:`spot.SpotError` with the dotted key,
+the bad value, what was expected and (for unknown keys) the nearest valid keys.
+Configs round-trip through a flat ``{"a.b": value}`` dict (:func:`to_flat` / :func:`from_flat`),
+which is what MLflow logs as params.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from spot import SpotError
+
+
+def F(default: Any, help: str, *, choices: tuple | None = None,
+      range: tuple[float | None, float | None] | None = None) -> Any:  # noqa: A002
+    """A documented config field."""
+    meta = {"help": help, "choices": choices, "range": range}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for sequence defaults (configs are frozen)")
+    return field(default=default, metadata=meta)
+
+
+# --------------------------------------------------------------------------- stages
+@dataclass(frozen=True)
+class DataConfig:
+    name: str = F("hopper-medium-replay", "registry name (see `spot data list`) or path to a D4RL/robomimic hdf5 file or a Minari dataset id")
+    size: str = F("small", "size of a locally built dataset", choices=("tiny", "small", "paper"))
+    build_seed: int = F(0, "seed of the local recipe that builds the dataset", range=(0, None))
+    source: str = F("auto", "'recipe' builds locally, 'file' reads data.name as a file; 'auto' picks file if it exists", choices=("auto", "recipe", "file"))
+
+
+@dataclass(frozen=True)
+class LabelsConfig:
+    source: str = F("script", "'script' = scripted teacher on true reward; 'human' = PT human label files in labels.path", choices=("script", "human"))
+    path: str = F("", "folder with PT label files (indices_num*, indices_2_num*, label_human); for source=human")
+    num_queries: int = F(500, "number of preference queries (pairs of segments)", range=(1, None))
+    segment_length: int = F(100, "segment (query) length H", range=(2, None))
+    teacher: str = F("sum", "scripted teacher score: undiscounted sum or discounted sum of true reward", choices=("sum", "discounted"))
+    discount: float = F(0.99, "discount of the 'discounted' teacher", range=(0.0, 1.0))
+    tie_threshold: float = F(-1.0, "|S1 - S2| <= threshold gives y = 0.5; negative disables ties (PT's MuJoCo teacher)")
+    mistake_rate: float = F(0.0, "probability that the scripted teacher flips a label", range=(0.0, 1.0))
+    allow_cross_episode: bool = F(False, "allow scripted segments to cross episode ends (PT human files do)")
+    eval_fraction: float = F(0.1, "held-out fraction of queries for reward-model validation", range=(0.0, 0.9))
+    seed: int = F(42, "seed of query sampling (PT repo: data_seed 42), fixed across run seeds", range=(0, None))
+
+
+@dataclass(frozen=True)
+class PTConfig:
+    embd_dim: int = F(256, "transformer embedding size", range=(8, None))
+    n_layer: int = F(1, "causal transformer layers", range=(1, None))
+    n_head: int = F(4, "attention heads", range=(1, None))
+    dropout: float = F(0.1, "dropout on embeddings, attention and residuals", range=(0.0, 0.9))
+    pref_attn_dim: int = F(256, "query/key size of the preference attention layer", range=(1, None))
+    max_timestep: int = F(1000, "size of the learned timestep embedding table - 1", range=(1, None))
+    lr: float = F(1e-4, "AdamW learning rate (after warmup)", range=(0.0, 1.0))
+    weight_decay: float = F(1e-4, "AdamW weight decay", range=(0.0, 1.0))
+    warmup_steps: int = F(500, "linear warmup steps", range=(0, None))
+    dtype: str = F("float32", "compute dtype of the transformer matmuls (bfloat16 = mixed precision; params stay float32)", choices=("float32", "bfloat16"))
+
+
+@dataclass(frozen=True)
+class MRConfig:
+    hidden: tuple[int, ...] = F((256, 256), "MLP hidden sizes of r(s, a)")
+    lr: float = F(3e-4, "Adam learning rate", range=(0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    kind: str = F("pt", "reward model: none (true reward), mr (Markovian MLP), pt (Preference Transformer)", choices=("none", "mr", "pt"))
+    steps: int = F(10_000, "reward-model gradient steps", range=(1, None))
+    batch_size: int = F(256, "preference pairs per step", range=(1, None))
+    eval_every: int = F(100, "steps between held-out evaluations (best held-out loss is kept)", range=(1, None))
+
+
+@dataclass(frozen=True)
+class RelabelConfig:
+    mode: str = F("chunked", "PT relabelling: 'chunked' = whole trajectory chunks in one pass (default, fast); 'sliding' = PT repo's causal window ending at t", choices=("chunked", "sliding"))
+    window: int = F(100, "chunk length (chunked) or window length (sliding; PT repo flag default 25)", range=(1, None))
+    batch_size: int = F(256, "windows/chunks per forward pass", range=(1, None))
+    normalize: str = F("pt", "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = r*1000/(Rmax-Rmin), none", choices=("pt", "iql", "none"))
+
+
+@dataclass(frozen=True)
+class SubgoalConfig:
+    enabled: bool = F(False, "extract subgoals and train the CVAE (method=spot)")
+    top_k: float = F(10.0, "K of the top-K% attention filter, eq. 6", range=(0.0, 100.0))
+    group: str = F("top", "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom K%", choices=("top", "top_next", "bottom_next", "bottom"))
+    reward_filter: bool = F(True, "also require r_t >= segment mean (eq. 5); off = ablation")
+
+
+@dataclass(frozen=True)
+class CVAEConfig:
+    latent_dim: int = F(16, "latent size (not printed in the paper's Table 6)", range=(1, None))
+    hidden: tuple[int, ...] = F((32, 64, 32), "encoder/prior/decoder hidden sizes (Table 6)")
+    lr: float = F(1e-4, "Adam learning rate (Table 6)", range=(0.0, 1.0))
+    batch_size: int = F(256, "triplets per step", range=(1, None))
+    steps: int = F(100_000, "gradient steps (Table 6)", range=(1, None))
+    beta: float = F(1.0, "KL weight beta (Table 6)", range=(0.0, None))
+    loss: str = F("mse_cos", "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7)", choices=("mse", "mse_cos"))
+
+
+@dataclass(frozen=True)
+class ShapingConfig:
+    kind: str = F("none", "shaping term: none, cosine (eq. 11-12), neg_distance, potential", choices=("none", "cosine", "neg_distance", "potential"))
+    weight: float = F(1.0, "lambda of eq. 13", range=(-1.0, 1.0))
+    subgoal: str = F("mean", "g_hat from the prior mean or a prior sample", choices=("mean", "sample"))
+
+
+@dataclass(frozen=True)
+class IQLConfig:
+    expectile: float = F(0.7, "expectile tau of the value loss", range=(0.0, 1.0))
+    temperature: float = F(3.0, "AWR inverse temperature beta", range=(0.0, None))
+    tau: float = F(0.005, "target-network Polyak rate", range=(0.0, 1.0))
+    discount: float = F(0.99, "discount gamma", range=(0.0, 1.0))
+    hidden: tuple[int, ...] = F((256, 256), "hidden sizes of actor, critics and value")
+    lr: float = F(3e-4, "Adam learning rate (actor uses a cosine schedule)", range=(0.0, 1.0))
+    batch_size: int = F(256, "transitions per update", range=(1, None))
+    steps: int = F(1_000_000, "gradient updates", range=(1, None))
+    chunk: int = F(1000, "updates per jitted lax.scan chunk", range=(1, None))
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    every: int = F(5000, "IQL updates between evaluations", range=(1, None))
+    episodes: int = F(10, "evaluation episodes (deterministic policy)", range=(1, None))
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    uri: str = F("", "MLflow tracking URI; empty = local store ./mlruns in the working folder")
+    experiment: str = F("spot", "MLflow experiment name")
+
+
+_STAGES: dict[str, type] = {
+    "data": DataConfig, "labels": LabelsConfig, "reward": RewardConfig, "pt": PTConfig,
+    "mr": MRConfig, "relabel": RelabelConfig, "subgoal": SubgoalConfig, "cvae": CVAEConfig,
+    "shaping": ShapingConfig, "iql": IQLConfig, "eval": EvalConfig, "tracking": TrackingConfig,
+}
+
+METHODS = ("oracle", "mr", "pt", "spot")
+BUDGETS = ("paper", "small", "tiny")
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    method: str = F("spot", "method preset", choices=METHODS)
+    budget: str = F("small", "budget preset: paper (the paper's sizes, for GPUs/clusters), small (2 CPU cores, minutes), tiny (tests)", choices=BUDGETS)
+    seed: int = F(0, "run seed (root PRNG key)", range=(0, None))
+    data: DataConfig = field(default_factory=DataConfig)
+    labels: LabelsConfig = field(default_factory=LabelsConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    pt: PTConfig = field(default_factory=PTConfig)
+    mr: MRConfig = field(default_factory=MRConfig)
+    relabel: RelabelConfig = field(default_factory=RelabelConfig)
+    subgoal: SubgoalConfig = field(default_factory=SubgoalConfig)
+    cvae: CVAEConfig = field(default_factory=CVAEConfig)
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
+    iql: IQLConfig = field(default_factory=IQLConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+
+
+# --------------------------------------------------------------------------- presets
+METHOD_PRESETS: dict[str, dict[str, Any]] = {
+    "oracle": {"reward.kind": "none", "subgoal.enabled": False, "shaping.kind": "none", "relabel.normalize": "iql"},
+    "mr": {"reward.kind": "mr", "subgoal.enabled": False, "shaping.kind": "none"},
+    "pt": {"reward.kind": "pt", "subgoal.enabled": False, "shaping.kind": "none"},
+    "spot": {"reward.kind": "pt", "subgoal.enabled": True, "shaping.kind": "cosine", "shaping.weight": 1.0},
+}
+
+BUDGET_PRESETS: dict[str, dict[str, Any]] = {
+    # The paper's sizes (Table 5, Table 6, IQL reference): GPU / cluster work.
+    "paper": {"data.size": "paper"},
+    # Finishes on 2 CPU cores in minutes per run.
+    "small": {
+        "data.size": "small", "labels.num_queries": 200, "labels.segment_length": 50,
+        "reward.steps": 300, "reward.batch_size": 32, "reward.eval_every": 50,
+        "pt.embd_dim": 64, "pt.pref_attn_dim": 64, "pt.n_head": 4, "pt.warmup_steps": 30,
+        "mr.hidden": (64, 64), "relabel.window": 50,
+        "cvae.steps": 3000, "cvae.lr": 1e-3,
+        "iql.steps": 20_000, "iql.chunk": 1000, "eval.every": 5000, "eval.episodes": 5,
+    },
+    # Seconds: tests and smoke checks.
+    "tiny": {
+        "data.size": "tiny", "labels.num_queries": 40, "labels.segment_length": 20,
+        "reward.steps": 20, "reward.batch_size": 8, "reward.eval_every": 10,
+        "pt.embd_dim": 16, "pt.pref_attn_dim": 16, "pt.n_head": 2, "pt.warmup_steps": 2,
+        "mr.hidden": (16, 16), "relabel.window": 20, "relabel.batch_size": 64,
+        "cvae.steps": 50, "cvae.batch_size": 32, "cvae.hidden": (16, 16),
+        "iql.steps": 200, "iql.chunk": 100, "iql.hidden": (32, 32), "iql.batch_size": 64,
+        "eval.every": 100, "eval.episodes": 1,
+    },
+}
+
+
+# --------------------------------------------------------------------------- flat dicts
+def _fields(cls: type) -> dict[str, dataclasses.Field]:
+    return {f.name: f for f in dataclasses.fields(cls)}
+
+
+def valid_keys() -> list[str]:
+    keys = []
+    for name, f in _fields(ExperimentConfig).items():
+        if name in _STAGES:
+            keys += [f"{name}.{sub}" for sub in _fields(_STAGES[name])]
+        else:
+            keys.append(name)
+    return keys
+
+
+def field_info(key: str) -> tuple[Any, dict]:
+    """``(type, metadata)`` of a dotted key."""
+    parts = key.split(".")
+    if len(parts) == 1:
+        f = _fields(ExperimentConfig)[parts[0]]
+    else:
+        f = _fields(_STAGES[parts[0]])[parts[1]]
+    hints = typing.get_type_hints(_STAGES[parts[0]] if len(parts) > 1 else ExperimentConfig)
+    return hints[parts[-1]], dict(f.metadata)
+
+
+def to_flat(cfg: ExperimentConfig) -> dict[str, Any]:
+    """``{"iql.steps": 1000, ...}`` for every field (MLflow params)."""
+    flat: dict[str, Any] = {}
+    for name in _fields(ExperimentConfig):
+        value = getattr(cfg, name)
+        if dataclasses.is_dataclass(value):
+            for sub in _fields(type(value)):
+                flat[f"{name}.{sub}"] = getattr(value, sub)
+        else:
+            flat[name] = value
+    return flat
+
+
+def from_flat(flat: dict[str, Any]) -> ExperimentConfig:
+    """Inverse of :func:`to_flat`; values may be strings (as MLflow returns params)."""
+    return _build({k: _coerce(k, v) for k, v in _check_keys(flat, "config").items()})
+
+
+def _build(flat: dict[str, Any]) -> ExperimentConfig:
+    top: dict[str, Any] = {}
+    stages: dict[str, dict[str, Any]] = {s: {} for s in _STAGES}
+    for key, value in flat.items():
+        if "." in key:
+            s, sub = key.split(".", 1)
+            stages[s][sub] = value
+        else:
+            top[key] = value
+    return ExperimentConfig(**top, **{s: _STAGES[s](**kw) for s, kw in stages.items()})
+
+
+# --------------------------------------------------------------------------- validation
+def _check_keys(flat: dict[str, Any], where: str) -> dict[str, Any]:
+    keys = valid_keys()
+    for key in flat:
+        if key not in keys:
+            close = difflib.get_close_matches(key, keys, n=3, cutoff=0.5)
+            hint = f"; did you mean {', '.join(repr(c) for c in close)}?" if close else ""
+            raise SpotError(f"{where}: unknown config key '{key}'{hint} (see `spot config keys`)")
+    return flat
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", str(tp))
+
+
+def _coerce(key: str, value: Any) -> Any:
+    """Convert ``value`` to the field's type (strings from the CLI or MLflow included) and validate."""
+    tp, meta = field_info(key)
+    origin = typing.get_origin(tp)
+    try:
+        if origin is tuple:
+            inner = typing.get_args(tp)[0]
+            if isinstance(value, str):
+                text = value.strip().strip("()[]")
+                value = [v for v in (p.strip() for p in text.split(",")) if v]
+            if not isinstance(value, (list, tuple)):
+                raise ValueError
+            out = tuple(inner(v) for v in value)
+        elif tp is bool:
+            if isinstance(value, str):
+                if value.lower() in ("true", "1", "yes", "on"):
+                    out = True
+                elif value.lower() in ("false", "0", "no", "off"):
+                    out = False
+                else:
+                    raise ValueError
+            elif isinstance(value, (bool, int)) and value in (0, 1):
+                out = bool(value)
+            else:
+                raise ValueError
+        elif tp is int:
+            if isinstance(value, bool):
+                raise ValueError
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            out = int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+        elif tp is float:
+            if isinstance(value, bool):
+                raise ValueError
+            out = float(value)
+        elif tp is str:
+            if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+                raise ValueError
+            out = str(value)
+        else:  # pragma: no cover - every field has one of the types above
+            raise TypeError(f"unsupported field type {tp}")
+    except (ValueError, TypeError):
+        expected = f"a tuple of {_type_name(typing.get_args(tp)[0])}" if origin is tuple else _type_name(tp)
+        raise SpotError(f"config key '{key}': value {value!r} is not {expected}") from None
+    choices = meta.get("choices")
+    if choices and out not in choices:
+        raise SpotError(f"config key '{key}': value {out!r} is not one of {', '.join(map(repr, choices))}")
+    rng = meta.get("range")
+    if rng is not None:
+        lo, hi = rng
+        if (lo is not None and out < lo) or (hi is not None and out > hi):
+            raise SpotError(
+                f"config key '{key}': value {out!r} is out of range; expected "
+                f"{lo if lo is not None else '-inf'} <= value <= {hi if hi is not None else 'inf'}"
+            )
+    return out
+
+
+def _flatten_yaml(data: Any, where: str, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(data, dict):
+        raise SpotError(f"{where}: expected a mapping of config keys, got {type(data).__name__}")
+    flat: dict[str, Any] = {}
+    for k, v in data.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            flat.update(_flatten_yaml(v, where, key + "."))
+        else:
+            flat[key] = v
+    return flat
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML run config into a flat dict (keys checked, values not yet coerced)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpotError(f"config file '{path}' does not exist")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as e:
+        raise SpotError(f"config file '{path}': not valid YAML ({e})") from None
+    return _check_keys(_flatten_yaml(data, f"config file '{path}'"), f"config file '{path}'")
+
+
+def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
+    """``["iql.steps=1000", "method=pt"]`` -> flat dict (values parsed as YAML scalars)."""
+    flat: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise SpotError(f"override '{item}': expected KEY=VALUE, e.g. iql.steps=1000")
+        key, text = item.split("=", 1)
+        try:
+            value = yaml.safe_load(text) if text.strip() else ""
+        except yaml.YAMLError:
+            value = text
+        flat[key.strip()] = value if value is not None else ""
+    return _check_keys(flat, "override")
+
+
+def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
+    """Resolve flat layers (YAML file, overrides, ...) on top of method and budget presets."""
+    user: dict[str, Any] = {}
+    for layer in layers:
+        user.update(_check_keys(layer, "config"))
+    method = _coerce("method", user.get("method", ExperimentConfig.method))
+    budget = _coerce("budget", user.get("budget", ExperimentConfig.budget))
+    flat = to_flat(ExperimentConfig())
+    flat.update(METHOD_PRESETS[method])
+    flat.update(BUDGET_PRESETS[budget])
+    flat.update(user)
+    flat["method"], flat["budget"] = method, budget
+    return _build({k: _coerce(k, v) for k, v in flat.items()})
+
+
+def load(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ExperimentConfig:
+    """YAML file (optional) + CLI overrides -> validated :class:`ExperimentConfig`."""
+    layers = [load_yaml(path)] if path else []
+    layers.append(parse_overrides(overrides))
+    return resolve(*layers)
+
+
+def replace(cfg: ExperimentConfig, **dotted: Any) -> ExperimentConfig:
+    """Copy of ``cfg`` with dotted-key changes, e.g. ``replace(cfg, **{"iql.steps": 10})``."""
+    flat = to_flat(cfg)
+    flat.update(_check_keys(dotted, "replace"))
+    return _build({k: _coerce(k, v) for k, v in flat.items()})
+
+
+def to_yaml(cfg: ExperimentConfig) -> str:
+    nested: dict[str, Any] = {}
+    for key, value in to_flat(cfg).items():
+        if isinstance(value, tuple):
+            value = list(value)
+        if "." in key:
+            s, sub = key.split(".", 1)
+            nested.setdefault(s, {})[sub] = value
+        else:
+            nested[key] = value
+    return yaml.safe_dump(nested, sort_keys=False)
+

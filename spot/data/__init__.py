@@ -1,0 +1,1 @@
+"""Datasets (D4RL layout), file formats, preference labels and local recipes."""
