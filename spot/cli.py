@@ -1,0 +1,185 @@
+"""The ``spot`` command. Thin: parses arguments and calls into the library.
+
+User errors (:class:`spot.SpotError`) print one line ``error: ...`` and exit with code 2; no
+traceback. Run ``spot <command> --help`` for each command's options.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from spot import SpotError
+
+
+# --------------------------------------------------------------------------- data
+def _data_list(args: argparse.Namespace) -> None:
+    from spot.data import registry
+
+    print(f"{'name':28s} {'family':11s} description")
+    for e in registry.REGISTRY.values():
+        print(f"{e.name:28s} {e.family:11s} {e.description}")
+    print(f"\nsizes: {', '.join(registry.SIZES)}   cache dir: {registry.data_dir()} (set SPOT_DATA_DIR)")
+    built = registry.cached()
+    if built:
+        print("\nbuilt:")
+        for b in built:
+            print(f"  {b['name']} size={b['size']} seed={b['seed']} transitions={b['transitions']}  {b['path']}")
+
+
+def _data_build(args: argparse.Namespace) -> None:
+    from spot.data import registry
+
+    path = registry.build(args.name, args.size, args.seed, force=args.force)
+    card = registry.read_card(path)
+    print(f"built {path}")
+    print(json.dumps({k: card[k] for k in card if k not in ("name",)}, indent=2, default=str))
+
+
+def _data_info(args: argparse.Namespace) -> None:
+    from spot.data import registry
+
+    as_path = Path(args.name)
+    if not as_path.exists():
+        registry.entry(args.name)  # unknown names fail here, before any build
+        path = registry.dataset_path(args.name, args.size, args.seed)
+        if not path.exists():
+            raise SpotError(
+                f"dataset '{args.name}' (size {args.size}, seed {args.seed}) is not built yet; "
+                f"run: spot data build {args.name} --size {args.size} --seed {args.seed}"
+            )
+        args.name = str(path)
+    ds, card = registry.load(args.name, source="file")
+    print(json.dumps({"summary": ds.summary(), "card": card}, indent=2, default=str))
+
+
+# --------------------------------------------------------------------------- labels
+def _labels_make(args: argparse.Namespace) -> None:
+    from spot.data import labels, registry
+
+    ds, _ = registry.load(args.dataset, args.size, args.seed)
+    prefs = labels.scripted_teacher(
+        ds, args.num_queries, args.segment_length, teacher=args.teacher, discount=args.discount,
+        tie_threshold=args.tie_threshold, mistake_rate=args.mistake_rate,
+        allow_cross_episode=args.allow_cross_episode, seed=args.label_seed,
+    )
+    prefs.save_npz(args.out)
+    print(f"wrote {len(prefs)} queries (segment length {prefs.segment_length}) to {args.out}")
+    _print_label_stats(prefs)
+
+
+def _print_label_stats(prefs) -> None:
+    import numpy as np
+
+    y = prefs.labels
+    print(f"labels: seg1 preferred {int(np.sum(y == 0))}, seg2 preferred {int(np.sum(y == 1))}, "
+          f"ties {int(np.sum(y == 0.5))}")
+
+
+def _labels_info(args: argparse.Namespace) -> None:
+    from spot.data import labels, registry
+
+    path = Path(args.path)
+    prefs = labels.read_pt_labels(path) if path.is_dir() else labels.Preferences.load_npz(path)
+    print(f"{path}: {len(prefs)} queries, segment length {prefs.segment_length}, source {prefs.source}")
+    _print_label_stats(prefs)
+    if args.dataset:
+        ds, _ = registry.load(args.dataset, args.size, args.seed)
+        labels.check_against(prefs, ds)
+        print(f"all segments fit dataset '{ds.name}' ({len(ds)} transitions)")
+
+
+# --------------------------------------------------------------------------- config
+def _config_show(args: argparse.Namespace) -> None:
+    from spot import config
+
+    print(config.to_yaml(config.load(args.config, args.overrides)), end="")
+
+
+def _config_keys(args: argparse.Namespace) -> None:
+    from spot import config
+
+    for key in config.valid_keys():
+        tp, meta = config.field_info(key)
+        extra = ""
+        if meta.get("choices"):
+            extra = f" one of {list(meta['choices'])}"
+        elif meta.get("range"):
+            extra = f" in [{meta['range'][0]}, {meta['range'][1]}]"
+        print(f"{key:26s} {getattr(tp, '__name__', str(tp)):8s} {meta.get('help', '')}{extra}")
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    data = sub.add_parser("data", help="list, build and inspect datasets").add_subparsers(dest="sub", required=True, metavar="SUB")
+    d = data.add_parser("list", help="registered datasets and what is built")
+    d.set_defaults(fn=_data_list)
+    d = data.add_parser("build", help="build a dataset with its local recipe (once; cached)")
+    d.add_argument("name")
+    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--force", action="store_true", help="rebuild even if cached")
+    d.set_defaults(fn=_data_build)
+    d = data.add_parser("info", help="summary and card of a built dataset or an hdf5 file")
+    d.add_argument("name", help="registered name or path")
+    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(fn=_data_info)
+
+    lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(dest="sub", required=True, metavar="SUB")
+    d = lab.add_parser("make", help="scripted-teacher queries on a dataset -> .npz")
+    d.add_argument("dataset")
+    d.add_argument("--out", required=True, help="output .npz")
+    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+    d.add_argument("--seed", type=int, default=0, help="dataset build seed")
+    d.add_argument("--num-queries", type=int, default=500)
+    d.add_argument("--segment-length", type=int, default=100)
+    d.add_argument("--teacher", default="sum", choices=("sum", "discounted"))
+    d.add_argument("--discount", type=float, default=0.99)
+    d.add_argument("--tie-threshold", type=float, default=-1.0, help="negative: no ties")
+    d.add_argument("--mistake-rate", type=float, default=0.0)
+    d.add_argument("--allow-cross-episode", action="store_true")
+    d.add_argument("--label-seed", type=int, default=42)
+    d.set_defaults(fn=_labels_make)
+    d = lab.add_parser("info", help="inspect a .npz query file or a PT human-label folder")
+    d.add_argument("path")
+    d.add_argument("--dataset", help="check that every segment fits this dataset")
+    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(fn=_labels_info)
+
+    cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(dest="sub", required=True, metavar="SUB")
+    d = cfg.add_parser("show", help="print the fully resolved config")
+    d.add_argument("config", nargs="?", help="YAML run config")
+    d.add_argument("overrides", nargs="*", help="a.b=value overrides")
+    d.set_defaults(fn=_config_show)
+    d = cfg.add_parser("keys", help="every config key with type, help and valid values")
+    d.set_defaults(fn=_config_keys)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # `spot config show key=value` without a file: the first positional is an override.
+    if getattr(args, "config", None) and "=" in args.config:
+        args.overrides = [args.config, *args.overrides]
+        args.config = None
+    try:
+        args.fn(args)
+    except SpotError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

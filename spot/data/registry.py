@@ -1,0 +1,163 @@
+"""Dataset names -> local recipes or files, and the dataset cache.
+
+A name like ``hopper-medium-replay`` (a trailing ``-v2`` is accepted) resolves to a local recipe
+that builds the dataset in the real simulator and writes it, in the D4RL hdf5 layout, to the cache
+dir ``$SPOT_DATA_DIR`` (default ``~/.cache/spot/data``). A path to an existing file is read as
+it is (D4RL hdf5, robomimic hdf5). Built files are keyed by ``(name, size, seed)`` and built once;
+a build writes to a temporary name and renames, under a file lock, so concurrent trials of a sweep
+neither corrupt nor duplicate it.
+"""
+
+from __future__ import annotations
+
+import difflib
+import fcntl
+import importlib
+import json
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+from spot import SpotError
+from spot.data.dataset import Dataset, RawDataset
+
+
+@dataclass(frozen=True)
+class Entry:
+    name: str
+    family: str  # locomotion | metaworld
+    recipe: str  # module under spot.data.recipes
+    description: str
+    pt_label_folder: str = ""  # folder name of the PT human labels for the real D4RL dataset
+
+
+_LOCO = {
+    "medium": "rollouts of the SAC snapshot at ~1/3 of the expert return",
+    "medium-replay": "SAC replay buffer up to the medium snapshot",
+    "expert": "rollouts of the final SAC policy",
+    "medium-expert": "medium + expert",
+}
+_MW = {
+    "drawer-open": "Meta-World drawer-open-v3, IPL recipe (scripted expert + noise, random, other tasks)",
+    "plate-slide": "Meta-World plate-slide-v3, IPL recipe",
+    "button-press": "Meta-World button-press-v3, IPL recipe",
+}
+
+REGISTRY: dict[str, Entry] = {}
+for _env in ("hopper", "walker2d"):
+    for _kind, _desc in _LOCO.items():
+        _name = f"{_env}-{_kind}"
+        _folder = f"{_name}-v2" if _kind in ("medium-replay", "medium-expert") else ""
+        REGISTRY[_name] = Entry(_name, "locomotion", "locomotion", f"{_env} (gymnasium v5): {_desc}", _folder)
+for _name, _desc in _MW.items():
+    REGISTRY[_name] = Entry(_name, "metaworld", "metaworld", _desc)
+
+SIZES = ("tiny", "small", "paper")
+
+
+def canonical(name: str) -> str:
+    """``hopper-medium-replay-v2`` -> ``hopper-medium-replay``."""
+    base = name[:-3] if name.endswith(("-v2", "-v3")) else name
+    return base
+
+
+def entry(name: str) -> Entry:
+    base = canonical(name)
+    if base not in REGISTRY:
+        close = difflib.get_close_matches(base, list(REGISTRY), n=3, cutoff=0.5)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise SpotError(
+            f"unknown dataset '{name}'{hint} Known names: {', '.join(REGISTRY)} "
+            "(or give a path to a D4RL/robomimic hdf5 file)"
+        )
+    return REGISTRY[base]
+
+
+def data_dir() -> Path:
+    return Path(os.environ.get("SPOT_DATA_DIR", Path.home() / ".cache" / "spot" / "data")).expanduser()
+
+
+def dataset_path(name: str, size: str, seed: int) -> Path:
+    return data_dir() / f"{canonical(name)}__{size}__seed{seed}.hdf5"
+
+
+def card_path(path: Path) -> Path:
+    return path.with_suffix(".card.json")
+
+
+@contextmanager
+def _lock(path: Path) -> Iterator[None]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_suffix(".lock"), "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True,
+          force: bool = False) -> Path:
+    """Build a registered dataset with its local recipe (once) and return the file path."""
+    from spot.data import formats
+
+    e = entry(name)
+    if size not in SIZES:
+        raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
+    path = dataset_path(e.name, size, seed)
+    with _lock(path):
+        if path.exists() and card_path(path).exists() and not force:
+            return path
+        recipe = importlib.import_module(f"spot.data.recipes.{e.recipe}")
+        raw, card = recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
+        card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
+        formats.write_d4rl_hdf5(raw, path, card)
+        tmp = card_path(path).with_suffix(f".tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(card, indent=2, default=str))
+        os.replace(tmp, card_path(path))
+    return path
+
+
+def read_card(path: Path) -> dict[str, Any]:
+    cp = card_path(path)
+    if cp.exists():
+        return json.loads(cp.read_text())
+    return {}
+
+
+def load_raw(name: str, size: str = "small", seed: int = 0, *, source: str = "auto",
+             progress: bool = True) -> tuple[RawDataset, dict[str, Any]]:
+    """A registered name (built if missing) or a file path -> (raw dataset, card)."""
+    from spot.data import formats
+
+    as_path = Path(name).expanduser()
+    if source == "file" or (source == "auto" and as_path.exists()):
+        if not as_path.exists():
+            raise SpotError(f"dataset file '{name}' does not exist")
+        raw = formats.load_dataset_file(as_path)
+        card = {"name": as_path.stem, "source": "file", "path": str(as_path.resolve()),
+                **raw.metadata.get("spot_card", {})}
+        card["source"] = "file"
+        return raw, card
+    path = build(name, size, seed, progress=progress)
+    raw = formats.read_d4rl_hdf5(path)
+    return raw, read_card(path)
+
+
+def load(name: str, size: str = "small", seed: int = 0, *, source: str = "auto",
+         progress: bool = True) -> tuple[Dataset, dict[str, Any]]:
+    """Like :func:`load_raw` but returns the ``qlearning_dataset`` view."""
+    raw, card = load_raw(name, size, seed, source=source, progress=progress)
+    ds = raw.qlearning()
+    return ds.replace(name=card.get("name") or ds.name), card
+
+
+def cached() -> list[dict[str, Any]]:
+    """Every built dataset in the cache dir, with its card."""
+    out = []
+    for path in sorted(data_dir().glob("*.hdf5")):
+        card = read_card(path)
+        out.append({"path": str(path), **{k: card.get(k) for k in ("name", "size", "seed", "transitions", "episodes")}})
+    return out
