@@ -16,3 +16,13 @@ __version__ = "0.1.0"
 
 class SpotError(Exception):
     """A user error (bad file, key, value). The CLI prints the message and exits with code 2."""
+
+
+class NonFiniteError(RuntimeError):
+    """A training loss became NaN or inf. The run stops and is marked failed with step and loss name."""
+
+    def __init__(self, step: int, loss_name: str, value: float = float("nan")) -> None:
+        super().__init__(f"non-finite loss '{loss_name}' = {value} at step {step}")
+        self.step = step
+        self.loss_name = loss_name
+        self.value = value
