@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from spot import SpotError
+from spot import NonFiniteError, SpotError
 
 
 # --------------------------------------------------------------------------- data
@@ -111,6 +111,18 @@ def _config_keys(args: argparse.Namespace) -> None:
         print(f"{key:26s} {getattr(tp, '__name__', str(tp)):8s} {meta.get('help', '')}{extra}")
 
 
+# --------------------------------------------------------------------------- run
+def _run(args: argparse.Namespace) -> None:
+    from spot import config, pipeline
+
+    cfg = config.load(args.config, args.overrides)
+    final = pipeline.run(cfg, progress=not args.quiet)
+    print(f"run {final['run_id']}: {cfg.method} on {cfg.data.name} (seed {cfg.seed})")
+    for key in sorted(final):
+        if key != "run_id":
+            print(f"  {key:24s} {final[key]:.3f}")
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
@@ -153,6 +165,12 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.set_defaults(fn=_labels_info)
 
+    d = sub.add_parser("run", help="one run (one seed) end to end, logged to MLflow")
+    d.add_argument("config", nargs="?", help="YAML run config (see configs/)")
+    d.add_argument("overrides", nargs="*", help="a.b=value overrides, e.g. method=pt iql.steps=5000")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.set_defaults(fn=_run)
+
     cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(dest="sub", required=True, metavar="SUB")
     d = cfg.add_parser("show", help="print the fully resolved config")
     d.add_argument("config", nargs="?", help="YAML run config")
@@ -175,6 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     except SpotError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except NonFiniteError as e:
+        print(f"error: run failed: {e} (the MLflow run is marked FAILED)", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

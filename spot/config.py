@@ -96,7 +96,7 @@ class RelabelConfig:
 
 @dataclass(frozen=True)
 class SubgoalConfig:
-    enabled: bool = F(False, "extract subgoals and train the CVAE (method=spot)")
+    diagnostics: bool = F(True, "in PT runs without shaping, still extract subgoals and train the CVAE to log the Fig. 2 extrapolation-error diagnostics (the CVAE is cached and shared with SPOT runs of the same seed)")
     top_k: float = F(10.0, "K of the top-K% attention filter, eq. 6", range=(0.0, 100.0))
     group: str = F("top", "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom K%", choices=("top", "top_next", "bottom_next", "bottom"))
     reward_filter: bool = F(True, "also require r_t >= segment mean (eq. 5); off = ablation")
@@ -176,10 +176,10 @@ class ExperimentConfig:
 
 # --------------------------------------------------------------------------- presets
 METHOD_PRESETS: dict[str, dict[str, Any]] = {
-    "oracle": {"reward.kind": "none", "subgoal.enabled": False, "shaping.kind": "none", "relabel.normalize": "iql"},
-    "mr": {"reward.kind": "mr", "subgoal.enabled": False, "shaping.kind": "none"},
-    "pt": {"reward.kind": "pt", "subgoal.enabled": False, "shaping.kind": "none"},
-    "spot": {"reward.kind": "pt", "subgoal.enabled": True, "shaping.kind": "cosine", "shaping.weight": 1.0},
+    "oracle": {"reward.kind": "none", "shaping.kind": "none", "relabel.normalize": "iql"},
+    "mr": {"reward.kind": "mr", "shaping.kind": "none"},
+    "pt": {"reward.kind": "pt", "shaping.kind": "none"},
+    "spot": {"reward.kind": "pt", "shaping.kind": "cosine", "shaping.weight": 1.0},
 }
 
 BUDGET_PRESETS: dict[str, dict[str, Any]] = {

@@ -18,11 +18,11 @@ def test_method_presets_and_precedence(tmp_path):
     f = tmp_path / "run.yaml"
     f.write_text("method: pt\niql:\n  steps: 123\nshaping:\n  weight: 0.5\n")
     cfg = config.load(f, ["iql.steps=456"])
-    assert cfg.method == "pt" and cfg.reward.kind == "pt" and not cfg.subgoal.enabled
+    assert cfg.method == "pt" and cfg.reward.kind == "pt" and cfg.shaping.kind == "none"
     assert cfg.iql.steps == 456  # override beats file
     assert cfg.shaping.weight == 0.5
     spot = config.load(None, ["method=spot"])
-    assert spot.subgoal.enabled and spot.shaping.kind == "cosine"
+    assert spot.reward.kind == "pt" and spot.shaping.kind == "cosine" and spot.shaping.weight == 1.0
     assert config.load(None, ["method=oracle"]).reward.kind == "none"
     # budget preset applies, user value still wins
     tiny = config.load(None, ["budget=tiny", "iql.steps=7"])

@@ -1,0 +1,297 @@
+"""Evaluation environments, the dataset-name -> environment map, and score normalisation.
+
+Three families, each evaluated the way its reference papers report it:
+
+* **locomotion** (``hopper-*``, ``walker2d-*``, ``halfcheetah-*``; a trailing ``-v2`` is dropped):
+  gymnasium's MuJoCo ``Hopper-v5`` / ``Walker2d-v5`` / ``HalfCheetah-v5`` (D4RL's ``-v2`` datasets
+  were recorded in the mujoco-py ``-v3`` envs, which cannot run here; v5 has the same model and
+  reward). Score: the D4RL normalised return ``100 · (R − R_random) / (R_expert − R_random)``
+  with the ``-random-v0`` / expert references of ``d4rl/infos.py`` that the ``-v2`` datasets
+  inherit (reference/algorithms.md §2.4; PT's ``EpisodeMonitor`` multiplies by 100).
+* **metaworld** (``drawer-open``, ``plate-slide``, ``button-press``): the goal-observable v3
+  single-task env, 500 steps. Score: 100 × success rate, an episode counting as a success if
+  ``info["success"]`` was ever true (IPL's ``EvalMetricTracker``). Episodes run the full 500 steps.
+* **robosuite** (``lift-ph``, ``lift-mh``, ``can-ph``, ``can-mh``): robosuite 1.5.1 ``Lift`` /
+  ``PickPlaceCan`` with a Panda under the default composite OSC_POSE controller, sparse reward,
+  20 Hz, horizon 500 as in IPL's ``RoboMimicEnv``; the observation is the robomimic ``low_dim``
+  concatenation IPL reads (:data:`spot.data.formats.ROBOMIMIC_OBS_KEYS`, robomimic's ``object``
+  being robosuite's ``object-state``: Lift 49-D, Can 53-D). An episode ends at the
+  first success (IPL). Score: 100 × success rate.
+
+Meta-World environments are built from the goal-observable class directly rather than through
+``gym.make("Meta-World/MT1")``: MT1 spends ~1 s per env pre-sampling 50 fixed tasks and then
+picks one per reset, while here each reset draws the task (object and goal placement) from the
+same uniform distribution with the env's own seeded RNG, in ~0.3 s per env. IPL's data and
+evaluation env likewise re-draw the task at every reset.
+
+:func:`evaluate` runs its episodes as one batch in lockstep: one policy call per step for all
+episodes still running, so a jitted policy is called ``max_episode_steps`` times, not
+``episodes × max_episode_steps`` times. Episode ``i`` gets its own env seeded with ``seed + i``.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+
+from spot import SpotError
+from spot.data.formats import ROBOMIMIC_OBS_KEYS
+
+Family = Literal["locomotion", "metaworld", "robosuite"]
+ScoreKind = Literal["d4rl", "success"]
+
+# D4RL reference returns (random, expert) from d4rl/infos.py, reference/algorithms.md §2.4.
+D4RL_REF_SCORES: dict[str, tuple[float, float]] = {
+    "hopper": (-20.272305, 3234.3),
+    "walker2d": (1.629008, 4592.3),
+    "halfcheetah": (-280.178953, 12135.0),
+}
+_LOCOMOTION_ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
+_LOCOMOTION_DATASETS = ("random", "medium", "expert", "medium-replay", "medium-expert", "full-replay")
+
+METAWORLD_TASKS = ("drawer-open", "plate-slide", "button-press")
+METAWORLD_MAX_PATH_LENGTH = 500
+
+_ROBOSUITE_ENV_IDS = {"lift": "Lift", "can": "PickPlaceCan"}
+ROBOSUITE_HORIZON = 500
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """Where a dataset's policies are evaluated.
+
+    Attributes:
+      name: the canonical dataset name (``-v2`` dropped), e.g. ``"hopper-medium-replay"``.
+      family: ``"locomotion"``, ``"metaworld"`` or ``"robosuite"``.
+      env_id: ``"Hopper-v5"``, ``"drawer-open-v3"``, ``"Lift"``, ...
+      max_episode_steps: evaluation episode length limit.
+      score: ``"d4rl"`` (normalised return) or ``"success"`` (100 × success rate).
+    """
+
+    name: str
+    family: Family
+    env_id: str
+    max_episode_steps: int
+    score: ScoreKind
+
+
+def valid_names() -> list[str]:
+    """Every dataset name :func:`env_spec` accepts (without the optional ``-v2`` suffix)."""
+    loco = [f"{env}-{kind}" for env in _LOCOMOTION_ENV_IDS for kind in _LOCOMOTION_DATASETS]
+    robo = [f"{task}-{src}" for task in _ROBOSUITE_ENV_IDS for src in ("ph", "mh")]
+    return loco + list(METAWORLD_TASKS) + robo
+
+
+def env_spec(dataset_name: str) -> EnvSpec:
+    """Map a dataset name to its evaluation environment; raise :class:`SpotError` if unknown."""
+    name = re.sub(r"-v2$", "", dataset_name.strip())
+    env, _, kind = name.partition("-")
+    if env in _LOCOMOTION_ENV_IDS and kind in _LOCOMOTION_DATASETS:
+        return EnvSpec(name, "locomotion", _LOCOMOTION_ENV_IDS[env], 1000, "d4rl")
+    if name in METAWORLD_TASKS:
+        return EnvSpec(name, "metaworld", f"{name}-v3", METAWORLD_MAX_PATH_LENGTH, "success")
+    if env in _ROBOSUITE_ENV_IDS and kind in ("ph", "mh"):
+        return EnvSpec(name, "robosuite", _ROBOSUITE_ENV_IDS[env], ROBOSUITE_HORIZON, "success")
+    raise SpotError(
+        f"unknown dataset name '{dataset_name}'; expected one of: {', '.join(valid_names())} "
+        "(locomotion names may end in -v2)"
+    )
+
+
+# --------------------------------------------------------------------------- environments
+class _MetaWorldTaskPerReset(gym.Wrapper):
+    """Re-seedable Meta-World env: ``reset(seed=k)`` reseeds the task RNG (SawyerXYZEnv ignores it)."""
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        if seed is not None:
+            self.env.unwrapped.seed(seed)
+        return self.env.reset(options=options)
+
+
+def make_metaworld_env(env_id: str, seed: int) -> gym.Env:
+    """Goal-observable Meta-World v3 env (e.g. ``"drawer-open-v3"``), a new task every reset.
+
+    Each reset draws the object/goal placement uniformly from the task's reset space with the
+    env's RNG, which ``seed`` (and any later ``reset(seed=...)``) seeds. Observation ``(39,)``,
+    action ``(4,)`` in [-1, 1]; ``truncated`` is set at step 500.
+    """
+    from metaworld.env_dict import ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE
+
+    key = f"{env_id}-goal-observable"
+    if key not in ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE:
+        raise SpotError(f"unknown Meta-World v3 env '{env_id}'")
+    raw = ALL_V3_ENVIRONMENTS_GOAL_OBSERVABLE[key](seed=seed)
+    raw._freeze_rand_vec = False  # draw a new task at each reset ...
+    raw.seeded_rand_vec = True  # ... from raw.np_random, not the global numpy RNG
+    env = _MetaWorldTaskPerReset(raw)
+    env.reset(seed=seed)
+    return env
+
+
+class _RobosuiteEnv(gym.Env):
+    """robosuite Lift / PickPlaceCan as a gymnasium env with the robomimic low_dim observation.
+
+    ``terminated`` is set at the first success (IPL's ``RoboMimicEnv``), ``truncated`` at the
+    horizon. robosuite 1.5.1 draws object placements from the global numpy RNG, so each reset
+    seeds it from this env's RNG and restores it afterwards.
+    """
+
+    def __init__(self, env_id: str, seed: int, horizon: int = ROBOSUITE_HORIZON) -> None:
+        try:
+            import robosuite
+        except ImportError as e:
+            raise SpotError(
+                "robosuite evaluation needs robosuite 1.5.1: pip install 'spot-pbrl[robosuite]'"
+            ) from e
+        self._env = robosuite.make(
+            env_id,
+            robots="Panda",
+            controller_configs=robosuite.load_composite_controller_config(robot="Panda"),
+            has_renderer=False,
+            has_offscreen_renderer=False,
+            use_camera_obs=False,
+            use_object_obs=True,
+            reward_shaping=False,
+            control_freq=20,
+            horizon=horizon,
+            ignore_done=True,
+            hard_reset=False,
+        )
+        self._horizon = horizon
+        self._t = 0
+        low, high = self._env.action_spec
+        self.action_space = gym.spaces.Box(low.astype(np.float32), high.astype(np.float32))
+        obs = self._flatten(self._env.reset())
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, obs.shape, np.float64)
+        self.reset(seed=seed)
+
+    @staticmethod
+    def _flatten(obs: dict[str, np.ndarray]) -> np.ndarray:
+        return np.concatenate(
+            [obs["object-state" if k == "object" else k] for k in ROBOMIMIC_OBS_KEYS]
+        ).astype(np.float64)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        global_state = np.random.get_state()
+        np.random.seed(int(self.np_random.integers(2**31)))
+        try:
+            obs = self._env.reset()
+        finally:
+            np.random.set_state(global_state)
+        self._t = 0
+        return self._flatten(obs), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        obs, reward, _, info = self._env.step(np.asarray(action, dtype=np.float64))
+        self._t += 1
+        success = bool(self._env._check_success())
+        info = dict(info, success=success)
+        return self._flatten(obs), float(reward), success, self._t >= self._horizon, info
+
+    def close(self) -> None:
+        self._env.close()
+
+
+def make_env(name: str, seed: int) -> gym.Env:
+    """A headless evaluation env for dataset ``name``, reset once with ``seed``.
+
+    Later ``reset()`` calls continue the seeded stream; ``reset(seed=k)`` reseeds.
+    """
+    spec = env_spec(name)
+    if spec.family == "locomotion":
+        env = gym.make(spec.env_id)
+        env.reset(seed=seed)
+        env.action_space.seed(seed)
+        return env
+    if spec.family == "metaworld":
+        return make_metaworld_env(spec.env_id, seed)
+    return _RobosuiteEnv(spec.env_id, seed)
+
+
+# --------------------------------------------------------------------------- scores
+def normalized_score(name: str, returns_or_successes: Any) -> np.ndarray:
+    """Per-episode normalised score, same shape as the input (float64).
+
+    Locomotion: ``100 · (R − R_random) / (R_expert − R_random)`` (D4RL). Meta-World and
+    robosuite: ``100 · success`` with success in {0, 1}, so the mean is 100 × success rate.
+    """
+    spec = env_spec(name)
+    values = np.asarray(returns_or_successes, dtype=np.float64)
+    if spec.score == "d4rl":
+        lo, hi = D4RL_REF_SCORES[spec.name.split("-")[0]]
+        return 100.0 * (values - lo) / (hi - lo)
+    if not np.all((values == 0.0) | (values == 1.0)):
+        raise SpotError(
+            f"normalized_score('{name}'): expected per-episode successes in {{0, 1}}, got values "
+            f"in [{values.min()}, {values.max()}]"
+        )
+    return 100.0 * values
+
+
+def evaluate(policy_fn: Callable[[np.ndarray], Any], name: str, episodes: int, seed: int) -> dict[str, Any]:
+    """Run ``episodes`` episodes of ``policy_fn`` in lockstep and score them.
+
+    Args:
+      policy_fn: maps observations ``[n, obs_dim]`` (float32 numpy) of the ``n`` episodes still
+        running to actions ``[n, act_dim]``; actions are clipped to the action space.
+      name: dataset name (see :func:`env_spec`).
+      episodes: number of episodes; episode ``i`` runs in its own env seeded with ``seed + i``.
+      seed: base seed.
+
+    Returns:
+      ``score_mean``, ``score_std`` (normalised, see :func:`normalized_score`), ``return_mean``,
+      ``return_std``, ``success_rate`` (NaN for locomotion), ``episode_length_mean``, and the
+      per-episode arrays ``scores``, ``returns``, ``lengths``.
+    """
+    if episodes < 1:
+        raise SpotError(f"evaluate: episodes must be >= 1, got {episodes}")
+    spec = env_spec(name)
+    envs = [make_env(name, seed + i) for i in range(episodes)]
+    try:
+        first = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+        obs = np.stack(first).astype(np.float32)
+        low, high = envs[0].action_space.low, envs[0].action_space.high
+        returns = np.zeros(episodes)
+        lengths = np.zeros(episodes, dtype=np.int64)
+        successes = np.zeros(episodes, dtype=bool)
+        running = np.ones(episodes, dtype=bool)
+        for _ in range(spec.max_episode_steps):
+            idx = np.flatnonzero(running)
+            if idx.size == 0:
+                break
+            actions = np.asarray(policy_fn(obs[idx]), dtype=np.float64)
+            if actions.shape != (idx.size, low.shape[0]):
+                raise SpotError(
+                    f"evaluate('{name}'): policy_fn returned actions of shape {actions.shape} for "
+                    f"{idx.size} observations; expected {(idx.size, low.shape[0])}"
+                )
+            actions = np.clip(actions, low, high)
+            for a, i in zip(actions, idx, strict=True):
+                o, r, terminated, truncated, info = envs[i].step(a)
+                obs[i] = o
+                returns[i] += float(r)
+                lengths[i] += 1
+                successes[i] |= bool(info.get("success", False))
+                running[i] = not (terminated or truncated)
+    finally:
+        for env in envs:
+            env.close()
+    scores = normalized_score(name, returns if spec.score == "d4rl" else successes.astype(np.float64))
+    return {
+        "score_mean": float(scores.mean()),
+        "score_std": float(scores.std()),
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std()),
+        "success_rate": float(successes.mean()) if spec.score == "success" else float("nan"),
+        "episode_length_mean": float(lengths.mean()),
+        "scores": scores,
+        "returns": returns,
+        "lengths": lengths,
+    }
+

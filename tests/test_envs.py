@@ -1,0 +1,146 @@
+"""Tests of spot.envs: name -> env map, D4RL score constants, lockstep evaluation in the real simulators."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from spot import SpotError
+from spot.envs import D4RL_REF_SCORES, env_spec, evaluate, make_env, normalized_score, valid_names
+
+
+@pytest.mark.parametrize(
+    ("name", "family", "env_id", "steps", "score"),
+    [
+        ("hopper-medium-replay", "locomotion", "Hopper-v5", 1000, "d4rl"),
+        ("hopper-medium-replay-v2", "locomotion", "Hopper-v5", 1000, "d4rl"),
+        ("walker2d-medium-expert", "locomotion", "Walker2d-v5", 1000, "d4rl"),
+        ("drawer-open", "metaworld", "drawer-open-v3", 500, "success"),
+        ("plate-slide", "metaworld", "plate-slide-v3", 500, "success"),
+        ("button-press", "metaworld", "button-press-v3", 500, "success"),
+        ("lift-ph", "robosuite", "Lift", 500, "success"),
+        ("can-mh", "robosuite", "PickPlaceCan", 500, "success"),
+    ],
+)
+def test_env_spec(name, family, env_id, steps, score):
+    spec = env_spec(name)
+    assert (spec.family, spec.env_id, spec.max_episode_steps, spec.score) == (family, env_id, steps, score)
+    assert spec.name == name.removesuffix("-v2")
+
+
+@pytest.mark.parametrize("name", ["hopper-medium-replay-v9", "door-open", "lift", "antmaze-umaze", ""])
+def test_unknown_name_raises_naming_it(name):
+    with pytest.raises(SpotError, match=f"unknown dataset name '{name}'") as err:
+        env_spec(name)
+    assert "walker2d-medium-expert" in str(err.value) and "drawer-open" in str(err.value)
+    with pytest.raises(SpotError, match=f"'{name}'"):
+        make_env(name, 0)
+
+
+def test_valid_names_all_resolve():
+    for name in valid_names():
+        assert env_spec(name).name == name
+
+
+@pytest.mark.parametrize("env", ["hopper", "walker2d"])
+def test_d4rl_constants_give_0_and_100(env):
+    lo, hi = D4RL_REF_SCORES[env]
+    scores = normalized_score(f"{env}-medium-replay", [lo, hi, (lo + hi) / 2])
+    np.testing.assert_allclose(scores, [0.0, 100.0, 50.0], atol=1e-9)
+
+
+def test_d4rl_constants_match_algorithms_md():
+    assert D4RL_REF_SCORES["hopper"] == (-20.272305, 3234.3)
+    assert D4RL_REF_SCORES["walker2d"] == (1.629008, 4592.3)
+
+
+def test_success_score_is_100_times_success_and_rejects_returns():
+    np.testing.assert_allclose(normalized_score("drawer-open", [1, 0, 1, 1]), [100, 0, 100, 100])
+    with pytest.raises(SpotError, match="successes in"):
+        normalized_score("lift-ph", [250.0])
+
+
+def test_random_policy_on_hopper_scores_near_zero():
+    rng = np.random.default_rng(0)
+    out = evaluate(lambda obs: rng.uniform(-1, 1, (obs.shape[0], 3)), "hopper-medium-replay", 3, seed=0)
+    assert abs(out["score_mean"]) < 5.0
+    assert out["scores"].shape == (3,)
+    assert np.isnan(out["success_rate"])
+    # The per-episode scores are the normalised per-episode returns.
+    np.testing.assert_allclose(out["scores"], 100 * (out["returns"] + 20.272305) / (3234.3 + 20.272305))
+
+
+def test_evaluate_is_deterministic_and_checks_action_shape():
+    def zeros(obs):
+        return np.zeros((obs.shape[0], 3))
+
+    a = evaluate(zeros, "hopper-medium-expert", 2, seed=5)
+    b = evaluate(zeros, "hopper-medium-expert", 2, seed=5)
+    np.testing.assert_array_equal(a["returns"], b["returns"])
+    with pytest.raises(SpotError, match="expected"):
+        evaluate(lambda obs: np.zeros((obs.shape[0], 2)), "hopper-medium-expert", 1, seed=0)
+
+
+def test_scripted_policy_solves_drawer_open_through_evaluate():
+    from metaworld.policies import SawyerDrawerOpenV3Policy
+
+    policy = SawyerDrawerOpenV3Policy()
+    calls = []
+
+    def policy_fn(obs):
+        calls.append(obs.shape[0])
+        return np.stack([policy.get_action(o) for o in obs])
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = evaluate(policy_fn, "drawer-open", 2, seed=0)
+    assert out["success_rate"] == 1.0
+    assert out["score_mean"] == 100.0
+    # Lockstep: one policy call per step for both episodes, which run the full 500 steps.
+    assert calls == [2] * 500
+    np.testing.assert_array_equal(out["lengths"], [500, 500])
+
+
+def test_metaworld_env_draws_a_new_task_per_reset_and_reseeds():
+    env = make_env("plate-slide", 3)
+    obs_a, _ = env.reset(seed=11)
+    obs_b, _ = env.reset()
+    obs_c, _ = env.reset(seed=11)
+    assert obs_a.shape == (39,)
+    assert not np.allclose(obs_a, obs_b)
+    np.testing.assert_array_equal(obs_a, obs_c)
+
+
+@pytest.mark.slow
+def test_robosuite_lift_layout_and_scripted_success():
+    pytest.importorskip("robosuite")
+    env = make_env("lift-ph", 0)
+    obs, _ = env.reset(seed=1)
+    assert obs.shape == (49,) and env.action_space.shape == (7,)
+    obs2, reward, terminated, truncated, info = env.step(np.zeros(7))
+    assert obs2.shape == (49,) and reward == 0.0 and not terminated and not truncated
+    assert info["success"] is False
+    np.testing.assert_array_equal(obs, env.reset(seed=1)[0])
+    env.close()
+
+    # A 4-phase scripted lift (reference/environment.md section 4) reads the cube position from
+    # the robomimic "object" block (obs[0:3]) and the end effector from robot0_eef_pos (obs[38:41]).
+    phase, closed_steps = 0, 0
+
+    def lift(obs):
+        nonlocal phase, closed_steps
+        cube, eef = obs[0, 0:3], obs[0, 38:41]
+        targets = [cube + [0, 0, 0.08], cube - [0, 0, 0.005], eef, cube + [0, 0, 0.2]]
+        if phase < 2 and np.linalg.norm(eef - targets[phase]) < 0.01:
+            phase += 1
+        elif phase == 2:
+            closed_steps += 1
+            phase += closed_steps >= 10
+        action = np.zeros((1, 7))
+        action[0, :3] = np.clip(20 * (targets[phase] - eef), -1, 1)
+        action[0, 6] = 1.0 if phase >= 2 else -1.0
+        return action
+
+    out = evaluate(lift, "lift-ph", 1, seed=0)
+    assert out["success_rate"] == 1.0 and out["score_mean"] == 100.0
+    assert out["lengths"][0] < 100  # the episode ends at the first success
