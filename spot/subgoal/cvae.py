@@ -1,0 +1,378 @@
+"""Conditional VAE over subgoals, ``p(g | s, a)`` (SPOT paper, §4.1.3, eq. 7-9, Table 6, Table 7).
+
+Three :class:`spot.nets.MLP` networks (hidden sizes ``cfg.hidden``, Table 6 ``[32, 64, 32]``, ReLU):
+
+* encoder ``q_φ(z | g, s, a)`` and prior ``p_ψ(z | s, a)``: mean and log-std of ``z``
+  (``cfg.latent_dim``), log-std clipped to ``[-5, 2]``;
+* decoder ``p_θ(g | z, s, a) = N(μ_θ(z, s, a), I)``: only the mean is learned.
+
+Loss per triplet (batch mean), ``z ~ q`` by reparameterisation, one sample:
+
+* ``recon = ½ ||μ_θ(z, s, a) - g||²`` in normalised units: the decoder's negative
+  log-likelihood (eq. 7, first term) up to the constant ``(obs_dim / 2) log 2π``, i.e.
+  ``obs_dim / 2`` times the per-dimension MSE;
+* ``kl = KL(q_φ || p_ψ)``, analytic for diagonal Gaussians (eq. 7, second term), weighted by β;
+* ``cos = ½ (1 - cos(ĝ, g))`` on raw states, where ĝ is the decoder mean (the posterior
+  reconstruction), mapped back to raw units. Eq. 8 prints ``½ (1 + cos)``, which would be
+  *minimised* by pointing ĝ away from g; we implement the intended ``½ (1 - cos)`` (0 when ĝ
+  points along g, 1 when opposite). The cosine is taken on raw states, as the shaping reward of
+  eq. 11 is. ``cfg.loss = "mse"`` drops this term (Table 7's "MSE only").
+
+``loss = recon + β · kl (+ cos)`` (eq. 9).
+
+Normalisation: ``s`` and ``g`` are z-scored with the dataset's observation mean and std (std
+floored at 1e-3), which live in :class:`CVAEParams` next to the network weights. Actions go in
+raw (they are bounded in ``[-1, 1]`` in every dataset we use). The decoder outputs a normalised
+subgoal and :func:`generate` maps it back, so callers pass and receive raw states.
+
+Generation (eq. 10): ``ĝ = μ_θ(z, s, a)`` with ``z`` the prior mean (``mode="mean"``) or a prior
+sample (``mode="sample"``).
+
+Training (:func:`train_cvae`): Adam (``cfg.lr``), minibatches of ``cfg.batch_size`` triplets
+drawn with replacement on device, ``jit(lax.scan)`` chunks of equal length (state donated,
+per-step keys ``fold_in(key, step)``), a held-out loss after every chunk, and
+:class:`spot.NonFiniteError` on a NaN/inf loss. The final parameters are returned.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import sys
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from tqdm.auto import tqdm
+
+from spot import NonFiniteError, SpotError
+from spot.config import CVAEConfig
+from spot.nets import MLP, Params
+from spot.subgoal.extract import Triplets
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+STD_FLOOR = 1e-3
+COS_EPS = 1e-8
+
+
+# --------------------------------------------------------------------------- networks
+class GaussianMLP(nn.Module):
+    """``x -> (mean, log_std)`` of a diagonal Gaussian."""
+
+    hidden: Sequence[int]
+    out_dim: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        mean, log_std = jnp.split(MLP(self.hidden, 2 * self.out_dim)(x), 2, axis=-1)
+        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+
+class CVAE(nn.Module):
+    """Encoder, prior and decoder on normalised states ``s_n``, ``g_n`` and raw actions ``a``."""
+
+    obs_dim: int
+    latent_dim: int
+    hidden: Sequence[int]
+
+    def setup(self) -> None:
+        self.encoder = GaussianMLP(self.hidden, self.latent_dim)
+        self.prior_net = GaussianMLP(self.hidden, self.latent_dim)
+        self.decoder = MLP(self.hidden, self.obs_dim)
+
+    def posterior(self, g_n: jax.Array, s_n: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return self.encoder(jnp.concatenate([g_n, s_n, a], axis=-1))
+
+    def prior(self, s_n: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return self.prior_net(jnp.concatenate([s_n, a], axis=-1))
+
+    def decode(self, z: jax.Array, s_n: jax.Array, a: jax.Array) -> jax.Array:
+        return self.decoder(jnp.concatenate([z, s_n, a], axis=-1))
+
+    def __call__(self, g_n: jax.Array, s_n: jax.Array, a: jax.Array) -> jax.Array:
+        """Touches every sub-network (used by ``init``); returns the decoder mean at the posterior mean."""
+        q_mean, _ = self.posterior(g_n, s_n, a)
+        self.prior(s_n, a)
+        return self.decode(q_mean, s_n, a)
+
+
+class CVAEParams(struct.PyTreeNode):
+    """Network weights, the observation statistics, and the (static) architecture."""
+
+    net: Params
+    obs_mean: jax.Array  # [obs_dim]
+    obs_std: jax.Array  # [obs_dim], floored at STD_FLOOR
+    hidden: tuple[int, ...] = struct.field(pytree_node=False)
+    latent_dim: int = struct.field(pytree_node=False)
+
+    @property
+    def module(self) -> CVAE:
+        return CVAE(obs_dim=self.obs_mean.shape[-1], latent_dim=self.latent_dim, hidden=self.hidden)
+
+    def normalize(self, x: jax.Array) -> jax.Array:
+        return (x - self.obs_mean) / self.obs_std
+
+    def denormalize(self, x_n: jax.Array) -> jax.Array:
+        return x_n * self.obs_std + self.obs_mean
+
+
+class CVAEState(NamedTuple):
+    """Training state: the parameters, Adam's state over ``params.net`` and the step counter."""
+
+    params: CVAEParams
+    opt_state: optax.OptState
+    step: jax.Array  # [] int32, gradient steps taken
+
+
+# --------------------------------------------------------------------------- maths
+def gaussian_kl(mean_q: jax.Array, log_std_q: jax.Array, mean_p: jax.Array,
+                log_std_p: jax.Array) -> jax.Array:
+    """``KL(N(mean_q, diag σ_q²) || N(mean_p, diag σ_p²))`` summed over the last axis.
+
+    ``Σ_d log σ_p - log σ_q + (σ_q² + (μ_q - μ_p)²) / (2 σ_p²) - ½``.
+    """
+    var_q, var_p = jnp.exp(2 * log_std_q), jnp.exp(2 * log_std_p)
+    kl = log_std_p - log_std_q + (var_q + (mean_q - mean_p) ** 2) / (2 * var_p) - 0.5
+    return kl.sum(axis=-1)
+
+
+def cosine_similarity(x: jax.Array, y: jax.Array, eps: float = COS_EPS) -> jax.Array:
+    """``x·y / max(||x|| ||y||, eps)`` over the last axis."""
+    norms = jnp.linalg.norm(x, axis=-1) * jnp.linalg.norm(y, axis=-1)
+    return (x * y).sum(axis=-1) / jnp.maximum(norms, eps)
+
+
+def cosine_loss(g_hat: jax.Array, g: jax.Array) -> jax.Array:
+    """``½ (1 - cos(ĝ, g))`` per row: the intended form of eq. 8 (see module docstring)."""
+    return 0.5 * (1.0 - cosine_similarity(g_hat, g))
+
+
+def obs_stats(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean, std)`` of ``obs [N, obs_dim]`` over rows, float32."""
+    obs = np.asarray(obs, dtype=np.float64)
+    return obs.mean(axis=0).astype(np.float32), obs.std(axis=0).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- loss
+def loss_fn(params: CVAEParams, batch: Triplets, key: jax.Array,
+            cfg: CVAEConfig) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Eq. 9 on a batch of raw triplets ``s [B, o]``, ``a [B, a]``, ``g [B, o]``.
+
+    Returns:
+      ``(loss, info)`` with ``cvae/recon``, ``cvae/kl``, ``cvae/cos``, ``cvae/loss`` and
+      ``cvae/mse`` (per-dimension MSE in normalised units). ``cvae/cos`` is logged for
+      ``cfg.loss = "mse"`` too, but only added to the loss for ``"mse_cos"``.
+    """
+    s, a, g = batch
+    assert s.ndim == 2 and s.shape == g.shape and a.shape[0] == s.shape[0], (s.shape, a.shape, g.shape)
+    model = params.module
+    s_n, g_n = params.normalize(s), params.normalize(g)
+    q_mean, q_log_std = model.apply({"params": params.net}, g_n, s_n, a, method=CVAE.posterior)
+    p_mean, p_log_std = model.apply({"params": params.net}, s_n, a, method=CVAE.prior)
+    z = q_mean + jnp.exp(q_log_std) * jax.random.normal(key, q_mean.shape)
+    g_hat_n = model.apply({"params": params.net}, z, s_n, a, method=CVAE.decode)
+
+    sq_err = ((g_hat_n - g_n) ** 2).sum(axis=-1)  # [B]
+    recon = 0.5 * sq_err.mean()
+    kl = gaussian_kl(q_mean, q_log_std, p_mean, p_log_std).mean()
+    cos = cosine_loss(params.denormalize(g_hat_n), g).mean()
+    loss = recon + cfg.beta * kl
+    if cfg.loss == "mse_cos":
+        loss = loss + cos
+    info = {"cvae/loss": loss, "cvae/recon": recon, "cvae/kl": kl, "cvae/cos": cos,
+            "cvae/mse": sq_err.mean() / s.shape[-1]}
+    return loss, info
+
+
+# --------------------------------------------------------------------------- training
+def _optimizer(cfg: CVAEConfig) -> optax.GradientTransformation:
+    return optax.adam(cfg.lr)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _init_net(model: CVAE, act_dim: int, key: jax.Array) -> Params:
+    zeros_o, zeros_a = jnp.zeros((1, model.obs_dim)), jnp.zeros((1, act_dim))
+    return model.init(key, zeros_o, zeros_o, zeros_a)["params"]
+
+
+def init(key: jax.Array, obs_dim: int, act_dim: int, cfg: CVAEConfig,
+         stats: tuple[np.ndarray, np.ndarray]) -> CVAEState:
+    """Fresh CVAE weights and Adam state; ``stats = (obs_mean, obs_std)`` of the dataset."""
+    mean, std = (np.asarray(x, dtype=np.float32) for x in stats)
+    if mean.shape != (obs_dim,) or std.shape != (obs_dim,):
+        raise SpotError(f"obs_stats have shapes {mean.shape}, {std.shape}; expected ({obs_dim},)")
+    model = CVAE(obs_dim=obs_dim, latent_dim=cfg.latent_dim, hidden=tuple(cfg.hidden))
+    net = _init_net(model, act_dim, key)
+    params = CVAEParams(net=net, obs_mean=jnp.asarray(mean),
+                        obs_std=jnp.maximum(jnp.asarray(std), STD_FLOOR),
+                        hidden=tuple(cfg.hidden), latent_dim=cfg.latent_dim)
+    return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
+
+
+@functools.cache
+def make_train_chunk(cfg: CVAEConfig, num_steps: int) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
+    """``train_chunk(state, data, key) -> (state, metrics)``: ``num_steps`` Adam steps in one scan.
+
+    ``data`` is the full training set of triplets on device; each step samples ``cfg.batch_size``
+    rows with replacement from ``fold_in(key, step)``. ``metrics`` are means over the chunk.
+    The state is donated. Memoised on ``(cfg, num_steps)``, so repeated trainings in one
+    process (a sweep trial, the tests) reuse the compiled chunk for data of the same shape.
+    """
+    opt = _optimizer(cfg)
+
+    def update(state: CVAEState, data: Triplets, key: jax.Array) -> tuple[CVAEState, dict[str, jax.Array]]:
+        step_key = jax.random.fold_in(key, state.step)
+        idx_key, loss_key = jax.random.split(step_key)
+        idx = jax.random.randint(idx_key, (cfg.batch_size,), 0, data.s.shape[0])
+        batch = Triplets(*(x[idx] for x in data))
+
+        def net_loss(net: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
+            return loss_fn(state.params.replace(net=net), batch, loss_key, cfg)
+
+        grads, info = jax.grad(net_loss, has_aux=True)(state.params.net)
+        updates, opt_state = opt.update(grads, state.opt_state, state.params.net)
+        params = state.params.replace(net=optax.apply_updates(state.params.net, updates))
+        return CVAEState(params, opt_state, state.step + 1), info
+
+    def train_chunk(state: CVAEState, data: Triplets, key: jax.Array) -> tuple[CVAEState, dict[str, jax.Array]]:
+        state, infos = jax.lax.scan(lambda st, _: update(st, data, key), state, None, length=num_steps)
+        return state, jax.tree.map(jnp.mean, infos)
+
+    return jax.jit(train_chunk, donate_argnums=0)
+
+
+def _split(key: jax.Array, n: int, holdout: float, groups: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Train / held-out row indices; whole groups (segments) go to one side when given."""
+    if groups is None:
+        groups = np.arange(n)
+    uniq = np.unique(groups)
+    n_held = int(round(holdout * uniq.size))
+    if n_held == 0 or n_held == uniq.size:
+        return np.arange(n), np.zeros(0, np.int64)
+    perm = np.asarray(jax.random.permutation(key, uniq.size))
+    held = np.isin(groups, uniq[perm[:n_held]])
+    return np.flatnonzero(~held), np.flatnonzero(held)
+
+
+def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg: CVAEConfig,
+               obs_stats: tuple[np.ndarray, np.ndarray], progress: bool = True, *,
+               log_every: int = 500, holdout: float = 0.1,
+               groups: np.ndarray | None = None) -> tuple[CVAEParams, list[dict[str, float]]]:
+    """Train the CVAE for ``cfg.steps`` steps (rounded up to whole chunks) on raw triplets.
+
+    Args:
+      key: root key of this stage; split into init / split / train / eval keys.
+      s, a, g: ``[M, obs_dim]``, ``[M, act_dim]``, ``[M, obs_dim]`` triplets (:mod:`extract`).
+      cfg: CVAE config.
+      obs_stats: ``(mean, std)`` of the dataset's observations (:func:`obs_stats`).
+      progress: show a progress bar on stderr.
+      log_every: steps per jitted chunk (= log interval). The chunk length is
+        ``ceil(steps / ceil(steps / log_every))`` so every chunk has the same length and compiles
+        once; the total may exceed ``cfg.steps`` by less than one step per chunk.
+      holdout: fraction of triplets (or of ``groups``) held out for the ``cvae/heldout_*``
+        metrics; no held-out split when it rounds to zero groups.
+      groups: optional ``[M]`` segment id per triplet, so a segment's triplets are not split
+        across train and held-out sets.
+
+    Returns:
+      ``(params, history)``; ``history`` is one dict per chunk with ``step``, the chunk means
+      of the :func:`loss_fn` metrics and, with a held-out split, ``cvae/heldout_loss`` etc.
+
+    Raises:
+      NonFiniteError: a logged loss is NaN or inf.
+    """
+    s, a, g = (np.asarray(x, dtype=np.float32) for x in (s, a, g))
+    m = s.shape[0]
+    if m == 0 or a.shape[0] != m or g.shape != s.shape:
+        raise SpotError(f"triplets have shapes s {s.shape}, a {a.shape}, g {g.shape}; expected "
+                        "[M, obs_dim], [M, act_dim], [M, obs_dim] with M > 0")
+    init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
+    del key
+    train_idx, held_idx = _split(split_key, m, holdout, groups)
+    data = Triplets(*(jnp.asarray(x[train_idx]) for x in (s, a, g)))
+    held = Triplets(*(jnp.asarray(x[held_idx]) for x in (s, a, g))) if held_idx.size else None
+
+    n_chunks = math.ceil(cfg.steps / log_every)
+    chunk_len = math.ceil(cfg.steps / n_chunks)
+    train_chunk = make_train_chunk(cfg, chunk_len)
+    eval_loss = jax.jit(lambda p, b, k: loss_fn(p, b, k, cfg)[1])
+    state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats)
+    history: list[dict[str, float]] = []
+    bar = tqdm(total=n_chunks * chunk_len, desc="cvae", disable=not progress, file=sys.stderr)
+    for chunk in range(n_chunks):
+        state, metrics = train_chunk(state, data, jax.random.fold_in(train_key, chunk))
+        if held is not None:
+            held_info = eval_loss(state.params, held, eval_key)
+            metrics |= {k.replace("cvae/", "cvae/heldout_"): v for k, v in held_info.items()}
+        row = {"step": int(state.step), **{k: float(v) for k, v in jax.device_get(metrics).items()}}
+        for name in ("cvae/loss", "cvae/heldout_loss"):
+            if name in row and not math.isfinite(row[name]):
+                raise NonFiniteError(row["step"], name, row[name])
+        history.append(row)
+        bar.update(chunk_len)
+        bar.set_postfix(loss=f"{row['cvae/loss']:.4f}")
+    bar.close()
+    return state.params, history
+
+
+# --------------------------------------------------------------------------- generation
+def sample_subgoal(params: CVAEParams, s: jax.Array, a: jax.Array, key: jax.Array | None = None) -> jax.Array:
+    """Raw subgoals ``ĝ [B, obs_dim]`` from raw ``s [B, o]``, ``a [B, a]`` (eq. 10); pure, jittable.
+
+    ``key=None`` decodes the prior mean; a key decodes one prior sample per row.
+    """
+    model = params.module
+    s_n = params.normalize(s)
+    p_mean, p_log_std = model.apply({"params": params.net}, s_n, a, method=CVAE.prior)
+    z = p_mean if key is None else p_mean + jnp.exp(p_log_std) * jax.random.normal(key, p_mean.shape)
+    return params.denormalize(model.apply({"params": params.net}, z, s_n, a, method=CVAE.decode))
+
+
+@jax.jit
+def _generate_mean(params: CVAEParams, s: jax.Array, a: jax.Array) -> jax.Array:
+    return sample_subgoal(params, s, a)
+
+
+@jax.jit
+def _generate_sample(params: CVAEParams, s: jax.Array, a: jax.Array, key: jax.Array) -> jax.Array:
+    return sample_subgoal(params, s, a, key)
+
+
+def generate(params: CVAEParams, s: np.ndarray, a: np.ndarray, key: jax.Array | None = None,
+             mode: str = "mean", batch_size: int = 4096) -> np.ndarray:
+    """Subgoals for a whole dataset, in fixed-size batches (the last one padded; one compile).
+
+    Args:
+      params: trained :class:`CVAEParams`.
+      s, a: raw ``[N, obs_dim]``, ``[N, act_dim]``.
+      key: required for ``mode="sample"``; batch ``i`` uses ``fold_in(key, i)``.
+      mode: ``"mean"`` decodes the prior mean, ``"sample"`` a prior sample.
+      batch_size: rows per jitted call.
+
+    Returns:
+      ``ĝ [N, obs_dim]`` float32 numpy, in raw state units.
+    """
+    if mode not in ("mean", "sample"):
+        raise SpotError(f"subgoal mode {mode!r}; expected 'mean' or 'sample'")
+    if mode == "sample" and key is None:
+        raise SpotError("mode='sample' needs a key")
+    s, a = np.asarray(s, dtype=np.float32), np.asarray(a, dtype=np.float32)
+    n, bs = s.shape[0], batch_size
+    out = np.empty(s.shape, np.float32)
+    for i, start in enumerate(range(0, n, bs)):
+        s_b, a_b = s[start:start + bs], a[start:start + bs]
+        pad = bs - s_b.shape[0]
+        if pad:
+            s_b = np.concatenate([s_b, np.zeros((pad, s.shape[1]), np.float32)])
+            a_b = np.concatenate([a_b, np.zeros((pad, a.shape[1]), np.float32)])
+        if mode == "mean":
+            g_b = _generate_mean(params, s_b, a_b)
+        else:
+            g_b = _generate_sample(params, s_b, a_b, jax.random.fold_in(key, i))
+        out[start:start + bs] = np.asarray(g_b)[: bs - pad]
+    return out

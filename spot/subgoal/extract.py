@@ -1,0 +1,209 @@
+"""Attention-based subgoal extraction and CVAE training triplets (SPOT paper, §4.1.1-4.1.3).
+
+For every labelled query the Preference Transformer gives, per step ``t`` of each segment, a
+reward ``r̂_t`` and an importance weight ``w_t`` (the column mean of the preference-attention
+matrix, eq. 4; it sums to 1 over the segment). Subgoals are taken from *preferred* segments only:
+
+* :func:`preferred_segments` picks the preferred segment of each query: ``y = 1`` -> segment 2,
+  ``y = 0`` -> segment 1. A tie (``y = 0.5``) prefers neither segment, so ties are skipped by
+  default (``ties="both"`` keeps both segments of a tie instead).
+* :func:`subgoal_mask` is the dual-criteria filter of eq. 5-6,
+  ``S_g(σ; K) = {s_t | w_t ≥ α_K(σ) ∧ r̂_t ≥ mean_t r̂(σ)}`` with
+  ``α_K(σ) = Quantile_{1-K%}({w_i})`` taken per segment. The other percentile groups of Table 2
+  use the same per-segment quantiles ``q(p)`` (numpy's linear interpolation), mirrored so that
+  ``bottom`` is the exact counterpart of ``top`` (``k = K / 100``, levels clipped to ``[0, 1]``):
+
+  ============  ======================================  =============================
+  group         attention criterion                     Table 2 row
+  ============  ======================================  =============================
+  top           ``w ≥ q(1 - k)``                        Top 10% (SPOT), eq. 6
+  top_next      ``q(1 - 2k) ≤ w < q(1 - k)``            Top 10-20%
+  bottom_next   ``q(k) < w ≤ q(2k)``                    Bottom 10-20%
+  bottom        ``w ≤ q(k)``                            Bottom 10%
+  ============  ======================================  =============================
+
+  With ``T = 100`` and ``K = 10`` each group holds exactly 10 steps when the weights are
+  distinct. Equal weights all pass the same threshold (a uniform ``w`` selects every step for
+  ``top`` and ``bottom``).
+* :func:`make_triplets` builds the CVAE data of §4.1.3: every step ``t`` of a preferred segment
+  is paired with the *next* subgoal at or after ``t`` in the same segment, ``g_t = s_τ`` with
+  ``τ = min{τ ≥ t | mask_τ}`` ("s_t, a_t between g_{t-1} and g_t"). A subgoal step is its own
+  target (``τ = t``). Steps after the last subgoal of a segment have no target and are dropped.
+
+Everything here is host-side numpy: it runs once per reward model and its outputs have
+data-dependent sizes.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from spot import SpotError
+from spot.config import SubgoalConfig
+
+GROUPS = ("top", "top_next", "bottom_next", "bottom")
+TIES = ("skip", "both")
+
+
+class Segments(NamedTuple):
+    """Per-step PT outputs for one side of ``Q`` labelled queries.
+
+    Attributes:
+      obs: ``[Q, T, obs_dim]`` states.
+      act: ``[Q, T, act_dim]`` actions.
+      reward: ``[Q, T]`` PT per-step reward ``r̂_t``.
+      weight: ``[Q, T]`` PT importance weight ``w_t`` (column mean of the preference attention).
+    """
+
+    obs: np.ndarray
+    act: np.ndarray
+    reward: np.ndarray
+    weight: np.ndarray
+
+
+class Triplets(NamedTuple):
+    """CVAE training data ``(s_t, a_t, g_t)``: ``s [M, obs_dim]``, ``a [M, act_dim]``, ``g [M, obs_dim]``."""
+
+    s: np.ndarray
+    a: np.ndarray
+    g: np.ndarray
+
+
+def preferred_segments(y: np.ndarray, ties: str = "skip") -> tuple[np.ndarray, np.ndarray]:
+    """Which segment of each query is preferred.
+
+    Args:
+      y: ``[Q]`` labels in {0, 0.5, 1}; 1 means segment 2 is preferred, 0 segment 1, 0.5 a tie.
+      ties: ``"skip"`` drops tied queries (neither segment is preferred; default), ``"both"``
+        keeps both segments of a tie.
+
+    Returns:
+      ``(query [P], side [P])``: the query index and the side of each preferred segment
+      (0 = segment 1, 1 = segment 2), ordered by query, segment 1 before segment 2.
+    """
+    if ties not in TIES:
+        raise SpotError(f"ties={ties!r}; expected one of {TIES}")
+    y = np.asarray(y, dtype=np.float64)
+    if y.ndim != 1:
+        raise SpotError(f"labels have shape {y.shape}; expected [Q]")
+    is_tie = np.isclose(y, 0.5)
+    bad = ~(np.isclose(y, 0.0) | np.isclose(y, 1.0) | is_tie)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise SpotError(f"label {i} is {y[i]}; expected 0, 0.5 or 1")
+    query = np.arange(y.size)
+    side = np.isclose(y, 1.0).astype(np.int64)
+    keep = ~is_tie
+    if ties == "skip":
+        return query[keep], side[keep]
+    both_q = np.concatenate([query[keep], query[is_tie], query[is_tie]])
+    both_s = np.concatenate([side[keep], np.zeros(is_tie.sum(), np.int64), np.ones(is_tie.sum(), np.int64)])
+    order = np.lexsort((both_s, both_q))
+    return both_q[order], both_s[order]
+
+
+def take_preferred(seg_1: Segments, seg_2: Segments, y: np.ndarray, ties: str = "skip") -> Segments:
+    """Stack the preferred segments of all queries: a :class:`Segments` with ``P`` rows."""
+    query, side = preferred_segments(y, ties)
+    pick = side.astype(bool)
+    return Segments(*(np.where(_expand(pick, f1.ndim), f2[query], f1[query])
+                      for f1, f2 in zip(seg_1, seg_2, strict=True)))
+
+
+def _expand(pick: np.ndarray, ndim: int) -> np.ndarray:
+    return pick.reshape(pick.shape + (1,) * (ndim - 1))
+
+
+def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
+                 reward_filter: bool = True) -> np.ndarray:
+    """Dual-criteria subgoal filter, eq. 5-6 (see the module docstring for the groups).
+
+    Args:
+      w: ``[Q, T]`` importance weights.
+      r: ``[Q, T]`` PT per-step rewards.
+      top_k: ``K`` in percent, e.g. 10.
+      group: ``top`` | ``top_next`` | ``bottom_next`` | ``bottom``.
+      reward_filter: also require ``r̂_t ≥ mean_t r̂`` of the segment (eq. 5).
+
+    Returns:
+      ``[Q, T]`` bool, True at subgoal steps.
+    """
+    if group not in GROUPS:
+        raise SpotError(f"subgoal group {group!r}; expected one of {GROUPS}")
+    w = np.asarray(w, dtype=np.float64)
+    r = np.asarray(r, dtype=np.float64)
+    if w.ndim != 2 or w.shape != r.shape:
+        raise SpotError(f"weights {w.shape} and rewards {r.shape} must both be [Q, T]")
+    k = top_k / 100.0
+
+    def q(level: float) -> np.ndarray:  # per-segment quantile, shape [Q, 1]
+        return np.quantile(w, np.clip(level, 0.0, 1.0), axis=1, keepdims=True)
+
+    if group == "top":
+        mask = w >= q(1 - k)
+    elif group == "top_next":
+        mask = (w >= q(1 - 2 * k)) & (w < q(1 - k))
+    elif group == "bottom_next":
+        mask = (w > q(k)) & (w <= q(2 * k))
+    else:
+        mask = w <= q(k)
+    if reward_filter:
+        mask &= r >= r.mean(axis=1, keepdims=True)
+    return mask
+
+
+def make_triplets(obs: np.ndarray, act: np.ndarray, mask: np.ndarray) -> tuple[Triplets, dict[str, float]]:
+    """Pair each step with the next subgoal at or after it in its segment (§4.1.3).
+
+    Args:
+      obs: ``[P, T, obs_dim]`` states of the preferred segments.
+      act: ``[P, T, act_dim]`` actions.
+      mask: ``[P, T]`` subgoal steps (from :func:`subgoal_mask`).
+
+    Returns:
+      ``(Triplets, info)``; ``info`` holds ``subgoal/num_segments``, ``subgoal/num_subgoals``,
+      ``subgoal/num_triplets`` and ``subgoal/segments_without_subgoal``.
+    """
+    mask = np.asarray(mask, dtype=bool)
+    p, t = mask.shape
+    if obs.shape[:2] != (p, t) or act.shape[:2] != (p, t):
+        raise SpotError(f"obs {obs.shape}, act {act.shape} and mask {mask.shape} must share [P, T]")
+    # next_idx[i, t] = first subgoal index >= t in row i, or T if there is none.
+    idx = np.where(mask, np.arange(t)[None, :], t)
+    next_idx = np.minimum.accumulate(idx[:, ::-1], axis=1)[:, ::-1]
+    valid = next_idx < t
+    rows = np.broadcast_to(np.arange(p)[:, None], (p, t))
+    goal = obs[rows[valid], next_idx[valid]]
+    triplets = Triplets(s=obs[valid], a=act[valid], g=goal)
+    info = {
+        "subgoal/num_segments": float(p),
+        "subgoal/num_subgoals": float(mask.sum()),
+        "subgoal/num_triplets": float(valid.sum()),
+        "subgoal/segments_without_subgoal": float((~mask.any(axis=1)).sum()),
+    }
+    return triplets, info
+
+
+def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
+            ties: str = "skip") -> tuple[Triplets, np.ndarray, dict[str, float]]:
+    """Preferred segments -> subgoal mask -> CVAE triplets, with counts for logging.
+
+    Returns:
+      ``(triplets, subgoals [N_g, obs_dim], info)``; ``subgoals`` are the extracted subgoal
+      states (the "real" set of the precision/recall diagnostic).
+
+    Raises:
+      SpotError: if no triplet is left (every label a tie, or no step passes the filter).
+    """
+    pref = take_preferred(seg_1, seg_2, y, ties)
+    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter)
+    triplets, info = make_triplets(pref.obs, pref.act, mask)
+    if triplets.s.shape[0] == 0:
+        raise SpotError(
+            f"no subgoal triplets from {len(y)} queries ({pref.obs.shape[0]} preferred segments, "
+            f"subgoal.top_k={cfg.top_k}, subgoal.group={cfg.group!r}); expected at least one "
+            "non-tied label and a top_k large enough to select a step"
+        )
+    return triplets, pref.obs[mask], info

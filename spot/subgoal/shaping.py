@@ -1,0 +1,128 @@
+"""Subgoal-guided reward shaping (SPOT paper, §4.2, eq. 10-13; Table 3's three variants).
+
+For every transition ``(s, a, s')`` the CVAE proposes ``ĝ = G(s, a)`` (eq. 10) and a shaping
+term measures how ``s'`` relates to it:
+
+* ``cosine`` (eq. 11-12, SPOT's choice): ``r_shape = (cos(s', ĝ) + 1) / 2 ∈ [0, 1]``, with
+  ``cos(x, y) = x·y / max(||x|| ||y||, 1e-8)`` so a zero state gives ``r_shape = ½``;
+* ``neg_distance``: ``r_shape = -||s' - ĝ||``;
+* ``potential`` (Ng et al., 1999): ``r_shape = γ Φ(s') - Φ(s)`` with ``Φ(x) = -||x - ĝ||``. Both
+  potentials use the *same* ``ĝ = G(s, a)`` (the CVAE has no ``a'`` for ``s'``), so the term
+  telescopes only while ĝ stays put; Φ(s') is set to 0 at terminal transitions (absorbing state)
+  when ``terminals`` are given.
+
+All distances and cosines are taken on raw states, as eq. 11 writes them.
+
+The final reward (eq. 13) is ``r_final = r_model + λ · r_shape``.
+
+Where normalisation sits: ``r_model`` is the reward model's output *after* the relabelling
+stage's normalisation (PT repo: ``r · 1000 / (R_max - R_min) + 0.5`` for locomotion), and the
+shaping term is added afterwards, unnormalised. So ``λ = 1`` puts a ``[0, 1]`` cosine bonus beside
+a model reward on its usual IQL scale, which is how eq. 13 reads (the paper says ``r_shape`` is
+kept in ``[0, 1]`` "for a consistent scale for reward combination"). Normalising after shaping
+would instead rescale the bonus by the return range of the shaped rewards.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spot import SpotError
+from spot.config import ShapingConfig
+from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate
+
+KINDS = ("none", "cosine", "neg_distance", "potential")
+
+
+class ShapedRewards(NamedTuple):
+    """Per-transition outputs of :func:`shaped_rewards`, all ``[N]`` float32.
+
+    Attributes:
+      reward: ``r_final = r_model + λ r_shape`` (eq. 13).
+      shape: ``r_shape`` (zeros for ``kind="none"``).
+      cos_to_subgoal: ``cos(s, ĝ)`` of the *current* state and its subgoal, the proximity axis
+        of the extrapolation-error analysis (§5.3, Fig. 2).
+    """
+
+    reward: np.ndarray
+    shape: np.ndarray
+    cos_to_subgoal: np.ndarray
+
+
+def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Array | None = None,
+                 gamma: float = 0.99, terminals: jax.Array | None = None) -> jax.Array:
+    """Shaping term ``r_shape [N]`` for raw ``next_obs [N, o]`` and subgoals ``g_hat [N, o]``.
+
+    Args:
+      kind: ``none`` | ``cosine`` | ``neg_distance`` | ``potential`` (module docstring).
+      next_obs: ``s'``.
+      g_hat: ``ĝ = G(s, a)``.
+      obs: ``s``; required for ``potential``.
+      gamma: discount of the potential-based term.
+      terminals: optional ``[N]`` bool; ``Φ(s') = 0`` where set (``potential`` only).
+    """
+    if kind not in KINDS:
+        raise SpotError(f"shaping kind {kind!r}; expected one of {KINDS}")
+    if next_obs.shape != g_hat.shape:
+        raise SpotError(f"next_obs {next_obs.shape} and g_hat {g_hat.shape} must have the same shape")
+    if kind == "none":
+        return jnp.zeros(next_obs.shape[:-1])
+    if kind == "cosine":
+        return 0.5 * (cosine_similarity(next_obs, g_hat) + 1.0)
+    if kind == "neg_distance":
+        return -jnp.linalg.norm(next_obs - g_hat, axis=-1)
+    if obs is None:
+        raise SpotError("potential-based shaping needs obs (s) as well as next_obs (s')")
+    phi_next = -jnp.linalg.norm(next_obs - g_hat, axis=-1)
+    if terminals is not None:
+        phi_next = jnp.where(jnp.asarray(terminals, bool), 0.0, phi_next)
+    phi = -jnp.linalg.norm(obs - g_hat, axis=-1)
+    return gamma * phi_next - phi
+
+
+def final_reward(r_model: jax.Array, r_shape: jax.Array, weight: float) -> jax.Array:
+    """Eq. 13: ``r_model + λ · r_shape``."""
+    return r_model + weight * r_shape
+
+
+def shaped_rewards(cvae_params: CVAEParams, ds_obs: np.ndarray, ds_act: np.ndarray,
+                   ds_next_obs: np.ndarray, r_model_normalised: np.ndarray, cfg: ShapingConfig,
+                   key: jax.Array, *, gamma: float = 0.99, terminals: np.ndarray | None = None,
+                   batch_size: int = 4096) -> tuple[ShapedRewards, dict[str, float]]:
+    """Relabel a whole dataset with eq. 13 (subgoals generated in fixed-size jitted batches).
+
+    Args:
+      cvae_params: trained CVAE.
+      ds_obs, ds_act, ds_next_obs: raw ``[N, o]``, ``[N, a]``, ``[N, o]``.
+      r_model_normalised: ``[N]`` reward-model output, already normalised (module docstring).
+      cfg: shaping kind, weight λ and subgoal mode (prior mean or sample).
+      key: used for ``cfg.subgoal = "sample"``.
+      gamma: discount of the potential-based term (pass the policy's discount).
+      terminals: ``[N]`` true terminations, for the potential-based term.
+      batch_size: rows per jitted CVAE call.
+
+    Returns:
+      ``(ShapedRewards, info)`` with ``shaping/*`` summary statistics for logging.
+    """
+    n = ds_obs.shape[0]
+    if not (ds_act.shape[0] == n and ds_next_obs.shape == ds_obs.shape and np.shape(r_model_normalised) == (n,)):
+        raise SpotError(f"dataset arrays disagree: obs {ds_obs.shape}, act {ds_act.shape}, next_obs "
+                        f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}")
+    g_hat = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
+    obs, next_obs = np.asarray(ds_obs, np.float32), np.asarray(ds_next_obs, np.float32)
+    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, terminals), np.float32)
+    r_model = np.asarray(r_model_normalised, np.float32)
+    reward = np.asarray(final_reward(r_model, r_shape, cfg.weight), np.float32)
+    cos_s = np.asarray(cosine_similarity(obs, g_hat), np.float32)
+    info = {
+        "shaping/r_shape_mean": float(r_shape.mean()), "shaping/r_shape_std": float(r_shape.std()),
+        "shaping/r_shape_min": float(r_shape.min()), "shaping/r_shape_max": float(r_shape.max()),
+        "shaping/r_model_mean": float(r_model.mean()), "shaping/r_model_std": float(r_model.std()),
+        "shaping/r_final_mean": float(reward.mean()), "shaping/r_final_std": float(reward.std()),
+        "shaping/cos_to_subgoal_mean": float(cos_s.mean()),
+    }
+    return ShapedRewards(reward=reward, shape=r_shape, cos_to_subgoal=cos_s), info

@@ -1,0 +1,300 @@
+"""Tests of spot.subgoal: extraction (eq. 5-6), CVAE (eq. 7-9), shaping (eq. 11-13), diagnostics."""
+
+import spot  # noqa: F401, I001  (first: sets the XLA flags before jax)
+
+import dataclasses
+import math
+import pickle
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spot import NonFiniteError, SpotError
+from spot.config import CVAEConfig, ShapingConfig, SubgoalConfig
+from spot.subgoal import cvae, diagnostics, extract, shaping
+
+# --------------------------------------------------------------------------- extraction
+# One segment of T = 10 with distinct weights; sorted ascending the indices are
+# 6 (.01), 2 (.02), 8 (.03), 0 (.05), 4 (.08), 3 (.10), 7 (.12), 5 (.15), 1 (.20), 9 (.24).
+W = np.array([0.05, 0.20, 0.02, 0.10, 0.08, 0.15, 0.01, 0.12, 0.03, 0.24])
+# Mean 1.5: r >= mean at indices 2, 3, 6, 9.
+R = np.array([1.0, 0.0, 2.0, 3.0, 0.0, 1.0, 5.0, -1.0, 0.0, 4.0])
+
+# Hand-computed with numpy's linear quantile q(p) at position p * (T - 1):
+# K = 10: q(.9) = .236, q(.8) = .19, q(.1) = .019, q(.2) = .028.
+# K = 20: q(.8) = .19, q(.6) = .108, q(.2) = .028, q(.4) = .068.
+EXPECTED = {
+    (10, "top"): ({9}, {9}),
+    (10, "top_next"): ({1}, set()),
+    (10, "bottom_next"): ({2}, {2}),
+    (10, "bottom"): ({6}, {6}),
+    (20, "top"): ({1, 9}, {9}),
+    (20, "top_next"): ({5, 7}, set()),
+    (20, "bottom_next"): ({0, 8}, set()),
+    (20, "bottom"): ({2, 6}, {2, 6}),
+}
+
+
+@pytest.mark.parametrize("top_k,group", list(EXPECTED))
+@pytest.mark.parametrize("reward_filter", [False, True])
+def test_subgoal_mask_by_hand(top_k, group, reward_filter):
+    # Row 1 is row 0 reversed in time, scaled: the quantile and the mean are per segment.
+    w = np.stack([W, 3 * W[::-1]])
+    r = np.stack([R, R[::-1] + 100.0])
+    mask = extract.subgoal_mask(w, r, top_k, group, reward_filter)
+    want = EXPECTED[(top_k, group)][int(reward_filter)]
+    assert set(np.flatnonzero(mask[0])) == want
+    assert set(np.flatnonzero(mask[1])) == {9 - i for i in want}
+
+
+def test_subgoal_mask_groups_partition_t100():
+    w = np.random.default_rng(0).dirichlet(np.ones(100), size=3)
+    masks = [extract.subgoal_mask(w, np.zeros_like(w), 10, g, False) for g in extract.GROUPS]
+    assert all((m.sum(axis=1) == 10).all() for m in masks)
+    assert not np.any(np.sum(masks, axis=0) > 1)  # the four groups are disjoint
+
+
+def test_preferred_segments():
+    y = np.array([1.0, 0.0, 0.5, 1.0])
+    q, side = extract.preferred_segments(y)
+    np.testing.assert_array_equal(q, [0, 1, 3])
+    np.testing.assert_array_equal(side, [1, 0, 1])
+    q, side = extract.preferred_segments(y, ties="both")
+    np.testing.assert_array_equal(q, [0, 1, 2, 2, 3])
+    np.testing.assert_array_equal(side, [1, 0, 0, 1, 1])
+    with pytest.raises(SpotError, match="expected 0, 0.5 or 1"):
+        extract.preferred_segments(np.array([0.3]))
+
+
+def test_take_preferred_picks_rows():
+    q, t = 3, 4
+    seg = [extract.Segments(obs=np.full((q, t, 2), v), act=np.full((q, t, 1), v),
+                            reward=np.full((q, t), v), weight=np.full((q, t), v)) for v in (1.0, 2.0)]
+    pref = extract.take_preferred(seg[0], seg[1], np.array([0.0, 0.5, 1.0]))
+    assert pref.obs.shape == (2, t, 2)
+    np.testing.assert_array_equal(pref.reward[:, 0], [1.0, 2.0])
+    np.testing.assert_array_equal(pref.act[:, :, 0], [[1.0] * t, [2.0] * t])
+
+
+def test_make_triplets_by_hand():
+    obs = (10.0 * np.arange(3)[:, None] + np.arange(5)[None, :])[..., None]  # obs[i, t] = 10 i + t
+    act = -obs
+    mask = np.array([[0, 1, 0, 0, 1], [0, 0, 1, 0, 0], [0, 0, 0, 0, 0]], bool)
+    (s, a, g), info = extract.make_triplets(obs, act, mask)
+    np.testing.assert_array_equal(s[:, 0], [0, 1, 2, 3, 4, 10, 11, 12])
+    np.testing.assert_array_equal(a[:, 0], -s[:, 0])
+    np.testing.assert_array_equal(g[:, 0], [1, 1, 4, 4, 4, 12, 12, 12])
+    assert info == {"subgoal/num_segments": 3.0, "subgoal/num_subgoals": 3.0,
+                    "subgoal/num_triplets": 8.0, "subgoal/segments_without_subgoal": 1.0}
+
+
+def test_extract_end_to_end():
+    obs = np.arange(20.0).reshape(1, 10, 2)
+    seg_good = extract.Segments(obs, np.zeros((1, 10, 1)), R[None], W[None])
+    seg_bad = extract.Segments(-obs, np.zeros((1, 10, 1)), R[None], W[None])
+    trip, subgoals, info = extract.extract(seg_bad, seg_good, np.array([1.0]), SubgoalConfig(top_k=10.0))
+    np.testing.assert_array_equal(subgoals, obs[0, [9]])  # step 9: top weight and r >= mean
+    assert trip.s.shape == (10, 2) and (trip.g == obs[0, 9]).all()
+    assert info["subgoal/num_triplets"] == 10
+    with pytest.raises(SpotError, match="no subgoal triplets"):
+        extract.extract(seg_bad, seg_good, np.array([0.5]), SubgoalConfig())
+
+
+# --------------------------------------------------------------------------- CVAE maths
+def test_gaussian_kl_by_hand_and_monte_carlo():
+    mq, lq = np.array([1.0, -0.5]), np.log(np.array([0.5, 2.0]))
+    mp, lp = np.array([0.0, 0.5]), np.log(np.array([1.0, 1.5]))
+    # KL per dim = log(sp/sq) + (sq² + (mq - mp)²) / (2 sp²) - 1/2
+    by_hand = (math.log(2.0) + (0.25 + 1.0) / 2 - 0.5) + (math.log(0.75) + (4.0 + 1.0) / (2 * 2.25) - 0.5)
+    kl = float(cvae.gaussian_kl(jnp.array(mq), jnp.array(lq), jnp.array(mp), jnp.array(lp)))
+    assert kl == pytest.approx(by_hand, rel=1e-5)
+
+    z = mq + np.exp(lq) * np.random.default_rng(0).standard_normal((200_000, 2))
+
+    def log_prob(x, m, ls):
+        return (-0.5 * ((x - m) / np.exp(ls)) ** 2 - ls - 0.5 * np.log(2 * np.pi)).sum(-1)
+
+    mc = np.mean(log_prob(z, mq, lq) - log_prob(z, mp, lp))
+    assert kl == pytest.approx(mc, abs=0.02)
+
+
+def test_cosine_loss_by_hand():
+    g = jnp.array([[1.0, 2.0, -1.0], [3.0, 0.0, 0.0]])
+    np.testing.assert_allclose(cvae.cosine_loss(g, g), [0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(cvae.cosine_loss(-g, g), [1.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(cvae.cosine_loss(jnp.array([[0.0, 0.0, 5.0]]), g[1:]), [0.5], atol=1e-6)
+    assert float(cvae.cosine_loss(jnp.zeros((1, 3)), g[:1])[0]) == pytest.approx(0.5)  # eps guard
+
+
+def _toy_triplets(n, seed=0):
+    rng = np.random.default_rng(seed)
+    s = rng.standard_normal((n, 3)).astype(np.float32)
+    a = rng.uniform(-1, 1, (n, 2)).astype(np.float32)
+    g = s + np.array([1.0, -0.5, 0.5], np.float32)
+    return s, a, g
+
+
+SMALL = CVAEConfig(latent_dim=4, hidden=(16, 16), lr=3e-3, batch_size=32, steps=20, beta=1.0)
+
+
+@pytest.fixture(scope="module")
+def small_params():
+    s, _, _ = _toy_triplets(64)
+    return cvae.init(jax.random.key(0), 3, 2, SMALL, cvae.obs_stats(s)).params
+
+
+def test_loss_jit_matches_no_jit_and_cos_term(small_params):
+    s, a, g = _toy_triplets(64)
+    batch = extract.Triplets(*(jnp.asarray(x) for x in (s, a, g)))
+    key = jax.random.key(1)
+    loss, info = cvae.loss_fn(small_params, batch, key, SMALL)
+    loss_j, info_j = jax.jit(cvae.loss_fn, static_argnums=3)(small_params, batch, key, SMALL)
+    assert float(loss) == pytest.approx(float(loss_j), rel=1e-5)
+    for k in info:
+        assert float(info[k]) == pytest.approx(float(info_j[k]), rel=1e-5, abs=1e-6)
+    assert float(loss) == pytest.approx(float(info["cvae/recon"] + info["cvae/kl"] + info["cvae/cos"]), rel=1e-5)
+    assert float(info["cvae/recon"]) == pytest.approx(0.5 * 3 * float(info["cvae/mse"]), rel=1e-5)
+    mse_cfg = dataclasses.replace(SMALL, loss="mse", beta=0.5)
+    loss_mse, _ = cvae.loss_fn(small_params, batch, key, mse_cfg)
+    assert float(loss_mse) == pytest.approx(float(info["cvae/recon"] + 0.5 * info["cvae/kl"]), rel=1e-5)
+
+
+def test_train_chunk_compiles_once():
+    s, a, g = _toy_triplets(64)
+    chunk = cvae.make_train_chunk(SMALL, 5)
+    state = cvae.init(jax.random.key(0), 3, 2, SMALL, cvae.obs_stats(s))
+    data = extract.Triplets(*(jnp.asarray(x) for x in (s, a, g)))
+    before = chunk._cache_size()  # 1 if test_non_finite_loss_raises already compiled it
+    for i in range(3):
+        state, metrics = chunk(state, data, jax.random.key(i))
+    assert chunk._cache_size() == max(before, 1)
+    assert int(state.step) == 15 and set(metrics) >= {"cvae/loss", "cvae/recon", "cvae/kl", "cvae/cos"}
+
+
+def test_non_finite_loss_raises():
+    s, a, g = _toy_triplets(64)
+    g[:] = np.nan
+    with pytest.raises(NonFiniteError) as err:  # 4 chunks of 5 steps: the chunk of the test above
+        cvae.train_cvae(jax.random.key(0), s, a, g, SMALL, cvae.obs_stats(s), progress=False,
+                        log_every=5, holdout=0.0)
+    assert err.value.step == 5 and err.value.loss_name == "cvae/loss"
+
+
+@pytest.mark.slow
+def test_cvae_learns_deterministic_subgoal():
+    s, a, g = _toy_triplets(2000)
+    cfg = CVAEConfig(latent_dim=4, hidden=(64, 64), lr=3e-3, batch_size=128, steps=600)
+    params, history = cvae.train_cvae(jax.random.key(0), s, a, g, cfg, cvae.obs_stats(s),
+                                      progress=False, log_every=200)
+    assert [h["step"] for h in history] == [200, 400, 600]
+    assert history[-1]["cvae/heldout_loss"] < history[0]["cvae/heldout_loss"]
+    s_test, a_test, g_test = _toy_triplets(500, seed=1)
+    g_hat = cvae.generate(params, s_test, a_test, batch_size=256)
+    cos = np.asarray(cvae.cosine_similarity(g_hat, g_test))
+    baseline = np.asarray(cvae.cosine_similarity(np.broadcast_to(g.mean(0), g_test.shape), g_test))
+    assert cos.mean() > 0.98 and baseline.mean() < 0.7, (cos.mean(), baseline.mean())
+    g_sample = cvae.generate(params, s_test, a_test, key=jax.random.key(3), mode="sample", batch_size=256)
+    assert np.asarray(cvae.cosine_similarity(g_sample, g_test)).mean() > 0.95
+
+
+def test_generate_batches_compile_once_and_sample_is_keyed(small_params):
+    s, a, _ = _toy_triplets(37)
+    params = small_params
+    full = np.asarray(jax.jit(cvae.sample_subgoal)(params, jnp.asarray(s), jnp.asarray(a)))
+    before = cvae._generate_mean._cache_size()
+    out = cvae.generate(params, s, a, batch_size=16)  # 3 batches, the last padded
+    cvae.generate(params, s[:5], a[:5], batch_size=16)
+    assert cvae._generate_mean._cache_size() - before <= 1
+    np.testing.assert_allclose(out, full, rtol=1e-5, atol=1e-5)
+    restored = pickle.loads(pickle.dumps(jax.device_get(params)))  # how the stage cache stores it
+    np.testing.assert_array_equal(cvae.generate(restored, s, a, batch_size=16), out)
+    key = jax.random.key(7)
+    s1 = cvae.generate(params, s, a, key=key, mode="sample", batch_size=16)
+    s2 = cvae.generate(params, s, a, key=key, mode="sample", batch_size=16)
+    s3 = cvae.generate(params, s, a, key=jax.random.key(8), mode="sample", batch_size=16)
+    np.testing.assert_array_equal(s1, s2)
+    assert not np.allclose(s1, s3)
+
+
+# --------------------------------------------------------------------------- shaping
+NEXT_OBS = np.array([[1.0, 0.0], [0.0, 2.0], [0.0, 0.0]])
+G_HAT = np.array([[1.0, 0.0], [0.0, -1.0], [1.0, 1.0]])
+OBS = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
+
+
+def test_shape_reward_by_hand():
+    np.testing.assert_allclose(shaping.shape_reward("cosine", NEXT_OBS, G_HAT), [1.0, 0.0, 0.5], atol=1e-6)
+    np.testing.assert_allclose(shaping.shape_reward("neg_distance", NEXT_OBS, G_HAT),
+                               [0.0, -3.0, -math.sqrt(2)], atol=1e-6)
+    # Φ(s') = [0, -3, -√2], Φ(s) = [-1, -1, 0]; γ Φ(s') - Φ(s) with γ = 0.9
+    np.testing.assert_allclose(shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, gamma=0.9),
+                               [1.0, -1.7, -0.9 * math.sqrt(2)], atol=1e-6)
+    np.testing.assert_allclose(
+        shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, 0.9, terminals=np.array([0, 1, 0], bool)),
+        [1.0, 1.0, -0.9 * math.sqrt(2)], atol=1e-6)
+    np.testing.assert_allclose(shaping.shape_reward("none", NEXT_OBS, G_HAT), [0.0, 0.0, 0.0])
+    rand = np.random.default_rng(0).standard_normal((2, 100, 4))
+    cos = np.asarray(shaping.shape_reward("cosine", rand[0], rand[1]))
+    assert cos.min() >= 0.0 and cos.max() <= 1.0
+    with pytest.raises(SpotError, match="needs obs"):
+        shaping.shape_reward("potential", NEXT_OBS, G_HAT)
+    np.testing.assert_allclose(shaping.final_reward(np.array([1.0, 2.0]), np.array([0.5, 0.25]), -0.5),
+                               [0.75, 1.875])
+
+
+def test_shaped_rewards_whole_dataset(small_params):
+    s, a, _ = _toy_triplets(37)
+    s_next = s + 0.1
+    params = small_params
+    r_model = np.linspace(0.0, 1.0, 37).astype(np.float32)
+    cfg = ShapingConfig(kind="cosine", weight=0.5, subgoal="mean")
+    out, info = shaping.shaped_rewards(params, s, a, s_next, r_model, cfg, jax.random.key(1), batch_size=16)
+    g_hat = cvae.generate(params, s, a, batch_size=16)
+    want_shape = np.asarray(shaping.shape_reward("cosine", s_next, g_hat))
+    np.testing.assert_allclose(out.shape, want_shape, atol=1e-5)
+    np.testing.assert_allclose(out.reward, r_model + 0.5 * want_shape, atol=1e-5)
+    np.testing.assert_allclose(out.cos_to_subgoal, np.asarray(cvae.cosine_similarity(s, g_hat)), atol=1e-5)
+    assert info["shaping/r_shape_min"] >= 0.0 and info["shaping/r_shape_max"] <= 1.0
+
+
+# --------------------------------------------------------------------------- diagnostics
+def test_extrapolation_bins_by_hand(tmp_path):
+    # z(r_model) = [1, -1, 1, -1], z(r_true) = [1, 1, -1, -1]  ->  error [0, 2, 2, 0]
+    r_model = 10.0 * np.array([1.0, -1.0, 1.0, -1.0]) + 5.0  # scale and shift do not matter
+    r_true = np.array([1.0, 1.0, -1.0, -1.0])
+    cos = np.array([0.1, 0.2, 0.8, 0.9])
+    in_dist = np.array([True, False, True, False])
+    table = diagnostics.extrapolation_error_bins(r_model, r_true, cos, in_dist, bins=np.array([0.0, 0.5, 1.0, 1.5]))
+    np.testing.assert_allclose(table.mean_error[:, :2], [[0.0, 2.0], [2.0, 0.0]])
+    assert np.isnan(table.mean_error[:, 2]).all()
+    np.testing.assert_array_equal(table.count, [[1, 1, 0], [1, 1, 0]])
+    np.testing.assert_allclose(table.overall, [1.0, 1.0])
+    auto = diagnostics.extrapolation_error_bins(r_model, r_true, cos, in_dist, bins=2)
+    np.testing.assert_allclose(auto.edges, [0.1, 0.5, 0.9])
+    np.testing.assert_allclose(auto.mean_error, [[0.0, 2.0], [2.0, 0.0]])
+    assert auto.metrics() == {"diag/extrapolation_error_in_distribution": 1.0, "diag/extrapolation_error_ood": 1.0}
+    png = diagnostics.plot_extrapolation({"PT": table, "SPOT": auto}, tmp_path / "fig2.png")
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_precision_recall():
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((200, 4))
+    assert diagnostics.precision_recall(x, x.copy()) == {"subgoal/precision": 1.0, "subgoal/recall": 1.0}
+    far = diagnostics.precision_recall(x, x + 100.0)
+    assert far == {"subgoal/precision": 0.0, "subgoal/recall": 0.0}
+    # 1-D by hand, k = 1: real radii are all 1, so 0.5 is inside and 10 is not (precision 1/2);
+    # generated radii are 9.5 (their mutual distance), covering every real point (recall 1).
+    real = np.array([[0.0], [1.0], [2.0], [3.0]])
+    gen = np.array([[0.5], [10.0]])
+    pr = diagnostics.precision_recall(real, gen, k=1, standardize=False)
+    assert pr == {"subgoal/precision": 0.5, "subgoal/recall": 1.0}
+
+
+def test_plot_projection(tmp_path):
+    rng = np.random.default_rng(0)
+    png = diagnostics.plot_projection(rng.standard_normal((300, 5)), rng.standard_normal((50, 5)),
+                                      tmp_path / "proj" / "pca.png")
+    assert png.exists() and png.read_bytes()[:4] == b"\x89PNG"
