@@ -17,8 +17,9 @@ import json
 import os
 import pickle
 import warnings
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -81,9 +82,9 @@ def store(k: str, value: Any) -> None:
     data_path, sum_path = _paths(k)
     data_path.parent.mkdir(parents=True, exist_ok=True)
     payload = pickle.dumps(jax.device_get(value), protocol=pickle.HIGHEST_PROTOCOL)
-    tmp = data_path.with_suffix(f".tmp-{os.getpid()}")
+    tmp = data_path.with_name(f"{data_path.name}.tmp-{os.getpid()}")
     tmp.write_bytes(payload)
-    tmp_sum = sum_path.with_suffix(f".tmp-{os.getpid()}")
+    tmp_sum = sum_path.with_name(f"{sum_path.name}.tmp-{os.getpid()}")
     tmp_sum.write_text(hashlib.sha256(payload).hexdigest())
     os.replace(tmp, data_path)
     os.replace(tmp_sum, sum_path)

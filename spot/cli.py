@@ -123,6 +123,31 @@ def _run(args: argparse.Namespace) -> None:
             print(f"  {key:24s} {final[key]:.3f}")
 
 
+# --------------------------------------------------------------------------- bench
+def _bench(args: argparse.Namespace) -> None:
+    from spot import bench
+
+    kwargs = {"small": args.small}
+    if args.what == "iql":
+        kwargs["seeds"] = args.seeds
+    if args.what == "pt":
+        kwargs["dtype"] = args.dtype
+    if args.what == "relabel":
+        kwargs["mode"] = args.mode
+    print(bench.format_result(args.what, bench.BENCHES[args.what](**kwargs)))
+
+
+# --------------------------------------------------------------------------- sweep
+def _sweep(args: argparse.Namespace) -> None:
+    from spot import sweep
+
+    rows = sweep.run_sweep(args.file, smoke=args.smoke, resume=args.resume, retry_errored=args.retry_errored,
+                           address=args.address, max_concurrent=args.max_concurrent,
+                           tracking_uri=args.tracking_uri, storage=args.storage)
+    if not all(r.status == "FINISHED" for r in rows):
+        sys.exit(1)  # the summary above lists what failed
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
@@ -170,6 +195,26 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("overrides", nargs="*", help="a.b=value overrides, e.g. method=pt iql.steps=5000")
     d.add_argument("--quiet", action="store_true", help="no progress bars")
     d.set_defaults(fn=_run)
+
+    d = sub.add_parser("bench", help="throughput, compile time and peak memory of a stage (paper sizes)")
+    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"))
+    d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
+    d.add_argument("--seeds", type=int, default=1, help="iql: seeds as a vmap axis")
+    d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
+    d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
+    d.set_defaults(fn=_bench)
+
+    d = sub.add_parser("sweep", help="run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
+                       description="Exit code 0 when every (config, seed) run finished, 1 otherwise. See docs/sweeps.md.")
+    d.add_argument("file", help="sweep YAML file")
+    d.add_argument("--smoke", action="store_true", help="apply the file's smoke block (experiment <name>-smoke)")
+    d.add_argument("--resume", action="store_true", help="continue the last launch of this sweep")
+    d.add_argument("--retry-errored", action="store_true", help="with --resume: run failed trials again")
+    d.add_argument("--address", help="Ray cluster address (default: local Ray on all CPUs)")
+    d.add_argument("--max-concurrent", type=int, help="trials at once (default: the file's max_concurrent)")
+    d.add_argument("--tracking-uri", help="MLflow URI (default: a loopback server on ./spot_runs/mlflow.db)")
+    d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder (default: %(default)s)")
+    d.set_defaults(fn=_sweep)
 
     cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(dest="sub", required=True, metavar="SUB")
     d = cfg.add_parser("show", help="print the fully resolved config")

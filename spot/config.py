@@ -214,7 +214,7 @@ def _fields(cls: type) -> dict[str, dataclasses.Field]:
 
 def valid_keys() -> list[str]:
     keys = []
-    for name, f in _fields(ExperimentConfig).items():
+    for name, _f in _fields(ExperimentConfig).items():
         if name in _STAGES:
             keys += [f"{name}.{sub}" for sub in _fields(_STAGES[name])]
         else:

@@ -13,8 +13,9 @@ import functools
 import importlib.metadata
 import os
 import subprocess
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from spot import config as config_lib
 

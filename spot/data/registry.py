@@ -15,10 +15,11 @@ import fcntl
 import importlib
 import json
 import os
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from spot import SpotError
 from spot.data.dataset import Dataset, RawDataset

@@ -1,0 +1,365 @@
+"""Implicit Q-Learning (Kostrikov, Nair & Levine, 2021, arXiv:2110.06169), Sec. 4 and Alg. 1.
+
+One update, in the order of the reference code [ikostrikov/implicit_q_learning : learner.py]
+(reference/algorithms.md §2.1):
+
+1. value, eq. (5): ``L_V = E[L2_tau(min_i Qbar_i(s, a) - V(s))]`` with the expectile loss
+   ``L2_tau(u) = |tau - 1(u < 0)| u^2`` against the *target* critics;
+2. actor, eq. (7) (AWR): ``L_pi = -E[min(exp(beta (min_i Qbar_i(s, a) - V'(s))), 100) log pi(a|s)]``
+   with the just-updated value V'; pi is a Gaussian with mean ``tanh(MLP(s))`` and a
+   state-independent log-std clipped to [-5, 2], no tanh-squash correction (the reference's
+   ``NormalTanhPolicy(state_dependent_std=False, tanh_squash_distribution=False)``);
+3. critics, eq. (6): ``L_Q = E[sum_i (Q_i(s, a) - r - gamma mask V'(s'))^2]``, ``mask = 1 - terminal``;
+4. target: ``Qbar <- tau_polyak Q + (1 - tau_polyak) Qbar``.
+
+Networks: every MLP is ``IQLConfig.hidden`` (256-256) ReLU with orthogonal init sqrt(2) on all
+layers (reference ``common.py``); the two critics are one ``nn.vmap`` ensemble. Adam 3e-4 for all
+three; the actor's learning rate follows a cosine decay to 0 over ``IQLConfig.steps``.
+
+Work the update shares instead of recomputing (same numbers as the reference): the target-critic
+forward pass feeds both the value loss and the advantages, and V' is evaluated once on
+``[s; s']`` for the advantages and the critic targets.
+
+Training runs as a jitted ``lax.scan`` over ``IQLConfig.chunk`` updates with minibatches drawn
+inside jit (STYLE.md rules 4 and 7); several seeds can run as a vmap axis in one program
+(:func:`make_vmapped_train_chunk`). :func:`check_finite` raises :class:`spot.NonFiniteError` at a
+chunk boundary.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import resource
+import time
+from collections.abc import Callable
+from functools import partial
+from typing import Any, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax.training.train_state import TrainState
+
+from spot import NonFiniteError
+from spot.config import IQLConfig
+from spot.data.dataset import Dataset
+from spot.nets import MLP, Params, create_train_state, orthogonal_init
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # reference learner.py passes log_std_min=-5; policy.py max 2
+AWR_WEIGHT_MAX = 100.0  # reference actor.py: exp_a = minimum(exp(beta * adv), 100)
+NUM_CRITICS = 2
+
+# Python traces of the scanned update body per kind ("chunk", "vmapped_chunk"); tests assert one.
+TRACE_COUNT: collections.Counter[str] = collections.Counter()
+
+
+class Transitions(NamedTuple):
+    """An offline dataset on device, one row per transition (all float32).
+
+    Attributes:
+      obs: ``[N, obs_dim]``.
+      act: ``[N, act_dim]``.
+      rew: ``[N]``.
+      next_obs: ``[N, obs_dim]``.
+      mask: ``[N]``, ``1 - terminal`` (0 stops bootstrapping).
+    """
+
+    obs: jax.Array
+    act: jax.Array
+    rew: jax.Array
+    next_obs: jax.Array
+    mask: jax.Array
+
+
+class IQLState(NamedTuple):
+    """Everything an IQL run carries between updates (a pytree; stack it over seeds to vmap)."""
+
+    actor: TrainState
+    critic: TrainState
+    value: TrainState
+    target_critic_params: Params
+    step: jax.Array
+
+
+# --------------------------------------------------------------------------- networks
+class Actor(nn.Module):
+    """Gaussian policy: mean ``tanh(MLP(s))``, state-independent ``log_std`` (clipped on use)."""
+
+    hidden: tuple[int, ...]
+    act_dim: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        h = MLP(self.hidden, activate_final=True, kernel_init=orthogonal_init())(obs)
+        mean = nn.tanh(nn.Dense(self.act_dim, kernel_init=orthogonal_init())(h))
+        log_std = self.param("log_std", nn.initializers.zeros, (self.act_dim,))
+        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+
+class Value(nn.Module):
+    """``V(s)``, shape ``[...]``."""
+
+    hidden: tuple[int, ...]
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> jax.Array:
+        return MLP(self.hidden, out_dim=1, kernel_init=orthogonal_init())(obs)[..., 0]
+
+
+class Critic(nn.Module):
+    """``Q(s, a)`` on ``[s; a]``, shape ``[...]``."""
+
+    hidden: tuple[int, ...]
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
+        x = jnp.concatenate([obs, act], axis=-1)
+        return MLP(self.hidden, out_dim=1, kernel_init=orthogonal_init())(x)[..., 0]
+
+
+DoubleCritic = nn.vmap(
+    Critic, variable_axes={"params": 0}, split_rngs={"params": True},
+    in_axes=None, out_axes=0, axis_size=NUM_CRITICS,
+)  # outputs [NUM_CRITICS, ...]
+
+
+def _nets(cfg: IQLConfig, act_dim: int) -> tuple[Actor, nn.Module, Value]:
+    hidden = tuple(cfg.hidden)
+    return Actor(hidden, act_dim), DoubleCritic(hidden), Value(hidden)
+
+
+# --------------------------------------------------------------------------- pure pieces
+def expectile_loss(diff: jax.Array, expectile: float) -> jax.Array:
+    """Elementwise asymmetric squared loss ``|tau - 1(u < 0)| u^2`` of eq. (5), ``u = Q - V``."""
+    weight = jnp.where(diff > 0, expectile, 1.0 - expectile)
+    return weight * jnp.square(diff)
+
+
+def awr_weights(adv: jax.Array, temperature: float) -> jax.Array:
+    """AWR weights ``min(exp(beta * adv), 100)`` of eq. (7) (clip as in the reference)."""
+    return jnp.minimum(jnp.exp(temperature * adv), AWR_WEIGHT_MAX)
+
+
+def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, act: jax.Array) -> jax.Array:
+    """``log N(act; mean, diag(exp(log_std)^2))`` summed over the last axis."""
+    z = (act - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * math.log(2.0 * math.pi), axis=-1)
+
+
+# --------------------------------------------------------------------------- state and update
+def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig) -> IQLState:
+    """Fresh networks and Adam states. Vmappable over ``key`` to stack seeds.
+
+    Args:
+      key: PRNG key of this run's IQL stage.
+      obs_dim, act_dim: data sizes.
+      cfg: IQL hyperparameters (``hidden``, ``lr``, ``steps`` for the actor's cosine schedule).
+    """
+    actor_key, critic_key, value_key = jax.random.split(key, 3)
+    actor_def, critic_def, value_def = _nets(cfg, act_dim)
+    obs, act = jnp.zeros((1, obs_dim), jnp.float32), jnp.zeros((1, act_dim), jnp.float32)
+    critic_params = critic_def.init(critic_key, obs, act)
+    actor_tx = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps))
+    return IQLState(
+        actor=create_train_state(actor_def, actor_def.init(actor_key, obs), actor_tx),
+        critic=create_train_state(critic_def, critic_params, optax.adam(cfg.lr)),
+        value=create_train_state(value_def, value_def.init(value_key, obs), optax.adam(cfg.lr)),
+        target_critic_params=jax.tree.map(jnp.copy, critic_params),  # own buffers: the state is donated
+        step=jnp.zeros((), jnp.int32),
+    )
+
+
+def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLState, dict[str, jax.Array]]:
+    """One IQL update (value, actor, critics, target), pure.
+
+    Args:
+      state: current state.
+      batch: a minibatch, ``obs [B, obs_dim]``, ``act [B, act_dim]``, ``rew/mask [B]``.
+      cfg: hyperparameters (static).
+
+    Returns:
+      ``(new_state, metrics)`` with scalar metrics named ``iql/...``.
+    """
+    if batch.obs.ndim != 2 or batch.rew.shape != batch.obs.shape[:1]:
+        raise ValueError(f"expected obs [B, o] and rew [B], got {batch.obs.shape} and {batch.rew.shape}")
+    batch_size = batch.obs.shape[0]
+
+    # Target critics once: the value loss and the actor's advantages both use min_i Qbar_i(s, a).
+    target_q = jnp.min(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act), axis=0)
+
+    def value_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
+        v = state.value.apply_fn(params, batch.obs)
+        loss = expectile_loss(target_q - v, cfg.expectile).mean()
+        return loss, {"iql/value_loss": loss, "iql/v_mean": v.mean()}
+
+    value_grads, value_info = jax.grad(value_loss_fn, has_aux=True)(state.value.params)
+    value = state.value.apply_gradients(grads=value_grads)
+
+    # V' on [s; s'] in one pass: V'(s) for the advantages, V'(s') for the critic targets.
+    v_both = value.apply_fn(value.params, jnp.concatenate([batch.obs, batch.next_obs], axis=0))
+    v_new, next_v = v_both[:batch_size], v_both[batch_size:]
+    adv = target_q - v_new
+    weights = awr_weights(adv, cfg.temperature)
+
+    def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
+        mean, log_std = state.actor.apply_fn(params, batch.obs)
+        log_prob = gaussian_log_prob(mean, log_std, batch.act)
+        loss = -(weights * log_prob).mean()
+        return loss, {"iql/actor_loss": loss, "iql/log_std_mean": log_std.mean()}
+
+    actor_grads, actor_info = jax.grad(actor_loss_fn, has_aux=True)(state.actor.params)
+    actor = state.actor.apply_gradients(grads=actor_grads)
+
+    target = batch.rew + cfg.discount * batch.mask * next_v
+
+    def critic_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
+        q = state.critic.apply_fn(params, batch.obs, batch.act)  # shape is (NUM_CRITICS, B)
+        loss = jnp.square(q - target).sum(axis=0).mean()
+        return loss, {"iql/critic_loss": loss, "iql/q_mean": q.mean()}
+
+    critic_grads, critic_info = jax.grad(critic_loss_fn, has_aux=True)(state.critic.params)
+    critic = state.critic.apply_gradients(grads=critic_grads)
+    target_params = optax.incremental_update(critic.params, state.target_critic_params, cfg.tau)
+
+    metrics = {
+        **value_info, **actor_info, **critic_info,
+        "iql/adv_mean": adv.mean(), "iql/adv_max": adv.max(),
+        "iql/awr_weight_mean": weights.mean(),
+        "iql/awr_clip_frac": jnp.mean(weights >= AWR_WEIGHT_MAX),
+        "iql/target_mean": target.mean(),
+    }
+    new_state = IQLState(actor, critic, value, target_params, state.step + 1)
+    return new_state, metrics
+
+
+def _chunk_fn(cfg: IQLConfig, kind: str) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
+    def train_chunk(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict]:
+        n = data.rew.shape[0]
+
+        def body(state: IQLState, _: None) -> tuple[IQLState, dict[str, jax.Array]]:
+            TRACE_COUNT[kind] += 1
+            idx = jax.random.randint(jax.random.fold_in(key, state.step), (cfg.batch_size,), 0, n)
+            return update(state, jax.tree.map(lambda x: x[idx], data), cfg)
+
+        state, metrics = jax.lax.scan(body, state, None, length=cfg.chunk)
+        return state, jax.tree.map(lambda m: m.mean(axis=0), metrics)
+
+    return train_chunk
+
+
+def make_train_chunk(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
+    """Jitted ``train_chunk(state, data, key) -> (state, metrics)``: ``cfg.chunk`` updates.
+
+    Minibatch ``k`` of the run is drawn with ``fold_in(key, state.step)``, so one key can serve
+    a whole run. Metrics are means over the chunk. ``state`` is donated: do not reuse it.
+    """
+    return jax.jit(_chunk_fn(cfg, "chunk"), donate_argnums=0)
+
+
+def make_vmapped_train_chunk(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
+    """Like :func:`make_train_chunk` for ``S`` seeds in one program.
+
+    The returned ``fn(states, data, keys)`` takes states stacked over a leading seed axis
+    (e.g. ``jax.vmap(init_state, in_axes=(0, None, None, None))(keys, ...)``), the shared
+    ``data`` and keys ``[S]``; metrics come back with shape ``[S]``.
+    """
+    return jax.jit(jax.vmap(_chunk_fn(cfg, "vmapped_chunk"), in_axes=(0, None, 0)), donate_argnums=0)
+
+
+def check_finite(metrics: dict[str, Any], step: int) -> dict[str, np.ndarray]:
+    """Fetch chunk metrics to the host; raise :class:`spot.NonFiniteError` if a loss is NaN/inf.
+
+    Args:
+      metrics: a train chunk's metrics (scalars, or ``[S]`` arrays for vmapped seeds).
+      step: updates done so far (reported in the error).
+    """
+    host = jax.device_get(metrics)
+    for name, value in host.items():
+        value = np.asarray(value)
+        if name.endswith("loss") and not np.all(np.isfinite(value)):
+            raise NonFiniteError(step, name, float(value[~np.isfinite(value)][0]) if value.ndim else float(value))
+    return host
+
+
+@partial(jax.jit, static_argnames="cfg")
+def act(actor_params: Params, obs: jax.Array, cfg: IQLConfig) -> jax.Array:
+    """Deterministic (mean) action for ``obs [..., obs_dim]`` -> ``[..., act_dim]`` in [-1, 1]."""
+    act_dim = actor_params["params"]["log_std"].shape[-1]
+    mean, _ = Actor(tuple(cfg.hidden), act_dim).apply(actor_params, jnp.asarray(obs, jnp.float32))
+    return mean
+
+
+def transitions_from(ds: Dataset, rewards: np.ndarray | None = None) -> Transitions:
+    """Move a dataset's transitions to the device once, as float32.
+
+    Args:
+      ds: the ``qlearning`` view.
+      rewards: ``[N]`` rewards to train on (e.g. relabelled); default the dataset's true reward.
+    """
+    rew = ds.rewards if rewards is None else np.asarray(rewards)
+    if rew.shape != (len(ds),):
+        raise ValueError(f"rewards have shape {rew.shape}; expected ({len(ds)},) like the dataset")
+    return Transitions(
+        obs=jnp.asarray(ds.observations, jnp.float32),
+        act=jnp.asarray(ds.actions, jnp.float32),
+        rew=jnp.asarray(rew, jnp.float32),
+        next_obs=jnp.asarray(ds.next_observations, jnp.float32),
+        mask=jnp.asarray(1.0 - ds.terminals.astype(np.float32), jnp.float32),
+    )
+
+
+# --------------------------------------------------------------------------- benchmark
+def bench_iql(obs_dim: int = 11, act_dim: int = 3, batch: int | None = None,
+              hidden: tuple[int, ...] | None = None, n: int = 1_000_000, steps: int = 3000,
+              seeds: int = 1, cfg: IQLConfig | None = None) -> dict[str, float]:
+    """Updates per second of the train chunk on random data (measurement only, never asserted).
+
+    Args:
+      obs_dim, act_dim, n: size of the synthetic dataset.
+      batch, hidden: override ``cfg.batch_size`` / ``cfg.hidden`` when given.
+      steps: timed updates (rounded up to whole chunks), after one compile.
+      seeds: 1 runs :func:`make_train_chunk`; more runs them vmapped in one program.
+      cfg: base config (default :class:`IQLConfig`, chunk ``min(1000, steps)``).
+
+    Returns:
+      ``updates_per_s`` (all seeds together), ``updates_per_s_per_seed``, ``compile_s``,
+      ``peak_rss_mb`` (process peak, includes everything run before).
+    """
+    cfg = cfg or IQLConfig(chunk=min(1000, steps))
+    cfg = IQLConfig(**{**cfg.__dict__, "batch_size": batch or cfg.batch_size,
+                       "hidden": tuple(hidden or cfg.hidden)})
+    rng = np.random.default_rng(0)
+    data = Transitions(
+        obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
+        act=jnp.asarray(rng.uniform(-1, 1, (n, act_dim)).astype(np.float32)),
+        rew=jnp.asarray(rng.standard_normal(n, np.float32)),
+        next_obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
+        mask=jnp.asarray((rng.uniform(size=n) > 0.01).astype(np.float32)),
+    )
+    keys = jax.random.split(jax.random.key(0), seeds)
+    if seeds == 1:
+        state, key, fn = init_state(keys[0], obs_dim, act_dim, cfg), keys[0], make_train_chunk(cfg)
+    else:
+        state = jax.vmap(init_state, in_axes=(0, None, None, None))(keys, obs_dim, act_dim, cfg)
+        key, fn = keys, make_vmapped_train_chunk(cfg)
+    t0 = time.perf_counter()
+    compiled = fn.lower(state, data, key).compile()
+    compile_s = time.perf_counter() - t0
+    state, metrics = compiled(state, data, key)  # warm-up chunk
+    jax.block_until_ready(metrics)
+    chunks = -(-steps // cfg.chunk)
+    t0 = time.perf_counter()
+    for _ in range(chunks):
+        state, metrics = compiled(state, data, key)
+    jax.block_until_ready((state, metrics))
+    elapsed = time.perf_counter() - t0
+    rate = chunks * cfg.chunk * seeds / elapsed
+    return {
+        "updates_per_s": rate,
+        "updates_per_s_per_seed": rate / seeds,
+        "compile_s": compile_s,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
