@@ -1,0 +1,40 @@
+"""Shared fixtures: an isolated data/cache dir per test session, and tiny built datasets."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import spot  # noqa: F401  (XLA flags before jax)
+
+
+@pytest.fixture(scope="session")
+def spot_dirs(tmp_path_factory):
+    """Session-wide SPOT_DATA_DIR / SPOT_CACHE_DIR so built datasets are shared by tests."""
+    root = tmp_path_factory.mktemp("spot")
+    old = {k: os.environ.get(k) for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR")}
+    os.environ["SPOT_DATA_DIR"] = str(root / "data")
+    os.environ["SPOT_CACHE_DIR"] = str(root / "cache")
+    yield root
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
+@pytest.fixture(scope="session")
+def tiny_drawer(spot_dirs):
+    """drawer-open, tiny size, built once per session (Meta-World, ~5 s)."""
+    from spot.data import registry
+
+    return registry.build("drawer-open", "tiny", 0, progress=False)
+
+
+def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None, timeout: int = 600):
+    """Run ``python -m spot.cli ARGS`` in a subprocess; returns CompletedProcess."""
+    full_env = {**os.environ, **(env or {})}
+    return subprocess.run([sys.executable, "-m", "spot.cli", *args], capture_output=True, text=True,
+                          cwd=cwd, env=full_env, timeout=timeout)

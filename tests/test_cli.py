@@ -1,0 +1,81 @@
+"""The `spot` command through a subprocess: help, data, labels, config; exit code 2 on user errors."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import run_cli
+
+PT_LABELS = Path(__file__).parent / "data" / "pt-human-labels"
+
+
+@pytest.mark.parametrize("cmd", [[], ["data"], ["data", "build"], ["labels", "make"], ["run"], ["bench"], ["config", "show"]])
+def test_help_on_every_command(cmd):
+    out = run_cli(*cmd, "--help")
+    assert out.returncode == 0, out.stderr
+    assert "usage: spot" in out.stdout
+
+
+def test_data_build_info_and_labels(tmp_path, spot_dirs, tiny_drawer):
+    listed = run_cli("data", "list")
+    assert listed.returncode == 0 and "hopper-medium-replay" in listed.stdout and "drawer-open" in listed.stdout
+    assert "size=tiny" in listed.stdout  # the session's tiny build is listed
+    built = run_cli("data", "build", "drawer-open", "--size", "tiny")  # cached: returns at once
+    assert built.returncode == 0, built.stderr
+    assert str(tiny_drawer) in built.stdout
+    info = run_cli("data", "info", "drawer-open", "--size", "tiny")
+    assert info.returncode == 0, info.stderr
+    summary = json.loads(info.stdout)["summary"]
+    assert summary["obs_dim"] == 39 and summary["act_dim"] == 4 and summary["transitions"] > 1000
+    out = tmp_path / "q.npz"
+    made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "--num-queries", "30",
+                   "--segment-length", "25", "--out", str(out))
+    assert made.returncode == 0, made.stderr
+    with np.load(out) as z:
+        assert len(z["labels"]) == 30
+    shown = run_cli("labels", "info", str(out), "--dataset", "drawer-open", "--size", "tiny")
+    assert shown.returncode == 0 and "all segments fit" in shown.stdout
+
+
+def test_labels_info_on_real_pt_files():
+    out = run_cli("labels", "info", str(PT_LABELS / "hopper-medium-replay-v2"))
+    assert out.returncode == 0, out.stderr
+    assert "500 queries, segment length 100" in out.stdout
+    assert "ties 191" in out.stdout
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["data", "build", "hopper-mediun"], "unknown dataset 'hopper-mediun'; did you mean hopper-medium"),
+        (["data", "info", "/no/such/file.hdf5"], "unknown dataset '/no/such/file.hdf5'"),
+        (["config", "show", "iql.stepz=3"], "unknown config key 'iql.stepz'; did you mean 'iql.steps'"),
+        (["config", "show", "shaping.weight=3"], "'shaping.weight': value 3.0 is out of range"),
+        (["run", "/no/such.yaml"], "config file '/no/such.yaml' does not exist"),
+        (["labels", "info", "/no/such/folder"], "/no/such/folder"),
+    ],
+)
+def test_user_errors_exit_2_without_traceback(args, fragment, spot_dirs):
+    out = run_cli(*args)
+    assert out.returncode == 2, (out.returncode, out.stderr)
+    assert fragment in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_label_index_past_dataset_end_is_a_user_error(spot_dirs, tiny_drawer):
+    # The real hopper labels index ~400k transitions; the tiny drawer dataset is much shorter.
+    out = run_cli("labels", "info", str(PT_LABELS / "hopper-medium-replay-v2"), "--dataset", "drawer-open",
+                  "--size", "tiny")
+    assert out.returncode == 2 and "past the end" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_config_show_resolves_presets(tmp_path):
+    f = tmp_path / "r.yaml"
+    f.write_text("method: spot\nbudget: tiny\n")
+    out = run_cli("config", "show", str(f), "shaping.weight=0.5")
+    assert out.returncode == 0, out.stderr
+    assert "kind: cosine" in out.stdout and "weight: 0.5" in out.stdout
+    keys = run_cli("config", "keys")
+    assert "iql.expectile" in keys.stdout and "one of ['top', 'top_next', 'bottom_next', 'bottom']" in keys.stdout

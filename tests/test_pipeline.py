@@ -1,0 +1,121 @@
+"""`spot run` end to end at the tiny budget: MLflow contents, stage cache reuse, determinism, failures."""
+
+import os
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+
+from spot import NonFiniteError, SpotError, cache, config, pipeline
+
+TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=200", "eval.every=100", "eval.episodes=1",
+        "labels.num_queries=30", "labels.segment_length=25"]
+
+
+def _cfg(tmp_path: Path, *overrides: str):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    return config.load(None, [*TINY, f"tracking.uri={uri}", "tracking.experiment=test", *overrides])
+
+
+def _run(cfg):
+    mlflow.set_tracking_uri(cfg.tracking.uri)
+    return mlflow.get_run(pipeline.run(cfg, progress=False)["run_id"])
+
+
+@pytest.fixture()
+def fresh_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+
+
+def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_drawer, fresh_cache):
+    cfg = _cfg(tmp_path, "method=spot")
+    run = _run(cfg)
+    d = run.data
+    assert run.info.status == "FINISHED"
+    # tags and the full resolved config as params
+    for tag in ("method", "dataset", "dataset_source", "label_source", "seed", "git_commit", "version.jax"):
+        assert tag in d.tags, tag
+    assert d.tags["method"] == "spot" and d.tags["dataset"] == "drawer-open" and d.tags["dataset_source"] == "recipe"
+    assert config.from_flat(d.params) == cfg
+    # metrics of every stage
+    for key in ("reward/best_eval_acc", "subgoal/num_subgoals", "subgoal/precision", "subgoal/recall",
+                "cvae/loss", "shaping/r_shape_mean", "iql/critic_loss", "eval/score", "eval/score_final",
+                "eval/score_best", "diag/extrapolation_error_ood", "time/reward_s", "time/cvae_s", "time/iql_s",
+                "cache/reward_hit", "cache/cvae_hit"):
+        assert key in d.metrics, key
+    assert d.metrics["cache/reward_hit"] == 0 and d.metrics["cache/cvae_hit"] == 0
+    client = mlflow.tracking.MlflowClient()
+    assert [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")] == [100, 200]
+    names = {a.path for a in client.list_artifacts(run.info.run_id)}
+    assert {"config.yaml", "dataset_card.json", "learning_curve.png", "subgoal_projection.png",
+            "extrapolation_error.png", "extrapolation_error.json"} <= names
+
+    # Only lambda changes: the reward model, relabelling and CVAE come from the cache.
+    again = _run(config.replace(cfg, **{"shaping.weight": 0.5}))
+    m = again.data.metrics
+    assert m["cache/reward_hit"] == 1 and m["cache/relabel_hit"] == 1 and m["cache/cvae_hit"] == 1
+    assert m["shaping/r_final_mean"] != d.metrics["shaping/r_final_mean"]
+
+
+def test_same_config_and_seed_give_identical_metrics(tmp_path, spot_dirs, tiny_drawer, monkeypatch):
+    results = []
+    for i in range(2):  # separate caches: everything is recomputed
+        monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / f"cache{i}"))
+        results.append(_run(_cfg(tmp_path, "method=pt", "subgoal.diagnostics=false")).data.metrics)
+    skip = {k for k in results[0] if k.startswith("time/") or k.endswith("steps_per_s")}
+    assert {k: v for k, v in results[0].items() if k not in skip} == {k: v for k, v in results[1].items() if k not in skip}
+
+
+def test_oracle_uses_true_reward_without_labels(tmp_path, spot_dirs, tiny_drawer, fresh_cache):
+    run = _run(_cfg(tmp_path, "method=oracle"))
+    assert run.data.tags["label_source"] == "none"
+    assert "reward/best_eval_acc" not in run.data.metrics and "eval/score_final" in run.data.metrics
+
+
+def test_nan_loss_marks_run_failed_with_step_and_loss(tmp_path, spot_dirs, tiny_drawer, fresh_cache, monkeypatch):
+    from spot.policy import iql
+
+    real = iql.make_train_chunk
+
+    def poisoned(cfg):
+        chunk = real(cfg)
+
+        def run_chunk(state, data, key):
+            state, metrics = chunk(state, data, key)
+            return state, {**metrics, "iql/critic_loss": metrics["iql/critic_loss"] * np.nan}
+        return run_chunk
+
+    monkeypatch.setattr(iql, "make_train_chunk", poisoned)
+    cfg = _cfg(tmp_path, "method=oracle")
+    with pytest.raises(NonFiniteError) as err:
+        pipeline.run(cfg, progress=False)
+    assert err.value.step == 100 and err.value.loss_name == "iql/critic_loss"
+    mlflow.set_tracking_uri(cfg.tracking.uri)
+    failed = mlflow.search_runs(experiment_names=["test"], filter_string="attributes.status = 'FAILED'")
+    assert len(failed) == 1
+    assert "iql/critic_loss" in failed["tags.failure_reason"].iloc[0] and "step 100" in failed["tags.failure_reason"].iloc[0]
+
+
+def test_config_that_does_not_fit_the_dataset(tmp_path, spot_dirs, tiny_drawer, fresh_cache):
+    # segments longer than any episode of the dataset
+    with pytest.raises(SpotError, match="segment"):
+        pipeline.run(_cfg(tmp_path, "method=pt", "labels.segment_length=5000"), progress=False)
+    with pytest.raises(SpotError, match="needs reward.kind=pt"):
+        pipeline.run(_cfg(tmp_path, "method=mr", "shaping.kind=cosine"), progress=False)
+
+
+def test_corrupt_cache_entry_is_rebuilt_not_used(tmp_path, monkeypatch):
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path))
+    calls = []
+    value, hit, key = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
+    assert not hit and calls == [1]
+    value, hit, _ = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
+    assert hit and calls == [1] and value["x"].tolist() == [0, 1, 2]
+    data = Path(os.environ["SPOT_CACHE_DIR"]) / f"{key}.pkl"
+    data.write_bytes(data.read_bytes()[:-5] + b"xxxxx")  # corrupt the payload
+    with pytest.warns(UserWarning, match="corrupt"):
+        value, hit, _ = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
+    assert not hit and calls == [1, 1] and value["x"].tolist() == [0, 1, 2]
+    # a different dependency is a different key
+    assert cache.key("cvae", {"a": 2}) != key
