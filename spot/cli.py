@@ -148,6 +148,57 @@ def _sweep(args: argparse.Namespace) -> None:
         sys.exit(1)  # the summary above lists what failed
 
 
+# --------------------------------------------------------------------------- tables, figures
+def _tables(args: argparse.Namespace) -> None:
+    from spot import tables
+
+    experiments = args.experiment or tables.default_experiments(args.table, args.tracking_uri)
+    runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
+    table = tables.build_table(runs, args.table, args.metric, ddof=args.ddof, allow_mixed=args.allow_mixed)
+    text = tables.format_table(table, args.format)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        print(text, end="")
+
+
+def _figures(args: argparse.Namespace) -> None:
+    from spot import figures, tables
+
+    if args.figure == "fig2":
+        runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
+        bins = figures.extrapolation_bins(runs, args.tracking_uri, dataset=args.dataset, source=args.source)
+        print(figures.summarize_extrapolation(bins, ddof=args.ddof).to_string(index=False))
+        print(f"wrote {figures.plot_fig2(bins, args.out, ddof=args.ddof)}")
+        return
+    if args.cvae:
+        if not args.dataset:
+            raise SpotError("--cvae needs --dataset (the transitions to generate subgoals for)")
+        from spot.data import registry
+
+        params = figures.load_cvae(args.cvae)
+        ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
+    if args.figure == "fig3":
+        if args.pairs:
+            if not args.env:
+                raise SpotError("--pairs needs --env (e.g. Hopper-v5 or hopper-medium-expert)")
+            obs, goal = figures.pairs_from_file(args.pairs)
+        elif args.cvae and args.index:
+            obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
+        else:
+            raise SpotError("fig3 needs --pairs FILE.npy --env ENV, or --cvae FILE --dataset NAME --index I [I ...]")
+        path = figures.render_state_and_subgoal(args.env or args.dataset, obs, goal, args.out,
+                                                width=args.width, height=args.height)
+    elif args.run_id:
+        path = figures.fetch_artifact(args.run_id, figures.FIG4_ARTIFACT, args.out, args.tracking_uri)
+    elif args.cvae:
+        path = figures.projection_from_cvae(params, ds.observations, ds.actions, args.out)
+    else:
+        raise SpotError("fig4 needs --run-id ID, or --cvae FILE --dataset NAME")
+    print(f"wrote {path}")
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
@@ -223,6 +274,47 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(fn=_config_show)
     d = cfg.add_parser("keys", help="every config key with type, help and valid values")
     d.set_defaults(fn=_config_keys)
+    d = sub.add_parser("tables", help="a paper table from the MLflow runs, the paper's numbers beside ours")
+    d.add_argument("--table", type=int, required=True, choices=(1, 2, 3, 4, 7, 8))
+    d.add_argument("--experiment", action="append",
+                   help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)")
+    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
+    d.add_argument("--format", default="md", choices=("md", "latex", "csv"))
+    d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
+    d.add_argument("--allow-mixed", action="store_true", help="average cells whose runs differ in more than the seed")
+    d.add_argument("--out", help="write the table to this file instead of printing it")
+    d.set_defaults(fn=_tables)
+
+    figs = sub.add_parser("figures", help="the paper's figures 2, 3 and 4 from runs").add_subparsers(
+        dest="figure", required=True, metavar="FIGURE")
+    d = figs.add_parser("fig2", help="extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD")
+    d.add_argument("--experiment", action="append", help="MLflow experiment (repeatable; default: all)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--dataset", help="the paper's dataset name, if the runs span several")
+    d.add_argument("--source", choices=("recipe", "file"), help="dataset source, if the runs span both")
+    d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over runs: 1 = sample, 0 = population")
+    d.add_argument("--out", default="fig2.png")
+    d = figs.add_parser("fig3", help="locomotion states rendered beside their predicted subgoals (MuJoCo, headless)")
+    d.add_argument("--pairs", help=".npy of [2, obs_dim] or [n, 2, obs_dim] (state, subgoal)")
+    d.add_argument("--env", help="Hopper-v5, Walker2d-v5, HalfCheetah-v5 or a dataset name (default: --dataset)")
+    d.add_argument("--index", type=int, nargs="+", help="with --cvae: dataset transitions to render")
+    d.add_argument("--width", type=int, default=320)
+    d.add_argument("--height", type=int, default=320)
+    d.add_argument("--out", default="fig3.png")
+    d = figs.add_parser("fig4", help="PCA of observations and subgoals: a run's artifact, or redrawn from a CVAE")
+    d.add_argument("--run-id", help="copy this run's subgoal_projection.png")
+    d.add_argument("--out", default="fig4.png")
+    for d in (figs.choices["fig2"], figs.choices["fig4"]):
+        d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    for d in (figs.choices["fig3"], figs.choices["fig4"]):
+        d.add_argument("--cvae", help="a CVAE stage-cache entry (cvae-<hash>.pkl, a trusted pickle)")
+        d.add_argument("--dataset", help="with --cvae: registered dataset name or file")
+        d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
+        d.add_argument("--data-seed", type=int, default=0, help="dataset build seed")
+    for d in figs.choices.values():
+        d.set_defaults(fn=_figures)
     return p
 
 

@@ -39,12 +39,13 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlparse
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from spot import SpotError
+from spot import SpotError, tables
 from spot.tables import resolve_tracking_uri
 
 if "mujoco" not in sys.modules:
@@ -60,10 +61,30 @@ _LABELS = {"pt": "PT", "spot": "SPOT"}
 
 
 # --------------------------------------------------------------------------- Fig. 2
-def _download(run_id: str, artifact_path: str, uri: str, dst: str) -> Path | None:
+def _local_artifact(artifact_uri: str, artifact_path: str, tracking_uri: str) -> Path | None:
+    """Where the artifact lies if its store is on this machine: ``file:`` artifact stores, and
+    ``mlflow-artifacts:`` ones beside a SQLite store (read without the server); None otherwise.
+
+    ``spot sweep`` serves ``<root>/mlflow.db`` with ``--artifacts-destination <root>/artifacts``, so
+    ``mlflow-artifacts:/<path>`` lives at ``<root>/artifacts/<path>``.
+    """
+    parsed = urlparse(artifact_uri)
+    if parsed.scheme in ("", "file"):
+        root = Path(parsed.path)
+    elif parsed.scheme == "mlflow-artifacts" and tracking_uri.startswith("sqlite:///"):
+        root = Path(tracking_uri[len("sqlite:///"):]).parent / "artifacts" / parsed.path.lstrip("/")
+    else:
+        return None
+    return root / artifact_path
+
+
+def _download(run_id: str, artifact_uri: str, artifact_path: str, uri: str, dst: str) -> Path | None:
     import mlflow.artifacts
     from mlflow.exceptions import MlflowException
 
+    local = _local_artifact(artifact_uri, artifact_path, uri)
+    if local is not None:
+        return local if local.is_file() else None
     try:
         return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact_path,
                                                         dst_path=dst, tracking_uri=uri))
@@ -127,12 +148,17 @@ def extrapolation_bins(runs: pd.DataFrame, tracking_uri: str | None = None, *, d
         raise SpotError(f"no finished run of {', '.join(methods)} to draw Fig. 2 from")
     sel = _pick(sel, "paper_dataset", dataset, "dataset")
     sel = _pick(sel, "dataset_source", source, "source")
+    mixed = tables.mixed_params(sel, sel[["method"]])
+    if mixed:
+        raise SpotError(f"the {'/'.join(methods)} runs differ in more than the seed, so they are not pooled: "
+                        f"{'; '.join(mixed[:5])}; pick runs with --experiment / --sweep-id")
+    sel = sel.sort_values("start_time").drop_duplicates(["method", "seed"], keep="last")  # a re-run replaces
     uri = resolve_tracking_uri(tracking_uri)
     client = MlflowClient(tracking_uri=uri)
     rows = []
     with tempfile.TemporaryDirectory(prefix="spot-fig2-") as tmp:
         for _, run in sel.iterrows():
-            path = _download(run["run_id"], FIG2_ARTIFACT, uri, str(Path(tmp) / run["run_id"]))
+            path = _download(run["run_id"], run["artifact_uri"], FIG2_ARTIFACT, uri, str(Path(tmp) / run["run_id"]))
             found = _bins_from_artifact(path) if path is not None else _bins_from_metrics(client, run["run_id"])
             origin = "artifact" if path is not None else "metrics"
             rows += [{"run_id": run["run_id"], "method": run["method"], "seed": run["seed"],
@@ -205,11 +231,18 @@ def plot_fig2(bins: pd.DataFrame, path: str | Path, *, ddof: int = 1, reference:
 # --------------------------------------------------------------------------- Fig. 4
 def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_uri: str | None = None) -> Path:
     """Copy one artifact of a run (e.g. ``subgoal_projection.png``) to ``out``."""
+    from mlflow.exceptions import MlflowException
+    from mlflow.tracking import MlflowClient
+
     uri = resolve_tracking_uri(tracking_uri)
+    try:
+        artifact_uri = MlflowClient(tracking_uri=uri).get_run(run_id).info.artifact_uri
+    except MlflowException as e:
+        raise SpotError(f"no run {run_id} in {uri}") from e
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="spot-artifact-") as tmp:
-        got = _download(run_id, artifact_path, uri, tmp)
+        got = _download(run_id, artifact_uri, artifact_path, uri, tmp)
         if got is None:
             raise SpotError(f"run {run_id} has no artifact {artifact_path!r} (tracking URI {uri})")
         shutil.copyfile(got, out)
@@ -237,11 +270,19 @@ def load_cvae(path: str | Path) -> Any:
     return params
 
 
+def _check_dims(params: Any, observations: np.ndarray) -> None:
+    obs_dim = int(params.obs_mean.shape[-1])
+    if observations.shape[1] != obs_dim:
+        raise SpotError(f"the CVAE was trained on {obs_dim}-D observations, the dataset has "
+                        f"{observations.shape[1]}-D ones: pick the CVAE of this dataset")
+
+
 def projection_from_cvae(params: Any, observations: np.ndarray, actions: np.ndarray, path: str | Path) -> Path:
     """Fig. 4-style PCA of ``observations`` and the CVAE's subgoals ĝ(s, a) for the same transitions."""
     from spot.subgoal import cvae as cvae_lib
     from spot.subgoal import diagnostics
 
+    _check_dims(params, observations)
     generated = cvae_lib.generate(params, observations, actions)
     return diagnostics.plot_projection(observations, generated, path)
 
@@ -346,3 +387,25 @@ def render_state_and_subgoal(env_id: str, obs: np.ndarray, subgoal: np.ndarray, 
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return path
+
+
+def pairs_from_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(states, subgoals)`` from a ``.npy`` array of shape ``[2, obs_dim]`` or ``[n, 2, obs_dim]``."""
+    pairs = np.load(Path(path).expanduser(), allow_pickle=False)
+    if pairs.ndim == 2:
+        pairs = pairs[None]
+    if pairs.ndim != 3 or pairs.shape[1] != 2:
+        raise SpotError(f"{path}: expected an array [2, obs_dim] or [n, 2, obs_dim] (state, subgoal), got {pairs.shape}")
+    return pairs[:, 0], pairs[:, 1]
+
+
+def pairs_from_cvae(params: Any, observations: np.ndarray, actions: np.ndarray,
+                    indices: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(states, ĝ)`` for dataset transitions ``indices``: ĝ = the CVAE's prior-mean subgoal."""
+    from spot.subgoal import cvae as cvae_lib
+
+    _check_dims(params, observations)
+    idx = np.asarray(indices, int)
+    if idx.size == 0 or idx.min() < 0 or idx.max() >= len(observations):
+        raise SpotError(f"indices must lie in [0, {len(observations)}), got {list(idx)}")
+    return observations[idx], cvae_lib.generate(params, observations[idx], actions[idx])

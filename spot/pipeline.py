@@ -212,13 +212,14 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
                 triplets, subgoal_states, sg_info = extract.extract(sides[0], sides[1], train_batch["label"], cfg.subgoal)
             _log(sg_info)
             with timer("cvae"):
-                cv, cvae_hit, _ = cache.cached(
+                cv, cvae_hit, cvae_cache_key = cache.cached(
                     "cvae", {"reward": reward_cache_key, "subgoal": cfg.subgoal, "cvae": cfg.cvae, "seed": cfg.seed},
                     lambda: dict(zip(("params", "history"), cvae_lib.train_cvae(
                         cvae_key, triplets.s, triplets.a, triplets.g, cfg.cvae,
                         cvae_lib.obs_stats(ds.observations), progress=progress), strict=False)))
             cvae_params = cv["params"]
             _log({"cache/cvae_hit": float(cvae_hit)})
+            mlflow.set_tags({"cache.cvae_key": cvae_cache_key, "cache.reward_key": reward_cache_key})
             for row in cv["history"]:
                 _log({k: v for k, v in row.items() if k != "step"}, step=int(row["step"]))
 
@@ -236,7 +237,8 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
             _log(sh_info)
             with timer("diagnostics"):
                 in_dist = _in_segments_mask(len(ds), prefs)
-                table = diagnostics.extrapolation_error_bins(reward, r_true, shaped.cos_to_subgoal, in_dist)
+                table = diagnostics.extrapolation_error_bins(reward, r_true, shaped.cos_to_subgoal, in_dist,
+                                                             bins=np.linspace(-1.0, 1.0, 21))
                 _log(table.metrics())
                 for b in range(table.mean_error.shape[1]):
                     _log({"diag/extrap_bin_in": table.mean_error[0, b], "diag/extrap_bin_ood": table.mean_error[1, b]},

@@ -59,10 +59,14 @@ SHAPING_ORDER = ("neg_distance", "potential", "cosine", "?")
 CVAE_LOSS_ORDER = ("mse", "mse_cos")
 CVAE_LOSS_FROM_PAPER = {"mse": "mse", "mse+cosine": "mse_cos"}
 TIME_COLUMNS = ("reward_model_s", "offline_rl_s", "total_s", "wall_s")
-REWARD_MODEL_STAGES = ("reward", "relabel", "subgoals", "cvae", "shaping")
+REWARD_MODEL_STAGES = ("reward", "relabel")
+SUBGOAL_STAGES = ("subgoals", "cvae", "shaping")  # reward-model time only where shaping is on
 OFFLINE_RL_STAGES = ("iql", "eval")
 CACHE_HIT_METRICS = ("cache/reward_hit", "cache/relabel_hit", "cache/cvae_hit")
 BEST_FRACTION = 0.95
+# The MLflow experiment each table's sweep writes (sweeps/<name>.yaml; `--smoke` adds "-smoke").
+SWEEP_EXPERIMENTS = {1: "table1", 2: "table2_topk", 3: "table3_shaping", 4: "table4_queries",
+                     7: "table7_cvae_loss", 8: "table1"}
 AVERAGE_ROW = "average"
 _RUN_COLUMNS = ("run_id", "run_name", "experiment_id", "experiment", "status", "start_time",
                 "end_time", "artifact_uri", "method", "dataset", "paper_dataset", "dataset_source", "seed")
@@ -142,30 +146,63 @@ def paper_cells(table: int) -> pd.DataFrame:
 
 
 # --------------------------------------------------------------------------- runs
+DEFAULT_STORES = (Path("spot_runs") / "mlflow.db", Path("mlruns") / "mlflow.db")
+
+
 def resolve_tracking_uri(uri: str | None = None) -> str:
-    """``uri``, else ``$MLFLOW_TRACKING_URI``, else the local store ``./mlruns/mlflow.db``, which must exist."""
+    """``uri``, else ``$MLFLOW_TRACKING_URI``, else the one local store in the working folder.
+
+    The local stores are ``./spot_runs/mlflow.db`` (``spot sweep``) and ``./mlruns/mlflow.db``
+    (``spot run``); with both present the choice is left to the user. A SQLite store must exist.
+    """
     uri = uri or os.environ.get("MLFLOW_TRACKING_URI", "")
     if not uri:
-        path = Path.cwd() / "mlruns" / "mlflow.db"
-        if not path.exists():
-            raise SpotError(f"no MLflow store at {path}; pass --tracking-uri (or set MLFLOW_TRACKING_URI)")
-        return f"sqlite:///{path}"
+        found = [p.resolve() for p in DEFAULT_STORES if p.exists()]
+        if not found:
+            raise SpotError(f"no MLflow store here ({' or '.join(map(str, DEFAULT_STORES))}); "
+                            "pass --tracking-uri (or set MLFLOW_TRACKING_URI)")
+        if len(found) > 1:
+            raise SpotError(f"two MLflow stores here ({', '.join(map(str, found))}); pick one with "
+                            f"--tracking-uri sqlite:///{found[0]}")
+        return f"sqlite:///{found[0]}"
     if uri.startswith("sqlite:///") and not Path(uri[len("sqlite:///"):]).exists():
         raise SpotError(f"no MLflow store at {uri[len('sqlite:///'):]} (tracking URI {uri})")
     return uri
 
 
+def _all_experiments(client: Any) -> dict[str, str]:
+    out, token = {}, None
+    while True:
+        page = client.search_experiments(max_results=1000, page_token=token)
+        out.update({e.experiment_id: e.name for e in page})
+        token = page.token
+        if not token:
+            return out
+
+
 def _experiments(client: Any, names: Sequence[str] | None) -> dict[str, str]:
-    if names:
-        out = {}
-        for name in names:
-            exp = client.get_experiment_by_name(name)
-            if exp is None:
-                known = sorted(e.name for e in client.search_experiments(max_results=None))
-                raise SpotError(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
-            out[exp.experiment_id] = exp.name
-        return out
-    return {e.experiment_id: e.name for e in client.search_experiments(max_results=None)}
+    if not names:
+        return _all_experiments(client)
+    out = {}
+    for name in names:
+        exp = client.get_experiment_by_name(name)
+        if exp is None:
+            known = sorted(_all_experiments(client).values())
+            raise SpotError(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
+        out[exp.experiment_id] = exp.name
+    return out
+
+
+def default_experiments(table: int, tracking_uri: str | None = None) -> list[str] | None:
+    """The experiment of ``table``'s sweep if the store has it (else its ``-smoke`` launch); None = all."""
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=resolve_tracking_uri(tracking_uri))
+    name = SWEEP_EXPERIMENTS[_spec(table).number]
+    for candidate in (name, f"{name}-smoke"):
+        if client.get_experiment_by_name(candidate) is not None:
+            return [candidate]
+    return None
 
 
 def load_runs(tracking_uri: str | None = None, experiment_names: Sequence[str] | None = None,
@@ -346,14 +383,17 @@ def _run_values(runs: pd.DataFrame, spec: _Spec, metric: str) -> pd.DataFrame:
         return runs[cols].astype(float).fillna(0.0).sum(axis=1)
 
     wall = runs["metrics.time/total_s"].astype(float) if "metrics.time/total_s" in runs else pd.Series(np.nan, index=runs.index)
-    rm, rl = stage_sum(REWARD_MODEL_STAGES), stage_sum(OFFLINE_RL_STAGES)
+    kind = runs["params.shaping.kind"] if "params.shaping.kind" in runs else pd.Series("none", index=runs.index)
+    shaped = kind.fillna("none") != "none"
+    rm = stage_sum(REWARD_MODEL_STAGES) + stage_sum(SUBGOAL_STAGES).where(shaped, 0.0)
+    rl = stage_sum(OFFLINE_RL_STAGES)
     timed = wall.notna()  # runs that reached the end of the pipeline log time/total_s
     values = {"reward_model_s": rm, "offline_rl_s": rl, "total_s": rm + rl, "wall_s": wall}
     return pd.concat([pd.DataFrame({"run_id": runs["run_id"], "time": name, "value": v.where(timed)})
                       for name, v in values.items()], ignore_index=True)
 
 
-def _mixed_params(runs: pd.DataFrame, cell_keys: pd.DataFrame) -> list[str]:
+def mixed_params(runs: pd.DataFrame, cell_keys: pd.DataFrame) -> list[str]:
     """``"cell (...): key in {a, b}"`` for every param (but seed, tracking.*) that varies inside a cell."""
     params = [c for c in runs if c.startswith("params.") and c != "params.seed"
               and not c.startswith("params.tracking.")]
@@ -444,10 +484,10 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
     long = long.sort_values("start_time")
     dup = long.duplicated([*full_cell, "seed"], keep="last")
     if dup.any():
-        notes.append(f"{long.loc[dup, 'run_id'].nunique()} runs replaced by a later run of the same cell and seed")
+        notes.append(f"run(s) replaced by a later run of the same cell and seed: {long.loc[dup, 'run_id'].nunique()}")
         long = long[~dup]
     used = finished[finished["run_id"].isin(long["run_id"])]
-    mixed = _mixed_params(used, base.loc[used.index, cell])
+    mixed = mixed_params(used, base.loc[used.index, cell])
     if mixed:
         if not allow_mixed:
             raise SpotError(f"table {table}: runs in one cell differ in more than the seed, so they are not "
@@ -484,7 +524,7 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
 
     wide = cells.set_index([*spec.rows, "source", spec.col])[list(FIELDS)].unstack(spec.col)
     wide = wide.swaplevel(0, 1, axis=1)
-    col_values = list(dict.fromkeys(cells[spec.col]))
+    col_values = sorted(dict.fromkeys(cells[spec.col]), key=lambda v: _sort_key(spec.col, v))
     wide = wide.reindex(columns=pd.MultiIndex.from_product([col_values, FIELDS], names=[spec.col, "field"]))
     row_order = list(dict.fromkeys(map(tuple, cells[[*spec.rows, "source"]].itertuples(index=False))))
     wide = wide.reindex(pd.MultiIndex.from_tuples(row_order, names=[*spec.rows, "source"]))
@@ -495,10 +535,13 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
             wide[(c, f)] = wide[(c, f)].astype(float)
 
     notes = _standard_notes(spec, cells, metric, ddof, with_paper, used) + notes
+    sweeps = sorted(used["tags.sweep_id"].dropna().unique()) if "tags.sweep_id" in used else []
+    notes.append(f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
+                 + (f", sweep(s) {', '.join(sweeps)}" if sweeps else ""))
     if len(excluded):
         by_status = excluded["status"].value_counts()
         notes.append(f"not counted: {len(excluded)} runs not FINISHED ("
-                     + ", ".join(f"{s}: {c}" for s, c in by_status.items()) + "): "
+                     + ", ".join(f"{s}: {c}" for s, c in sorted(by_status.items())) + "): "
                      + ", ".join(excluded["run_id"].str[:8]))
     wide.attrs = {"table": table, "title": spec.title, "metric": metric if spec.kind == "score" else "time/*",
                   "ddof": ddof, "kind": spec.kind, "rows": [*spec.rows, "source"], "col": spec.col,
@@ -509,7 +552,7 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
 def _standard_notes(spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, with_paper: bool,
                     used: pd.DataFrame) -> list[str]:
     std = "sample std (ddof=1)" if ddof == 1 else "population std (ddof=0)"
-    unit = "s" if spec.kind == "time" else metric
+    unit = "the stage times in seconds" if spec.kind == "time" else metric
     notes = [f"cell: ours mean ± {std} over seeds of {unit} (n seeds)"
              + (" [paper mean ± std, Δ = ours − paper]" if with_paper else "")]
     if spec.best != "none":
@@ -527,9 +570,11 @@ def _standard_notes(spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, wi
     if spec.number == 3 and (cells["shaping.kind"] == "?").any():
         notes.append("shaping.kind '?': paper values whose shaping kind is lost in the extracted paper text")
     if spec.number == 8:
-        notes.append("reward model = time/{" + ",".join(REWARD_MODEL_STAGES) + "}_s; offline RL = "
-                     "time/{iql,eval}_s; total = the two; wall = time/total_s (also data, labels, diagnostics). "
-                     "Paper: one GTX 1080 Ti")
+        notes.append("reward model = time/{" + ",".join(REWARD_MODEL_STAGES) + "}_s, plus time/{"
+                     + ",".join(SUBGOAL_STAGES) + "}_s where shaping is on (runs without shaping spend those "
+                     "on the Fig. 2 diagnostics only); offline RL = time/{" + ",".join(OFFLINE_RL_STAGES)
+                     + "}_s; total = the two; wall = time/total_s (everything, data loading and diagnostics "
+                     "included). Paper: one GTX 1080 Ti")
         hits = [m for m in CACHE_HIT_METRICS if f"metrics.{m}" in used]
         if hits:
             n_hit = int((used[[f"metrics.{m}" for m in hits]].astype(float) > 0).any(axis=1).sum())

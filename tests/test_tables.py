@@ -7,6 +7,7 @@ so every expected number below is computed by hand.
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 import runpy
@@ -53,18 +54,17 @@ def _run(client, exp_id: str, *, method: str, dataset: str, seed: int, score: fl
             "label_source": "script", "seed": str(seed), "budget": "tiny", "git_commit": "fixture"}
     run = client.create_run(exp_id, start_time=_CLOCK[0], tags=tags)
     rid = run.info.run_id
-    metrics = {} if score is None else {"eval/score_final": score, "eval/score_best": score + 1}
-    metrics.update(times or {})
+    values = {} if score is None else {"eval/score_final": score, "eval/score_best": score + 1}
+    values.update(times or {})
+    metrics = [Metric(k, float(v), _CLOCK[0], 0) for k, v in values.items()]
     if bins is not None:
         for b in range(3):
-            metrics_b = [Metric("diag/extrap_bin_in", bins["mean_error"][0][b], _CLOCK[0], b),
-                         Metric("diag/extrap_bin_ood", bins["mean_error"][1][b], _CLOCK[0], b)]
-            client.log_batch(rid, metrics=metrics_b)
+            metrics += [Metric("diag/extrap_bin_in", bins["mean_error"][0][b], _CLOCK[0], b),
+                        Metric("diag/extrap_bin_ood", bins["mean_error"][1][b], _CLOCK[0], b)]
         client.log_dict(rid, bins, "extrapolation_error.json")
     if png is not None:
         client.log_artifact(rid, str(png))
-    client.log_batch(rid, metrics=[Metric(k, float(v), _CLOCK[0], 0) for k, v in metrics.items()],
-                     params=[Param(k, v) for k, v in (params or _params(method, seed)).items()],
+    client.log_batch(rid, metrics=metrics, params=[Param(k, v) for k, v in (params or _params(method, seed)).items()],
                      tags=[RunTag("failure_reason", "boom")] if status == "FAILED" else [])
     client.set_terminated(rid, status=status, end_time=_CLOCK[0] + 500)
     return rid
@@ -87,6 +87,14 @@ def store(tmp_path_factory):
     uri = f"sqlite:///{root / 'mlflow.db'}"
     client = MlflowClient(tracking_uri=uri)
     ids = {name: tracking.experiment_id(name, uri) for name in ("t1", "t2", "t3", "t4", "t7", "mixed")}
+    # a run as `spot sweep` leaves it: artifacts served as mlflow-artifacts:/, on disk beside the db
+    served = client.create_experiment("served", artifact_location="mlflow-artifacts:/7")
+    rid = client.create_run(served, tags={"method": "pt", "dataset": "hopper-medium-replay",
+                                          "dataset_source": "recipe", "seed": "0"}).info.run_id
+    client.set_terminated(rid)
+    on_disk = root / "artifacts" / "7" / rid / "artifacts"
+    on_disk.mkdir(parents=True)
+    (on_disk / "extrapolation_error.json").write_text(json.dumps(_bins(0.0)))
     e = ids["t1"]
     hmr, wmr = "hopper-medium-replay", "walker2d-medium-replay-v2"
     # a first spot seed-0 run, replaced by the later run of the same cell and seed
@@ -183,7 +191,7 @@ def test_table1_cells(t1_runs):
     assert np.isnan(avg[("oracle", "mean")])  # oracle ran on one dataset only
     notes = " ".join(t.attrs["notes"])
     assert "2 runs not FINISHED (FAILED: 1, KILLED: 1)" in notes
-    assert "1 runs replaced" in notes and "sample std (ddof=1)" in notes and "dataset source file" in notes
+    assert "same cell and seed: 1" in notes and "runs: 15 from experiment(s) t1" in notes and "sample std (ddof=1)" in notes and "dataset source file" in notes
 
 
 def test_table1_population_std(t1_runs):
@@ -210,12 +218,15 @@ def test_formats_parse(t1_runs):
 def test_table8_sums(t1_runs):
     t = tables.build_table(t1_runs, 8)
     row = t.loc[("spot", "hopper-medium-replay", "recipe")]
-    # reward model = 10 (seed+1) + 1 + 2 + 3 + 4 over seeds 0..2 = 20, 30, 40
+    # SPOT: reward model = 10 (seed+1) + 1, + 2 + 3 + 4 (subgoals, CVAE, shaping) over seeds 0..2 = 20, 30, 40
     assert row[("reward_model_s", "mean")] == pytest.approx(30.0)
     assert row[("reward_model_s", "std")] == pytest.approx(10.0)
     assert row[("offline_rl_s", "mean")] == pytest.approx(120.0)
     assert row[("total_s", "mean")] == pytest.approx(150.0)
     assert row[("wall_s", "mean")] == pytest.approx(151.0)
+    # without shaping (PT, MR) the subgoal/CVAE/shaping stages are diagnostics, not reward model:
+    # 10 (seed+1) + 1 over seeds 0..2 = 11, 21, 31
+    assert t.loc[("pt", "hopper-medium-replay", "recipe"), ("reward_model_s", "mean")] == pytest.approx(21.0)
     oracle = t.loc[("oracle", "hopper-medium-replay", "recipe")]
     assert oracle[("reward_model_s", "mean")] == 0.0 and oracle[("total_s", "mean")] == pytest.approx(120.0)
     walker = t.loc[("spot", "walker2d-medium-replay", "recipe")]
@@ -263,6 +274,12 @@ def test_mixed_cells_refused(store):
     assert any("mixed params" in n for n in t.attrs["notes"])
 
 
+def test_default_experiments(store):
+    assert tables.default_experiments(1, store) is None  # no sweep experiment: all experiments
+    tracking.experiment_id("table4_queries-smoke", store)
+    assert tables.default_experiments(4, store) == ["table4_queries-smoke"]
+
+
 def test_errors(store, t1_runs):
     with pytest.raises(SpotError, match="no MLflow experiment named 'nope'"):
         tables.load_runs(store, ["nope"])
@@ -290,11 +307,11 @@ def test_fig2(store, t1_runs, tmp_path):
 
 def test_fig2_from_metrics(store, t1_runs, tmp_path):
     """Runs without the JSON artifact: bins come from the diag/extrap_bin_* metric histories."""
-    from spot import figures
-
     from mlflow.tracking import MlflowClient
 
-    pt_run = t1_runs.loc[t1_runs["method"] == "pt", "run_id"].iloc[0]
+    from spot import figures
+
+    pt_run = t1_runs.loc[(t1_runs["method"] == "pt") & (t1_runs["dataset"] == "hopper-medium-replay"), "run_id"].iloc[0]
     bins = figures._bins_from_metrics(MlflowClient(store), pt_run)
     assert [(b["group"], b["bin"], b["mean_error"]) for b in bins][:3] == [
         ("in_distribution", 0, 0.0), ("in_distribution", 1, 0.1), ("in_distribution", 2, 0.2)]
@@ -315,21 +332,32 @@ def test_cli_tables(store, capsys, tmp_path):
     assert "--allow-mixed" in capsys.readouterr().err
     png = tmp_path / "f2.png"
     assert cli.main(["figures", "fig2", "--experiment", "t1", "--tracking-uri", store,
-                     "--source", "recipe", "--out", str(png)]) == 0
+                     "--source", "recipe", "--out", str(png)]) == 2  # two datasets: pick one
+    assert "--dataset" in capsys.readouterr().err
+    assert cli.main(["figures", "fig2", "--experiment", "t1", "--tracking-uri", store, "--source", "recipe",
+                     "--dataset", "hopper-medium-replay", "--out", str(png)]) == 0
     assert png.exists()
+    runs = tables.load_runs(store, ["t1"])
+    with_png = runs.loc[(runs["method"] == "spot") & (runs["metrics.eval/score_final"] == 80.0), "run_id"].item()
+    fig4 = tmp_path / "f4.png"
+    assert cli.main(["figures", "fig4", "--tracking-uri", store, "--run-id", with_png, "--out", str(fig4)]) == 0
+    assert fig4.read_bytes()[:4] == b"\x89PNG"
 
 
 def test_notebooks_execute(store, tmp_path, monkeypatch):
     """The analysis/ notebooks (jupytext percent format) run top to bottom as scripts on the fixture."""
     monkeypatch.setenv("SPOT_TRACKING_URI", store)
-    monkeypatch.setenv("SPOT_EXPERIMENTS", "t1,t2,t3,t4,t7")
-    monkeypatch.setenv("SPOT_ANALYSIS_OUT", str(tmp_path))
+    monkeypatch.setenv("SPOT_TABLE_EXPERIMENTS", "1=t1;2=t2;3=t3;4=t4;7=t7;8=t1")
+    monkeypatch.setenv("SPOT_FIG2_EXPERIMENTS", "t1")
+    monkeypatch.setenv("SPOT_FIG2_DATASET", "hopper-medium-replay")
     monkeypatch.setenv("SPOT_FIG2_SOURCE", "recipe")
+    monkeypatch.setenv("SPOT_ANALYSIS_OUT", str(tmp_path))
     monkeypatch.delenv("SPOT_CVAE", raising=False)
     runpy.run_path(str(ROOT / "analysis" / "tables.py"), run_name="__main__")
     runpy.run_path(str(ROOT / "analysis" / "figures.py"), run_name="__main__")
     for n in (1, 2, 3, 4, 7, 8):
-        assert (tmp_path / f"table{n}.md").exists()
+        for ext in ("md", "tex", "csv"):
+            assert (tmp_path / f"table{n}.{ext}").stat().st_size > 0
     assert (tmp_path / "fig2.png").exists() and (tmp_path / "fig4.png").exists()
 
 
@@ -349,3 +377,11 @@ def test_fig3_render(tmp_path):
                          cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (tmp_path / "fig3.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_fig2_reads_served_artifacts(store):
+    """Sweep runs have mlflow-artifacts:/ URIs; with no server running they are read from disk."""
+    from spot import figures
+
+    bins = figures.extrapolation_bins(tables.load_runs(store, ["served"]), store)
+    assert set(bins["origin"]) == {"artifact"} and len(bins) == 6
