@@ -11,14 +11,14 @@
   positions (keys and values still cover the whole sequence), which gives exactly the same
   numbers at those positions for a fraction of the cost.
 * :class:`Dropout` is inverted dropout with a cheap counter-based keep mask (see its docstring);
-  every dropout in spot uses it.
+  the MLP and the transformer use it.
 * :func:`create_train_state` is the one way spot builds a ``flax.training.train_state.TrainState``
   (STYLE.md rule 9); :func:`param_count` counts parameters; :func:`jit_init` initialises a module in
   one cheaply compiled program; :func:`compile_cached` compiles a jitted training program ahead of
   time (timing the compile) and reuses it within the process.
 
-Mixed precision: modules take a compute ``dtype``; parameters are always float32
-(``param_dtype``) and attention softmaxes run in float32.
+Mixed precision: :class:`TransformerBlock` takes a compute ``dtype`` for its matmuls; its
+parameters and residual stream stay float32 and its softmax runs in float32.
 """
 
 from __future__ import annotations
