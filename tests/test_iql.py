@@ -1,0 +1,186 @@
+"""IQL (spot.policy.iql): hand-computed losses, jit/no-jit, one trace per chunk, determinism,
+vmapped seeds, and a learning threshold on a 2-D point-mass reaching task.
+
+Every test uses one small config and one dataset, so the train chunk compiles once for the file.
+"""
+
+import spot  # noqa: F401, I001  (first: sets the XLA flags before jax)
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from spot import NonFiniteError
+from spot.config import IQLConfig
+from spot.data.dataset import raw_from_episodes
+from spot.policy import iql
+
+CFG = IQLConfig(hidden=(32, 32), batch_size=128, steps=1200, chunk=400, discount=0.9,
+                temperature=10.0, expectile=0.8)
+
+# Point mass on [-1, 1]^2: s' = clip(s + 0.2 a), r = -|s' - goal|, terminal within 0.1 of the goal.
+GOAL = np.array([0.6, -0.4], np.float32)
+HORIZON = 20
+
+
+def _step(pos: np.ndarray, act: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    nxt = np.clip(pos + 0.2 * np.clip(act, -1.0, 1.0), -1.0, 1.0).astype(np.float32)
+    dist = np.linalg.norm(nxt - GOAL, axis=-1)
+    return nxt, -dist, dist < 0.1
+
+
+def _true_return(policy, starts: np.ndarray) -> float:
+    pos, ret, alive = starts.copy(), np.zeros(len(starts)), np.ones(len(starts), bool)
+    for _ in range(HORIZON):
+        pos, rew, term = _step(pos, policy(pos))
+        ret += rew * alive
+        alive &= ~term
+    return float(ret.mean())
+
+
+def _behaviour_data(episodes: int = 200, seed: int = 0) -> iql.Transitions:
+    """Uniform-random behaviour (the worst sensible policy), true rewards and terminals."""
+    rng = np.random.default_rng(seed)
+    rows: list[tuple] = []
+    for _ in range(episodes):
+        pos = rng.uniform(-1, 1, 2).astype(np.float32)
+        for _ in range(HORIZON):
+            act = rng.uniform(-1, 1, 2).astype(np.float32)
+            nxt, rew, term = _step(pos, act)
+            rows.append((pos, act, rew, nxt, 1.0 - float(term)))
+            pos = nxt
+            if term:
+                break
+    cols = [np.array(c, np.float32) for c in zip(*rows, strict=True)]
+    return iql.Transitions(*(jnp.asarray(c) for c in cols))
+
+
+@pytest.fixture(scope="module")
+def data() -> iql.Transitions:
+    return _behaviour_data()
+
+
+@pytest.fixture(scope="module")
+def chunk_fn():
+    return iql.make_train_chunk(CFG)
+
+
+@pytest.fixture(scope="module")
+def trained(data, chunk_fn):
+    """Three chunks (1200 updates) from seed 0, counting traces of the scanned update."""
+    traces_before = iql.TRACE_COUNT["chunk"]
+    state = iql.init_state(jax.random.key(0), 2, 2, CFG)
+    history = []
+    for c in range(3):
+        state, metrics = chunk_fn(state, data, jax.random.key(1))
+        history.append(iql.check_finite(metrics, (c + 1) * CFG.chunk))
+    return state, history, iql.TRACE_COUNT["chunk"] - traces_before
+
+
+# --------------------------------------------------------------------------- numeric
+def test_expectile_loss_by_hand():
+    diff = jnp.array([-2.0, -0.5, 0.0, 0.5, 3.0])
+    # u > 0: tau u^2; u <= 0: (1 - tau) u^2
+    expected = np.array([0.3 * 4.0, 0.3 * 0.25, 0.0, 0.7 * 0.25, 0.7 * 9.0])
+    np.testing.assert_allclose(iql.expectile_loss(diff, 0.7), expected, rtol=1e-6)
+    np.testing.assert_allclose(iql.expectile_loss(diff, 0.5), 0.5 * np.square(diff), rtol=1e-6)
+
+
+def test_awr_weights_by_hand_and_clip():
+    adv = jnp.array([-1.0, 0.0, 0.5, 1.5, 2.0])
+    # beta = 3: exp(-3), 1, exp(1.5), exp(4.5) = 90.02 (under the clip), exp(6) = 403 -> 100
+    expected = np.array([math.exp(-3.0), 1.0, math.exp(1.5), math.exp(4.5), 100.0])
+    np.testing.assert_allclose(iql.awr_weights(adv, 3.0), expected, rtol=1e-6)
+    np.testing.assert_allclose(iql.awr_weights(jnp.array([10.0]), 1.0), [100.0])
+
+
+def test_gaussian_log_prob_by_hand():
+    mean = jnp.array([[0.0, 0.5]])
+    log_std = jnp.array([0.0, math.log(0.5)])
+    act = jnp.array([[1.0, 0.0]])
+    # dim 0: N(1; 0, 1) -> -0.5 - 0.5 log 2pi; dim 1: N(0; 0.5, 0.25) -> -0.5 - log 0.5 - 0.5 log 2pi
+    expected = -0.5 - 0.5 - math.log(0.5) - math.log(2 * math.pi)
+    np.testing.assert_allclose(iql.gaussian_log_prob(mean, log_std, act), [expected], rtol=1e-6)
+
+
+def test_check_finite_raises_with_step_and_name():
+    with pytest.raises(NonFiniteError) as err:
+        iql.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)
+    assert err.value.step == 400 and err.value.loss_name == "iql/critic_loss"
+    assert iql.check_finite({"iql/value_loss": jnp.float32(1.0), "iql/adv_max": jnp.inf}, 1)
+
+
+def test_transitions_from_dataset():
+    episode = {
+        "observations": np.arange(6, dtype=np.float64).reshape(3, 2), "actions": np.ones((3, 1)),
+        "rewards": np.array([1.0, 2.0, 3.0]), "next_observations": np.arange(2, 8).reshape(3, 2),
+        "terminals": np.array([False, False, True]), "timeouts": np.zeros(3, bool),
+    }
+    ds = raw_from_episodes([episode, episode], "hand").qlearning()  # 5 rows: the last is dropped
+    data = iql.transitions_from(ds, rewards=-ds.rewards)
+    assert all(x.dtype == jnp.float32 for x in data)
+    np.testing.assert_array_equal(data.mask, [1, 1, 0, 1, 1])
+    np.testing.assert_array_equal(data.rew, [-1, -2, -3, -1, -2])
+    np.testing.assert_array_equal(iql.transitions_from(ds).rew, ds.rewards)
+    with pytest.raises(ValueError, match="rewards"):
+        iql.transitions_from(ds, rewards=np.zeros(3))
+
+
+# --------------------------------------------------------------------------- update and chunk
+def test_update_jit_matches_no_jit(data):
+    state = iql.init_state(jax.random.key(3), 2, 2, CFG)
+    batch = jax.tree.map(lambda x: x[: CFG.batch_size], data)
+    with jax.disable_jit():
+        eager_state, eager_metrics = iql.update(state, batch, CFG)
+    jit_state, jit_metrics = jax.jit(iql.update, static_argnames="cfg")(state, batch, CFG)
+    for name, value in eager_metrics.items():
+        np.testing.assert_allclose(jit_metrics[name], value, rtol=1e-5, atol=1e-6, err_msg=name)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), jit_state, eager_state)
+    assert int(jit_state.step) == 1
+
+
+def test_chunk_traces_once(trained, chunk_fn):
+    _, history, traces = trained
+    assert traces == 1  # three calls, one trace of the scanned update
+    assert chunk_fn._cache_size() == 1  # and one compiled program (fresh states included)
+    assert set(history[0]) >= {"iql/value_loss", "iql/critic_loss", "iql/actor_loss", "iql/q_mean",
+                               "iql/v_mean", "iql/adv_mean"}
+
+
+def test_chunk_is_deterministic(data, chunk_fn):
+    runs = []
+    for _ in range(2):
+        state = iql.init_state(jax.random.key(7), 2, 2, CFG)
+        state, metrics = chunk_fn(state, data, jax.random.key(8))
+        runs.append((jax.device_get(metrics), jax.device_get(state.actor.params)))
+    assert runs[0][0] == runs[1][0]
+    jax.tree.map(np.testing.assert_array_equal, runs[0][1], runs[1][1])
+    assert int(state.step) == CFG.chunk
+
+
+def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
+    init_keys, train_keys = jax.random.split(jax.random.key(11), 2), jax.random.split(jax.random.key(12), 2)
+    states = jax.vmap(iql.init_state, in_axes=(0, None, None, None))(init_keys, 2, 2, CFG)
+    states, metrics = iql.make_vmapped_train_chunk(CFG)(states, data, train_keys)
+    for s in range(2):
+        alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), data, train_keys[s])
+        for name, value in alone_metrics.items():
+            np.testing.assert_allclose(metrics[name][s], value, rtol=2e-3, atol=2e-4, err_msg=name)
+        jax.tree.map(lambda a, b, s=s: np.testing.assert_allclose(a[s], b, rtol=2e-3, atol=2e-4),
+                     states.actor.params, alone.actor.params)
+
+
+# --------------------------------------------------------------------------- learning
+def test_iql_beats_behaviour_and_bc(trained):
+    state, history, _ = trained
+    assert history[-1]["iql/critic_loss"] < history[0]["iql/critic_loss"]
+    starts = np.random.default_rng(1).uniform(-1, 1, (100, 2)).astype(np.float32)
+    rng = np.random.default_rng(2)
+    behaviour = _true_return(lambda p: rng.uniform(-1, 1, p.shape), starts)
+    # BC of uniform-random actions converges to the mean action 0, i.e. standing still.
+    bc = _true_return(lambda p: np.zeros_like(p), starts)
+    learned = _true_return(lambda p: np.asarray(iql.act(state.actor.params, p, CFG)), starts)
+    assert learned > max(behaviour, bc) + 6.0, (learned, behaviour, bc)
