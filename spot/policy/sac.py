@@ -1,13 +1,14 @@
 """Soft Actor-Critic (Haarnoja et al., 2018, arXiv:1812.05905), the behaviour-policy learner of the
-locomotion recipes (D4RL, Fu et al., 2020, arXiv:2004.07219, Sec. 5 trains SAC to make its data).
+locomotion recipes (D4RL, Fu et al., 2020, arXiv:2004.07219, made its Gym-MuJoCo data with SAC).
 
 The parts, as in the paper's Algorithm 1 with the automatic temperature of Sec. 5:
 
 * actor: a tanh-squashed Gaussian whose mean and (clipped) log-std depend on the state;
   ``log pi(a|s) = log N(u; mu, sigma) - sum_i log(1 - tanh(u_i)^2)`` with ``a = tanh(u)`` (App. C);
 * critic: twin Q networks trained on ``r + gamma (1 - done) (min_j Q'_j(s', a') - alpha log pi(a'|s'))``
-  with Polyak-averaged target params (Eq. 5, with the clipped double-Q of TD3);
-* temperature: ``alpha`` tuned so the policy entropy tracks ``-act_dim`` (Eq. 18).
+  with Polyak-averaged target params (the clipped double-Q of TD3, as the paper does);
+* temperature: ``alpha`` tuned by gradient steps on ``alpha (H(pi) - H_target)`` so the policy
+  entropy tracks ``H_target = -act_dim`` (Sec. 5).
 
 The environment loop is Python and numpy (gymnasium); the replay buffer is a fixed-capacity pytree
 of device arrays; every ``update_every`` environment steps one jitted ``lax.scan`` runs
@@ -160,7 +161,7 @@ def _actor_def(cfg: SACConfig, act_dim: int) -> Actor:
 # ------------------------------------------------------------------------------ tanh-Gaussian
 def tanh_gaussian_log_prob(pre_tanh: jax.Array, mean: jax.Array, log_std: jax.Array) -> jax.Array:
     """Log density of ``a = tanh(u)``, ``u ~ N(mean, exp(log_std)^2)`` per dimension, summed over the
-    last axis (SAC App. C, Eq. 21).
+    last axis (SAC App. C).
 
     Uses ``log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u))``, which stays finite for large ``|u|``.
     """

@@ -1,5 +1,5 @@
-"""D4RL locomotion datasets rebuilt locally in gymnasium MuJoCo (Fu et al., 2020, arXiv:2004.07219,
-Sec. 5 and App. C), for Hopper-v5 and Walker2d-v5 (1000-step episodes).
+"""D4RL locomotion datasets (Fu et al., 2020, arXiv:2004.07219) rebuilt locally in gymnasium MuJoCo,
+for Hopper-v5 and Walker2d-v5 (1000-step episodes).
 
 D4RL's recipe, which this module follows:
 
@@ -18,7 +18,7 @@ Each episode ends in exactly one flag: ``terminals[-1]`` when the environment te
 hopper fell), otherwise ``timeouts[-1]`` (the 1000-step limit, or a cut).
 
 Sizes (per env): ``tiny`` for tests (3k SAC steps with 32x32 nets, 2k-row datasets; seconds),
-``small`` (60k SAC steps with the paper's networks, 50k-row datasets; minutes on 2 CPU cores),
+``small`` (80k SAC steps with 128x128 nets, 100k-row datasets; minutes on 2 CPU cores),
 ``paper`` (D4RL: 1M SAC steps, 1M-row datasets). The same seed gives the same arrays on the same
 machine: environments are reset with derived seeds, and every random draw comes from a jax key
 or a numpy generator made from the seed.
@@ -72,10 +72,14 @@ SIZES: dict[str, SizeSpec] = {
                       update_every=500, eval_every=500, eval_episodes=2),
         transitions=2000,
     ),
+    # 128x128 nets, batch 128 and lr 1e-3 learn Hopper faster per CPU second than the paper's
+    # 256x256 / 256 / 3e-4: on 2 busy shared cores, 80k steps took ~7 min and reached an eval
+    # return of ~820, where the paper's settings reached ~700 after 60k steps in 10 min.
     "small": SizeSpec(
-        sac.SACConfig(total_steps=60_000, start_steps=5000, update_every=1000, eval_every=2000,
-                      eval_episodes=5),
-        transitions=50_000,
+        sac.SACConfig(hidden_dims=(128, 128), batch_size=128, actor_lr=1e-3, critic_lr=1e-3,
+                      temperature_lr=1e-3, total_steps=80_000, start_steps=5000, update_every=1000,
+                      eval_every=2000, eval_episodes=5),
+        transitions=100_000,
     ),
     "paper": SizeSpec(sac.SACConfig(), transitions=1_000_000),
 }
