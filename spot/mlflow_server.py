@@ -87,8 +87,8 @@ class MlflowServer:
     def uri(self) -> str:
         return f"http://{self.host}:{self.port}"
 
-    def start(self, timeout: float = 120.0) -> None:
-        """Start the server and wait until ``/health`` answers (or raise SpotError with the log tail)."""
+    def start(self, *, wait: bool = True, timeout: float = 120.0) -> None:
+        """Start the server; with ``wait``, return once it is ready (see :meth:`wait_ready`)."""
         self.artifacts.mkdir(parents=True, exist_ok=True)
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         cmd = [sys.executable, "-m", "mlflow", "server", "--host", self.host, "--port", str(self.port),
@@ -99,6 +99,13 @@ class MlflowServer:
         with open(self.log_path, "ab") as log:
             self._proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
                                           start_new_session=True, preexec_fn=_die_with_parent)
+        if wait:
+            self.wait_ready(timeout)
+
+    def wait_ready(self, timeout: float = 120.0) -> None:
+        """Wait until ``/health`` answers; raise SpotError with the log tail if the server died or hung."""
+        if self._proc is None:
+            raise SpotError("mlflow server was not started")
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self._proc.poll() is not None:

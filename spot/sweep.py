@@ -335,13 +335,14 @@ class SweepContext:
 # --------------------------------------------------------------------------- one trial
 @contextlib.contextmanager
 def cpu_slots(n: int) -> Iterator[list[int]]:
-    """Claim ``n`` CPUs of this node for the trial and pin the process to them.
+    """Claim ``n`` CPUs of this node for the trial and pin the whole process to them.
 
-    Slots are ``flock``s on files in ``$TMPDIR/spot-cpu-slots`` (released when the process ends,
-    however it ends), so concurrent trials on one node get disjoint CPUs. XLA sizes its CPU thread
-    pools from the affinity mask, which makes this the thread-count setting that works (an
-    ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by jaxlib 0.10). If ``n`` slots
-    are not free (fractional CPUs, foreign processes), nothing is pinned.
+    Slots are ``flock``s on files in ``$TMPDIR/spot-cpu-slots`` (released at the end of the block
+    or when the process dies, however it dies), so concurrent trials on one node get disjoint
+    CPUs. XLA sizes its CPU thread pools from the affinity mask, which makes this the thread-count
+    setting that works (an ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by
+    jaxlib 0.10). If ``n`` slots are not free (fractional CPUs, a trial as large as the node),
+    nothing is claimed or pinned. Yields the pinned CPUs (empty if none).
     """
     allowed = sorted(os.sched_getaffinity(0))
     folder = Path(tempfile.gettempdir()) / "spot-cpu-slots"
@@ -358,7 +359,11 @@ def cpu_slots(n: int) -> Iterator[list[int]]:
                 f.close()
                 continue
             held.append((cpu, f))
-        cpus = [c for c, _ in held] if len(held) == n and n < len(allowed) else []
+        if len(held) < n or n >= len(allowed):
+            for _, f in held:
+                f.close()
+            held = []
+        cpus = [c for c, _ in held]
         if cpus:
             for tid in os.listdir("/proc/self/task"):
                 with contextlib.suppress(OSError):
@@ -487,7 +492,7 @@ def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx
 
 
 def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:
-    """The Ray Tune function trainable: one trial = ``config['overrides']`` x ``config['seeds']``.
+    """The Ray Tune function trainable: one trial = ``config['trial']`` (:meth:`Trial.to_config`).
 
     The per-trial process settings are made here, first: Tune starts every trial in a fresh actor
     process (``reuse_actors=False``) and nothing before this line imports jax.
@@ -496,9 +501,10 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
 
     context = tune.get_context()
     need = context.get_trial_resources().required_resources
-    with cpu_slots(max(1, int(need.get("CPU", 1)))):
-        configure_process(max(1, int(need.get("CPU", 1))), float(need.get("GPU", 0.0)))
-        run_trial(config["overrides"], config["seeds"], ctx, trial_id=context.get_trial_id(),
+    cpus = max(1, int(need.get("CPU", 1)))
+    with cpu_slots(cpus):
+        configure_process(cpus, float(need.get("GPU", 0.0)))
+        run_trial(config["trial"]["overrides"], config["trial"]["seeds"], ctx, trial_id=context.get_trial_id(),
                   report=tune.report, run_fn=run_fn)
 
 
@@ -521,9 +527,20 @@ class Row:
     finished_runs: int
 
 
+@dataclass(frozen=True)
+class _Store:
+    uri: str
+    how_to_open: str
+    wait_ready: Callable[[], None]
+
+
 @contextlib.contextmanager
-def _tracking_store(uri: str | None, root: Path) -> Iterator[tuple[str, str]]:
-    """Yield ``(uri for the trials, how to look at the runs)``; serve a SQLite store if needed."""
+def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
+    """The tracking store of a launch; a SQLite store is served by a loopback server.
+
+    The server starts here but is only waited for by ``wait_ready()``, so that Ray can start
+    meanwhile.
+    """
     from spot import mlflow_server
 
     uri = uri or os.environ.get("MLFLOW_TRACKING_URI", "")
@@ -531,7 +548,7 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[tuple[str, str]]:
         raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
                         "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
     if uri and not uri.startswith("sqlite:"):
-        yield uri, f"MLflow: {uri}"
+        yield _Store(uri, f"MLflow: {uri}", lambda: None)
         return
     db = Path(uri[len("sqlite:///"):]) if uri else root / "mlflow.db"
     db.parent.mkdir(parents=True, exist_ok=True)
@@ -539,8 +556,12 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[tuple[str, str]]:
     artifacts = db.resolve().parent / "artifacts"
     server = mlflow_server.MlflowServer(backend, artifacts, log_path=db.resolve().parent / "mlflow-server.log")
     print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
-    with server:
-        yield server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}"
+    server.start(wait=False)
+    try:
+        yield _Store(server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
+                     server.wait_ready)
+    finally:
+        server.stop()
 
 
 def _init_ray(address: str | None) -> bool:
@@ -549,7 +570,8 @@ def _init_ray(address: str | None) -> bool:
 
     if ray.is_initialized():
         return False
-    env_vars = {"RAY_CHDIR_TO_TRIAL_DIR": "0"}  # trials keep the driver's working dir (relative paths)
+    env_vars = {"RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
+                "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true"}  # no "View run" lines in the progress view
     env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
     if address:
         ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
@@ -572,11 +594,16 @@ def _close_orphans(client: Any, experiment_id: str, sweep_id: str, parent_run_id
 
 
 def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_errored: bool,
-         max_concurrent: int | None, run_fn: RunFn | None) -> dict[str, str]:
-    """Run (or restore) the Tune experiment; return ``{run_key: error}`` for each seed of errored trials."""
+         max_concurrent: int | None, run_fn: RunFn | None) -> tuple[dict[str, str], bool]:
+    """Run (or restore) the Tune experiment.
+
+    Returns ``{run_key: error}`` for each seed of errored trials, and whether the launch was
+    interrupted (Ctrl-C: Tune stops and returns with trials left unfinished).
+    """
     from ray import tune
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # use the CLIReporter below
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
     trials = sweep.trials()
     trainable = tune.with_resources(tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
                                     {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]})
@@ -596,14 +623,24 @@ def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_
             run_config=tune.RunConfig(name=exp_dir.name, storage_path=str(exp_dir.parent),
                                       progress_reporter=reporter, verbose=1,
                                       failure_config=tune.FailureConfig(max_failures=0, fail_fast=False)))
+    tuner.fit()
     errors: dict[str, str] = {}
-    for result in tuner.fit():
-        if result.error is not None:
-            lines = [ln for ln in str(result.error).splitlines() if ln.strip()]
-            trial = result.config["trial"]
-            for seed in trial["seeds"]:
-                errors[run_key(trial["overrides"], seed)] = lines[-1] if lines else repr(result.error)
-    return errors
+    # ExperimentAnalysis, not the ResultGrid: a Result of a restored trial that never reported lacks
+    # its config. Its warnings about trials that never started ("no metrics") are noise here.
+    quiet = logging.getLogger("ray.tune.analysis.experiment_analysis")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        trials = tune.ExperimentAnalysis(str(exp_dir)).trials
+    finally:
+        quiet.setLevel(level)
+    for trial in trials:
+        error = (trial.get_pickled_error() or trial.get_error()) if trial.status == "ERROR" else None
+        if error is not None:
+            lines = [ln for ln in str(error).splitlines() if ln.strip()]
+            for seed in trial.config["trial"]["seeds"]:
+                errors[run_key(trial.config["trial"]["overrides"], seed)] = lines[-1] if lines else repr(error)
+    return errors, any(t.status not in ("TERMINATED", "ERROR") for t in trials)
 
 
 def summarize(sweep: Sweep, client: Any, experiment_id: str, sweep_id: str,
@@ -700,63 +737,74 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
         print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
               "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
 
-    with _tracking_store(tracking_uri, root) as (uri, how_to_open):
-        client = MlflowClient(uri)
-        exp_id = tracking.experiment_id(sweep.experiment, uri)
-        if resume:
-            parent_id = state["parent_run_id"]
-            n = _close_orphans(client, exp_id, sweep_id, parent_id, "process ended during an interrupted launch")
-            print(f"resuming {sweep_id}: {n} run(s) left RUNNING by the interrupted launch marked KILLED", flush=True)
-            client.update_run(parent_id, status="RUNNING")
-            client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
-        else:
-            parent = client.create_run(exp_id, run_name=f"sweep {sweep_id}", tags={
-                "sweep_id": sweep_id, "sweep_name": sweep.name, "spot.role": "sweep", "smoke": str(smoke),
-                "sweep_file": str(Path(path).resolve()), "git_commit": tracking.git_commit()})
-            parent_id = parent.info.run_id
-            client.log_text(parent_id, Path(path).read_text(), "sweep.yaml")
-            client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
-            client.log_batch(parent_id, params=_parent_params(sweep))
-            state["parent_run_id"] = parent_id
-            storage.mkdir(parents=True, exist_ok=True)
-            state_file.write_text(json.dumps(state, indent=2))
-        ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, uri, sweep.axis_keys)
-        print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {uri}; parent run {parent_id}\n"
-              f"Ray storage {storage / sweep_id}; if interrupted: spot sweep {path}"
-              f"{' --smoke' if smoke else ''} --resume", flush=True)
-
-        status = "KILLED"
-        errors: dict[str, str] = {}
+    with _tracking_store(tracking_uri, root) as store:
+        started_ray = _init_ray(address)
+        parent_id = None
+        crashed = True
         try:
-            started = _init_ray(address)
-            try:
-                errors = _fit(sweep, ctx, storage / sweep_id, resume=resume, retry_errored=retry_errored,
-                              max_concurrent=max_concurrent or sweep.max_concurrent, run_fn=run_fn)
-            finally:
-                if started:
-                    import ray
-
-                    ray.shutdown()
-            _close_orphans(client, exp_id, sweep_id, parent_id, "trial process ended without closing its run")
-            rows = summarize(sweep, client, exp_id, sweep_id, errors)
-            table = format_summary(rows, sweep.axis_keys)
-            n_done = sum(r.status == "FINISHED" for r in rows)
-            now = int(time.time() * 1000)
-            client.log_batch(parent_id, metrics=[Metric(k, v, now, 0) for k, v in (
-                ("sweep/runs_total", len(rows)), ("sweep/runs_finished", n_done),
-                ("sweep/runs_failed", len(rows) - n_done))])
-            client.log_text(parent_id, table + "\n", "summary.txt")
-            status = "FINISHED" if n_done == len(rows) else "FAILED"
+            store.wait_ready()
+            client = MlflowClient(store.uri)
+            exp_id = tracking.experiment_id(sweep.experiment, store.uri)
+            parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
+            if not resume:
+                storage.mkdir(parents=True, exist_ok=True)
+                state_file.write_text(json.dumps(state, indent=2))
+            ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
+            print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+                  f"Ray storage {storage / sweep_id}; if interrupted: spot sweep {path}"
+                  f"{' --smoke' if smoke else ''} --resume", flush=True)
+            errors, interrupted = _fit(sweep, ctx, storage / sweep_id, resume=resume, retry_errored=retry_errored,
+                                       max_concurrent=max_concurrent or sweep.max_concurrent, run_fn=run_fn)
+            crashed = False
         finally:
-            if status == "KILLED":
+            if started_ray:
+                import ray
+
+                ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
+            if crashed and parent_id is not None:
                 _close_orphans(client, exp_id, sweep_id, parent_id, "launch interrupted")
-            client.set_terminated(parent_id, status)
+                client.set_terminated(parent_id, "KILLED")
+        _close_orphans(client, exp_id, sweep_id, parent_id, "launch interrupted" if interrupted
+                       else "trial process ended without closing its run")
+        rows = summarize(sweep, client, exp_id, sweep_id, errors)
+        table = format_summary(rows, sweep.axis_keys)
+        n_done = sum(r.status == "FINISHED" for r in rows)
+        now = int(time.time() * 1000)
+        client.log_batch(parent_id, metrics=[Metric(k, v, now, 0) for k, v in (
+            ("sweep/runs_total", len(rows)), ("sweep/runs_finished", n_done),
+            ("sweep/runs_failed", len(rows) - n_done))])
+        client.log_text(parent_id, table + "\n", "summary.txt")
+        client.set_terminated(parent_id, "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED")
     resume_hint = "" if n_done == len(rows) else (
         f"\nto run what is missing: spot sweep {path}{' --smoke' if smoke else ''} --resume "
         "(add --retry-errored to run failed trials again)")
     print(f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
-          f"filter: tags.sweep_id = '{sweep_id}'\n{how_to_open}{resume_hint}", flush=True)
+          f"filter: tags.sweep_id = '{sweep_id}'\n{store.how_to_open}{resume_hint}", flush=True)
     return rows
+
+
+def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, Any], *, resume: bool) -> str:
+    """Create the launch's parent run (recorded in ``state``), or reopen it on resume."""
+    from spot import tracking
+
+    if resume:
+        parent_id = state["parent_run_id"]
+        n = _close_orphans(client, experiment_id, state["sweep_id"], parent_id,
+                           "process ended during an interrupted launch")
+        print(f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED",
+              flush=True)
+        client.update_run(parent_id, status="RUNNING")
+        client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
+        return parent_id
+    parent = client.create_run(experiment_id, run_name=f"sweep {state['sweep_id']}", tags={
+        "sweep_id": state["sweep_id"], "sweep_name": sweep.name, "spot.role": "sweep", "smoke": str(sweep.smoke),
+        "sweep_file": str(sweep.path.resolve()), "git_commit": tracking.git_commit()})
+    parent_id = parent.info.run_id
+    client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")
+    client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
+    client.log_batch(parent_id, params=_parent_params(sweep))
+    state["parent_run_id"] = parent_id
+    return parent_id
 
 
 def _parent_params(sweep: Sweep) -> list[Any]:
