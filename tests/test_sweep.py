@@ -114,7 +114,7 @@ def test_expansion_grid_x_zip_x_seeds(tmp_path):
 @pytest.mark.parametrize("path", sorted((REPO / "sweeps").glob("*.yaml")), ids=lambda p: p.stem)
 def test_repo_sweep_files_resolve(path):
     full, smoke = sweep.load(path), sweep.load(path, smoke=True)
-    assert len(smoke.runs()) <= 4 < len(full.runs())
+    assert len(smoke.runs()) <= min(4, len(full.runs()))
     assert all(t.overrides["budget"] == "tiny" for t in smoke.trials())
 
 
