@@ -138,14 +138,13 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------- sweep
-def _sweep(args: argparse.Namespace) -> None:
+def _sweep(args: argparse.Namespace) -> int:
     from spot import sweep
 
     rows = sweep.run_sweep(args.file, smoke=args.smoke, resume=args.resume, retry_errored=args.retry_errored,
                            address=args.address, max_concurrent=args.max_concurrent,
                            tracking_uri=args.tracking_uri, storage=args.storage)
-    if not all(r.status == "FINISHED" for r in rows):
-        sys.exit(1)  # the summary above lists what failed
+    return 0 if all(r.status == "FINISHED" for r in rows) else 1  # the summary lists what failed
 
 
 # --------------------------------------------------------------------------- tables, figures
@@ -326,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = [args.config, *args.overrides]
         args.config = None
     try:
-        args.fn(args)
+        rc = args.fn(args)
     except SpotError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -336,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    return 0
+    return rc or 0
 
 
 if __name__ == "__main__":
