@@ -48,7 +48,8 @@ import yaml
 from spot import SpotError
 from spot import config as config_lib
 
-SWEEP_KEYS = ("name", "base", "grid", "zip", "seeds", "seed_mode", "resources", "max_concurrent", "smoke")
+SWEEP_KEYS = ("name", "base", "grid", "zip", "seeds", "seed_mode", "resources", "max_concurrent", "table", "smoke")
+TABLES = (1, 2, 3, 4, 7, 8)
 SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent")
 SEED_MODES = ("trials", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
@@ -93,6 +94,8 @@ class Sweep:
     seed_mode: str
     resources: dict[str, float]
     max_concurrent: int | None
+    table: int | None = None
+    """Paper table printed (ours beside the paper's) when the launch ends; see spot.tables."""
 
     @property
     def experiment(self) -> str:
@@ -232,6 +235,28 @@ def _check_trial(trial: Trial, where: str) -> None:
         raise SpotError(f"{where}: trial {trial.label}: {e}") from None
 
 
+def prebuild_datasets(sweep: Sweep) -> list[Path]:
+    """Build every registry dataset the sweep's runs need, here on the driver, before trials start.
+
+    A build uses all the driver's cores, where inside a trial it would be pinned to the trial's
+    CPUs while the other trials wait on its lock. Files given as paths are left alone. On a
+    cluster whose nodes do not share ``$SPOT_DATA_DIR`` the trials still build what they miss.
+    """
+    from spot.data import registry
+
+    wanted = []
+    for trial, seed in sweep.runs():
+        cfg = config_lib.resolve(trial.overrides, {"seed": seed})
+        key = (cfg.data.name, cfg.data.size, cfg.data.build_seed)
+        if cfg.data.source != "file" and not Path(cfg.data.name).exists() and key not in wanted:
+            wanted.append(key)
+    paths = []
+    for name, size, seed in wanted:
+        print(f"dataset {name} (size {size}, seed {seed}): building if not cached", flush=True)
+        paths.append(registry.build(name, size, seed))
+    return paths
+
+
 def load(path: str | Path, *, smoke: bool = False) -> Sweep:
     """Read and validate a sweep file; with ``smoke`` apply its ``smoke:`` block.
 
@@ -287,8 +312,11 @@ def load(path: str | Path, *, smoke: bool = False) -> Sweep:
         if key in base:
             raise _err(where, f"base.{key}", "is also an axis; give it in one place")
 
+    table = data.get("table")
+    if table is not None and table not in TABLES:
+        raise _err(where, "table", f"expected one of {', '.join(map(str, TABLES))}, got {table!r}")
     sweep = Sweep(path=path, name=name, smoke=smoke, base=base, grid=grid, zip=zipped, seeds=seeds,
-                  seed_mode=seed_mode, resources=resources, max_concurrent=max_concurrent)
+                  seed_mode=seed_mode, resources=resources, max_concurrent=max_concurrent, table=table)
     seen: set[str] = set()
     for axes in sweep.configs():
         trial = Trial(axes, {**base, **axes}, seeds)
@@ -737,6 +765,8 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
         print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
               "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
 
+    if run_fn is None:
+        prebuild_datasets(sweep)
     with _tracking_store(tracking_uri, root) as store:
         started_ray = _init_ray(address)
         parent_id = None
@@ -775,12 +805,26 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
             ("sweep/runs_failed", len(rows) - n_done))])
         client.log_text(parent_id, table + "\n", "summary.txt")
         client.set_terminated(parent_id, "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED")
+        paper_table = _paper_table(sweep, store.uri, sweep_id) if sweep.table and n_done else ""
     resume_hint = "" if n_done == len(rows) else (
         f"\nto run what is missing: spot sweep {path}{' --smoke' if smoke else ''} --resume "
         "(add --retry-errored to run failed trials again)")
     print(f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
           f"filter: tags.sweep_id = '{sweep_id}'\n{store.how_to_open}{resume_hint}", flush=True)
+    if paper_table:
+        print(f"\n{paper_table}", flush=True)
     return rows
+
+
+def _paper_table(sweep: Sweep, uri: str, sweep_id: str) -> str:
+    """The sweep's paper table (ours beside the paper's) from this launch's finished runs."""
+    from spot import tables
+
+    runs = tables.load_runs(uri, [sweep.experiment], sweep_id=sweep_id)
+    try:
+        return tables.format_table(tables.build_table(runs, sweep.table), "md")
+    except SpotError as e:  # e.g. a sweep whose runs do not form that table
+        return f"(no Table {sweep.table}: {e})"
 
 
 def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, Any], *, resume: bool) -> str:

@@ -38,6 +38,7 @@ def _write(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
     ("base: {methd: pt}\n", r"'base.methd': unknown config key; did you mean 'method'"),
     ("grid: {shaping.wieght: [0.1]}\n", r"'grid.shaping.wieght': unknown config key"),
     ("grid: {shaping.weight: 0.1}\n", r"'grid.shaping.weight': expected a non-empty list"),
+    ("table: 5\n", r"'table': expected one of 1, 2, 3, 4, 7, 8, got 5"),
     ("grid: {shaping.weight: [0.1, 0.1]}\n", r"'grid.shaping.weight': repeats a value"),
     ("zip: {data.name: [hopper-medium-replay, walker2d-medium-replay], labels.num_queries: [100]}\n",
      r"'zip': paired axes need lists of equal length"),
