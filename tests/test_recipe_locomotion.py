@@ -126,7 +126,6 @@ def test_medium_expert_is_medium_then_expert_and_reuses_sac(builds):
     raw, card = builds["medium-expert"]
     _check_layout(raw, card)
     assert card["sac_cache_hit"] is True
-    assert card["build_time_s"] < builds["medium-replay"][1]["build_time_s"]
     assert len(list((builds["cache_dir"] / "sac").glob("*.msgpack"))) == 1
     per_part = locomotion.SIZES["tiny"].transitions
     assert len(raw) == 2 * per_part
