@@ -80,7 +80,7 @@ class MRConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    kind: str = F("pt", "reward model: none (true reward), mr (Markovian MLP), pt (Preference Transformer)", choices=("none", "mr", "pt"))
+    kind: str = F("pt", "reward model: none (true reward), mr (Markovian MLP), pt (Preference Transformer), hpl (hindsight VAE + r(s,a,z), marginalised over the prior), ipl (no reward model: IPL's implicit reward)", choices=("none", "mr", "pt", "hpl", "ipl"))
     steps: int = F(10_000, "reward-model gradient steps", range=(1, None))
     batch_size: int = F(256, "preference pairs per step", range=(1, None))
     eval_every: int = F(100, "steps between held-out evaluations (best held-out loss is kept)", range=(1, None))
@@ -91,7 +91,7 @@ class RelabelConfig:
     mode: str = F("chunked", "PT relabelling: 'chunked' = whole trajectory chunks in one pass (default, fast); 'sliding' = PT repo's causal window ending at t", choices=("chunked", "sliding"))
     window: int = F(100, "chunk length (chunked) or window length (sliding; PT repo flag default 25)", range=(1, None))
     batch_size: int = F(256, "windows/chunks per forward pass", range=(1, None))
-    normalize: str = F("pt", "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = r*1000/(Rmax-Rmin), none", choices=("pt", "iql", "none"))
+    normalize: str = F("pt", "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = r*1000/(Rmax-Rmin), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none", choices=("pt", "iql", "wiserl", "none"))
 
 
 @dataclass(frozen=True)
@@ -134,6 +134,51 @@ class IQLConfig:
 
 
 @dataclass(frozen=True)
+class IPLConfig:
+    """Inverse Preference Learning (Hejna & Sadigh 2023); IQL's section supplies expectile,
+    temperature, tau, discount, hidden sizes, lr, replay batch size, steps and chunk."""
+
+    chi2_coeff: float = F(0.5, "c of the chi^2 regulariser c * E[r^2] on the implicit reward (D4RL 0.5, Meta-World 3, robomimic 4)", range=(0.0, None))
+    target_clipping: bool = F(True, "clip V(s') in the implicit reward to +-1/(c (1 - gamma)) (D4RL on, Meta-World off)")
+    feedback_batch: int = F(8, "preference pairs per update (D4RL/robomimic 8, Meta-World 16)", range=(1, None))
+    subsample: int = F(64, "random contiguous window of each segment used per update (D4RL 64, Meta-World 16, robomimic ph 32)", range=(2, None))
+    use_replay: bool = F(True, "mix unlabelled dataset transitions into the value/regulariser/actor losses (off for Meta-World)")
+    value_replay_weight: float = F(0.5, "weight of replay data in the value loss", range=(0.0, 1.0))
+    chi2_replay_weight: float = F(0.5, "weight of replay data in the chi^2 regulariser", range=(0.0, 1.0))
+    policy_replay_weight: float = F(0.5, "weight of replay data in the actor loss", range=(0.0, 1.0))
+
+
+@dataclass(frozen=True)
+class HPLConfig:
+    """Hindsight Preference Learning (Gao et al. 2024, WiseRL tuned gym configs)."""
+
+    future_len: int = F(5, "k: the hindsight encoder sees steps t..t+k", range=(1, None))
+    seq_len: int = F(100, "length of unlabelled segments for the VAE", range=(2, None))
+    latent_groups: int = F(8, "discrete latent: number of one-hot categorical groups", range=(1, None))
+    latent_classes: int = F(16, "discrete latent: classes per group (z_dim = groups x classes)", range=(2, None))
+    embd_dim: int = F(256, "hindsight encoder (non-causal GPT) embedding size", range=(8, None))
+    n_layer: int = F(3, "hindsight encoder layers", range=(1, None))
+    n_head: int = F(4, "hindsight encoder heads", range=(1, None))
+    dropout: float = F(0.1, "hindsight encoder dropout", range=(0.0, 0.9))
+    decoder_hidden: tuple[int, ...] = F((512, 512), "decoder MLP hidden sizes")
+    decoder_embd: int = F(64, "decoder input embedding size", range=(1, None))
+    prior_hidden: tuple[int, ...] = F((512, 512), "prior p(z|s,a) MLP hidden sizes")
+    reward_hidden: tuple[int, ...] = F((256, 256, 256), "reward r(s,a,z) MLP hidden sizes")
+    reward_sigmoid: bool = F(True, "sigmoid on the reward output (tuned configs)")
+    vae_steps: int = F(250_000, "VAE gradient steps", range=(1, None))
+    vae_batch: int = F(64, "unlabelled segments per VAE step", range=(1, None))
+    reward_steps: int = F(100_000, "reward-model gradient steps", range=(1, None))
+    reward_batch: int = F(8, "preference pairs per reward step", range=(1, None))
+    extra_batch: int = F(512, "unlabelled transitions per step for the prior-latent regulariser", range=(1, None))
+    kl_coef: float = F(1.0, "KL weight", range=(0.0, None))
+    kl_balance: float = F(0.8, "KL balancing alpha: alpha KL(sg(q)||p) + (1-alpha) KL(q||sg(p))", range=(0.0, 1.0))
+    reg_coef: float = F(1e-4, "Huber regulariser of r(s,a,z_prior) toward 0 (hopper 1e-4, walker2d 0)", range=(0.0, None))
+    prior_samples: int = F(20, "prior samples averaged when relabelling", range=(1, None))
+    lr: float = F(3e-4, "Adam learning rate (VAE and reward)", range=(0.0, 1.0))
+    chunk: int = F(500, "gradient steps per jitted lax.scan chunk", range=(1, None))
+
+
+@dataclass(frozen=True)
 class EvalConfig:
     every: int = F(5000, "IQL updates between evaluations", range=(1, None))
     episodes: int = F(10, "evaluation episodes (deterministic policy)", range=(1, None))
@@ -148,10 +193,11 @@ class TrackingConfig:
 _STAGES: dict[str, type] = {
     "data": DataConfig, "labels": LabelsConfig, "reward": RewardConfig, "pt": PTConfig,
     "mr": MRConfig, "relabel": RelabelConfig, "subgoal": SubgoalConfig, "cvae": CVAEConfig,
-    "shaping": ShapingConfig, "iql": IQLConfig, "eval": EvalConfig, "tracking": TrackingConfig,
+    "shaping": ShapingConfig, "iql": IQLConfig, "ipl": IPLConfig, "hpl": HPLConfig,
+    "eval": EvalConfig, "tracking": TrackingConfig,
 }
 
-METHODS = ("oracle", "mr", "pt", "spot")
+METHODS = ("oracle", "mr", "pt", "ipl", "hpl", "spot")
 BUDGETS = ("paper", "small", "tiny")
 
 
@@ -170,6 +216,8 @@ class ExperimentConfig:
     cvae: CVAEConfig = field(default_factory=CVAEConfig)
     shaping: ShapingConfig = field(default_factory=ShapingConfig)
     iql: IQLConfig = field(default_factory=IQLConfig)
+    ipl: IPLConfig = field(default_factory=IPLConfig)
+    hpl: HPLConfig = field(default_factory=HPLConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
 
@@ -179,6 +227,8 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
     "oracle": {"reward.kind": "none", "shaping.kind": "none", "relabel.normalize": "iql"},
     "mr": {"reward.kind": "mr", "shaping.kind": "none"},
     "pt": {"reward.kind": "pt", "shaping.kind": "none"},
+    "ipl": {"reward.kind": "ipl", "shaping.kind": "none", "relabel.normalize": "none"},
+    "hpl": {"reward.kind": "hpl", "shaping.kind": "none", "relabel.normalize": "wiserl"},
     "spot": {"reward.kind": "pt", "shaping.kind": "cosine", "shaping.weight": 1.0},
 }
 
@@ -193,6 +243,10 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "mr.hidden": (64, 64), "relabel.window": 50,
         "cvae.steps": 3000, "cvae.lr": 1e-3,
         "iql.steps": 20_000, "iql.chunk": 1000, "eval.every": 5000, "eval.episodes": 5,
+        "ipl.subsample": 32,
+        "hpl.seq_len": 50, "hpl.embd_dim": 64, "hpl.n_layer": 1, "hpl.decoder_hidden": (128, 128),
+        "hpl.prior_hidden": (128, 128), "hpl.reward_hidden": (64, 64), "hpl.vae_steps": 2000,
+        "hpl.vae_batch": 16, "hpl.reward_steps": 1000, "hpl.extra_batch": 128, "hpl.prior_samples": 10,
     },
     # Seconds: tests and smoke checks.
     "tiny": {
@@ -203,6 +257,11 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "cvae.steps": 50, "cvae.batch_size": 32, "cvae.hidden": (16, 16),
         "iql.steps": 200, "iql.chunk": 100, "iql.hidden": (32, 32), "iql.batch_size": 64,
         "eval.every": 100, "eval.episodes": 1,
+        "ipl.subsample": 10, "ipl.feedback_batch": 4,
+        "hpl.seq_len": 20, "hpl.embd_dim": 16, "hpl.n_layer": 1, "hpl.n_head": 2, "hpl.latent_groups": 2,
+        "hpl.latent_classes": 4, "hpl.decoder_hidden": (16, 16), "hpl.decoder_embd": 8,
+        "hpl.prior_hidden": (16, 16), "hpl.reward_hidden": (16, 16), "hpl.vae_steps": 20, "hpl.vae_batch": 4,
+        "hpl.reward_steps": 20, "hpl.extra_batch": 16, "hpl.prior_samples": 3, "hpl.chunk": 10,
     },
 }
 

@@ -44,7 +44,7 @@ def test_flat_round_trip_including_strings():
         ("iql.steps=abc", "'iql.steps': value 'abc' is not int"),
         ("iql.expectile=1.5", "expected 0.0 <= value <= 1.0"),
         ("shaping.weight=-2", "'shaping.weight'"),
-        ("method=dpo", "is not one of 'oracle', 'mr', 'pt', 'spot'"),
+        ("method=dpo", "is not one of 'oracle', 'mr', 'pt', 'ipl', 'hpl', 'spot'"),
         ("subgoal.reward_filter=maybe", "is not bool"),
         ("noequals", "expected KEY=VALUE"),
     ],
