@@ -44,7 +44,7 @@ from spot.nets import Params, compile_cached
 from spot.reward import mr, pt
 from spot.reward.train import cpu_seconds, init_params, peak_rss_mb
 
-NORMALIZE_MODES = ("pt", "iql", "none")
+NORMALIZE_MODES = ("pt", "iql", "wiserl", "none")
 
 
 class Relabelled(NamedTuple):
@@ -186,7 +186,9 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
     """Rescale relabelled rewards by the spread of per-episode returns (computed on ``rewards``).
 
     ``pt``: ``r * max_episode_steps / (R_max - R_min) + 0.5``; ``iql``: without the ``+ 0.5``;
-    ``none``: unchanged. ``max_episode_steps`` is the 1000 of the references (locomotion).
+    ``wiserl``: ``r * max_episode_steps / max(|R_min|, |R_max|, R_max - R_min, 1)`` (HPL's WiseRL
+    ``relabel_reward``); ``none``: unchanged. ``max_episode_steps`` is the 1000 of the references
+    (locomotion).
     """
     if mode not in NORMALIZE_MODES:
         raise SpotError(f"relabel.normalize '{mode}' is not one of {', '.join(map(repr, NORMALIZE_MODES))}")
@@ -198,6 +200,9 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
     starts, _ = ds.episode_bounds()
     returns = np.add.reduceat(rewards.astype(np.float64), starts)
     spread = float(returns.max() - returns.min())
+    if mode == "wiserl":
+        scale = max(abs(float(returns.min())), abs(float(returns.max())), spread, 1.0)
+        return (rewards.astype(np.float64) * (max_episode_steps / scale)).astype(np.float32)
     if not spread > 0.0:
         raise SpotError(
             f"cannot normalise rewards of dataset '{ds.name}': all {returns.size} episode returns are "
