@@ -1,8 +1,9 @@
 """Run configuration: one frozen dataclass per stage, composed into :class:`ExperimentConfig`.
 
 Resolution order (later wins): dataclass defaults (the paper's values) < method preset
-(``method=spot`` etc.) < budget preset (``budget=small`` etc.) < YAML file < ``a.b=value``
-overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
+(``method=spot`` etc.) < budget preset (``budget=small`` etc.) < suite preset (what the reference
+implementations change for Meta-World / robomimic, chosen by ``data.name``) < YAML file <
+``a.b=value`` overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
 
 Every field carries ``help`` text and, where it applies, ``choices`` or a numeric ``range``;
 :func:`resolve` validates everything and raises :class:`spot.SpotError` with the dotted key,
@@ -266,6 +267,61 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# Per benchmark suite, what the reference implementations change (reference/algorithms.md §1.4,
+# §3.2, §4.3): applied after the budget preset, before the YAML file. Keys are (suite, method);
+# method "*" applies to every method of the suite.
+SUITE_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
+    # Meta-World (IPL's setting): segments of 25, discounted-return scripted labels without ties,
+    # IQL expectile 0.75 (IPL repo's mr_iql / ipl_iql Meta-World configs), no D4RL +0.5 shift;
+    # IPL: chi2 3, no target clipping, no replay data, feedback batch 16, subsample 16, 3x256.
+    ("metaworld", "*"): {"labels.segment_length": 25, "labels.teacher": "discounted",
+                         "iql.expectile": 0.75, "relabel.window": 25, "hpl.seq_len": 25},
+    ("metaworld", "mr"): {"relabel.normalize": "iql"},
+    ("metaworld", "pt"): {"relabel.normalize": "iql"},
+    ("metaworld", "spot"): {"relabel.normalize": "iql"},
+    ("metaworld", "ipl"): {"ipl.chi2_coeff": 3.0, "ipl.target_clipping": False, "ipl.use_replay": False,
+                           "ipl.feedback_batch": 16, "ipl.subsample": 16, "iql.hidden": (256, 256, 256)},
+    # robomimic / robosuite (PT repo configs/adroit+robomimic: temperature 0.5; IPL robomimic:
+    # beta 2 = temperature 0.5, chi2 4); segments of 50 (ph) or 100 (mh) follow the PT label files.
+    ("robosuite", "*"): {"iql.temperature": 0.5},
+    ("robosuite", "mr"): {"relabel.normalize": "iql"},
+    ("robosuite", "pt"): {"relabel.normalize": "iql"},
+    ("robosuite", "spot"): {"relabel.normalize": "iql"},
+    ("robosuite", "ipl"): {"ipl.chi2_coeff": 4.0},
+}
+_SUITE_SEGMENT = {"-ph": {"labels.segment_length": 50, "ipl.subsample": 32},
+                  "-mh": {"labels.segment_length": 100, "ipl.subsample": 64}}
+_LOCOMOTION_PREFIXES = ("hopper-", "walker2d-", "halfcheetah-")
+_METAWORLD_TASKS = ("drawer-open", "plate-slide", "button-press")
+
+
+def suite_of(data_name: str) -> str | None:
+    """``locomotion``, ``metaworld``, ``robosuite`` or None (a file path: no suite preset)."""
+    name = data_name[:-3] if data_name.endswith(("-v2", "-v3")) else data_name
+    if name.startswith(_LOCOMOTION_PREFIXES):
+        return "locomotion"
+    if name in _METAWORLD_TASKS:
+        return "metaworld"
+    if name.startswith(("lift-", "can-")):
+        return "robosuite"
+    return None
+
+
+def suite_preset(data_name: str, method: str, budget: str) -> dict[str, Any]:
+    """The suite preset of ``data_name`` for ``method`` (robosuite segment sizes only at budget paper)."""
+    suite = suite_of(data_name)
+    out: dict[str, Any] = {}
+    if suite is None:
+        return out
+    out.update(SUITE_PRESETS.get((suite, "*"), {}))
+    out.update(SUITE_PRESETS.get((suite, method), {}))
+    if suite == "robosuite" and budget == "paper":
+        for tail, keys in _SUITE_SEGMENT.items():
+            if data_name.endswith(tail):
+                out.update(keys)
+    return out
+
+
 # --------------------------------------------------------------------------- flat dicts
 def _fields(cls: type) -> dict[str, dataclasses.Field]:
     return {f.name: f for f in dataclasses.fields(cls)}
@@ -445,6 +501,8 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat = to_flat(ExperimentConfig())
     flat.update(METHOD_PRESETS[method])
     flat.update(BUDGET_PRESETS[budget])
+    data_name = str(user.get("data.name", flat["data.name"]))
+    flat.update(suite_preset(data_name, method, budget))
     flat.update(user)
     flat["method"], flat["budget"] = method, budget
     return _build({k: _coerce(k, v) for k, v in flat.items()})

@@ -65,3 +65,18 @@ def test_bad_yaml_file(tmp_path):
     f.write_text("- a\n- b\n")
     with pytest.raises(SpotError, match="expected a mapping"):
         config.load(f)
+
+
+def test_suite_presets_follow_the_reference_per_benchmark():
+    mw = config.resolve({"method": "ipl", "data.name": "drawer-open"})
+    assert (mw.labels.segment_length, mw.labels.teacher, mw.iql.expectile) == (25, "discounted", 0.75)
+    assert (mw.ipl.chi2_coeff, mw.ipl.target_clipping, mw.ipl.use_replay, mw.ipl.subsample) == (3.0, False, False, 16)
+    assert mw.iql.hidden == (256, 256, 256)
+    robo = config.resolve({"method": "spot", "data.name": "can-mh", "budget": "paper"})
+    assert (robo.labels.segment_length, robo.iql.temperature, robo.relabel.normalize) == (100, 0.5, "iql")
+    assert config.resolve({"method": "ipl", "data.name": "lift-ph", "budget": "paper"}).ipl.subsample == 32
+    loco = config.resolve({"method": "pt", "data.name": "hopper-medium-replay-v2", "budget": "paper"})
+    assert (loco.labels.segment_length, loco.iql.expectile, loco.relabel.normalize) == (100, 0.7, "pt")
+    # the YAML file and overrides still win over the suite preset
+    assert config.resolve({"data.name": "drawer-open"}, {"labels.segment_length": 30}).labels.segment_length == 30
+    assert config.suite_of("/data/some_file.hdf5") is None
