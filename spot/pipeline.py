@@ -91,6 +91,54 @@ def _reward_model_stage(cfg, ds, train_batch, eval_batch, deps, key, progress):
     return cache.cached("reward", stage_deps, compute)
 
 
+def _hpl_stage(cfg, ds, train_batch, eval_batch, deps, key, timer, progress):
+    """HPL: hindsight VAE + reward r(s,a,z) (cached), then relabel by marginalising the prior."""
+    import jax
+
+    from spot.reward import hpl
+
+    stage_deps = {**deps, "reward": "hpl", "hpl": cfg.hpl, "reward_cfg": cfg.reward, "seed": cfg.seed}
+    train_key, relabel_key = jax.random.split(key)
+    with timer("reward"):
+        out, hit, cache_key = cache.cached("hpl", stage_deps, lambda: dict(zip(
+            ("params", "history"), hpl.train_hpl(train_key, ds, train_batch, eval_batch, cfg.hpl, progress=progress),
+            strict=True)))
+    history = out["history"]
+    _log({"cache/reward_hit": float(hit)})
+    _log({f"reward/{k}": v for k, v in history.items() if isinstance(v, (int, float, np.floating, np.integer))})
+    for name in ("vae_s", "reward_s"):
+        if name in history:  # Table 8: HPL's two pretraining phases, as measured when it was trained
+            _log({f"time/hpl_{name}": history[name]})
+    with timer("relabel"):
+        rel, rel_hit, _ = cache.cached("hpl_relabel", {"hpl": cache_key, "seed": cfg.seed},
+                                       lambda: {"rewards": hpl.relabel_hpl(out["params"], ds, cfg.hpl, relabel_key)})
+    _log({"cache/relabel_hit": float(rel_hit)})
+    return np.asarray(rel["rewards"], np.float32), cache_key
+
+
+def _ipl_ranking(state, cfg, ds, train_batch, eval_batch) -> dict[str, float]:
+    """IPL's implied reward Q(s,a) - gamma V(s') summed over segments: how often it ranks the
+    preferred segment higher, on the training and held-out queries (``reward/*_acc``)."""
+    from spot.policy import ipl
+
+    out = {}
+    for name, batch in (("train", train_batch), ("eval", eval_batch)):
+        if batch is None:
+            continue
+        sums = []
+        for side in ("1", "2"):
+            obs, act = batch[f"obs_{side}"], batch[f"act_{side}"]
+            r = np.asarray(ipl.implied_reward(state, obs[:, :-1], act[:, :-1], obs[:, 1:], cfg.iql, cfg.ipl))
+            sums.append(r.sum(axis=1))
+        y = np.asarray(batch["label"])
+        decided = y != 0.5
+        if decided.any():
+            out[f"reward/{name}_acc"] = float(np.mean((sums[1] > sums[0])[decided] == (y[decided] > 0.5)))
+    if "reward/eval_acc" in out:
+        out["reward/best_eval_acc"] = out["reward/eval_acc"]
+    return out
+
+
 def _in_segments_mask(n: int, prefs) -> np.ndarray:
     inside = np.zeros(n, bool)
     length = prefs.segment_length
@@ -148,11 +196,13 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
         artifacts = Path(tempfile.mkdtemp(prefix="spot-run-"))
         deps: dict[str, Any] = {"data": _fingerprint(ds)}
         r_true = ds.rewards.astype(np.float32)
-        uses_model = cfg.reward.kind != "none"
-        prefs = train_prefs = None
+        kind = cfg.reward.kind
+        uses_labels = kind != "none"
+        uses_model = kind in ("mr", "pt", "hpl")  # ipl has no reward model: its critic is the reward
+        prefs = train_prefs = eval_batch = None
 
         # ---------------------------------------------------------------- labels
-        if uses_model:
+        if uses_labels:
             with timer("labels"):
                 prefs = make_preferences(cfg, ds)
                 train_prefs, eval_prefs = labels.split_eval(prefs, cfg.labels.eval_fraction, cfg.labels.seed)
@@ -165,7 +215,12 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
                               "split": (cfg.labels.eval_fraction, cfg.labels.seed)}
 
         # ---------------------------------------------------------------- reward model
-        if uses_model:
+        if kind == "hpl":
+            r_model, reward_cache_key = _hpl_stage(cfg, ds, train_batch, eval_batch, deps, reward_key, timer,
+                                                   progress)
+            _log({"reward/corr_true": float(np.corrcoef(r_model, r_true)[0, 1]) if r_model.std() > 0 else 0.0})
+            r_norm = relabel_lib.normalize_rewards(r_model, ds, cfg.relabel.normalize)
+        elif uses_model:
             with timer("reward"):
                 out, hit, reward_cache_key = _reward_model_stage(cfg, ds, train_batch, eval_batch, deps,
                                                                  reward_key, progress)
@@ -186,6 +241,9 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
             _log({"cache/relabel_hit": float(rel_hit),
                   "reward/corr_true": float(np.corrcoef(r_model, r_true)[0, 1]) if r_model.std() > 0 else 0.0})
             r_norm = relabel_lib.normalize_rewards(r_model, ds, cfg.relabel.normalize)
+        elif kind == "ipl":
+            # IPL learns no reward: the replay transitions carry zeros so no true reward leaks in.
+            r_model = r_norm = np.zeros_like(r_true)
         else:
             r_model = r_true
             r_norm = relabel_lib.normalize_rewards(r_true, ds, cfg.relabel.normalize)
@@ -258,8 +316,18 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
         with timer("iql"):
             data = iql.transitions_from(ds, reward)
             init_key, train_key = jax.random.split(iql_key)
-            state = iql.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql)
-            train_chunk = iql.make_train_chunk(cfg.iql)
+            if kind == "ipl":
+                from spot.policy import ipl
+
+                feedback = ipl.feedback_from(train_batch)
+                state = ipl.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql, cfg.ipl)
+                ipl_chunk = ipl.make_train_chunk(cfg.iql, cfg.ipl)
+
+                def train_chunk(state, data, key):
+                    return ipl_chunk(state, data, feedback, key)
+            else:
+                state = iql.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql)
+                train_chunk = iql.make_train_chunk(cfg.iql)
             steps_done, curve_steps, curve_scores = 0, [], []
             n_chunks = -(-cfg.iql.steps // cfg.iql.chunk)
             next_eval = min(cfg.eval.every, cfg.iql.steps)
@@ -283,6 +351,8 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
                     next_eval += cfg.eval.every
         timer.times["time/eval_s"] = eval_time
         timer.times["time/iql_s"] -= eval_time
+        if kind == "ipl":
+            _log(_ipl_ranking(state, cfg, ds, train_batch, eval_batch))
         png = _plot_curve(curve_steps, curve_scores, artifacts / "learning_curve.png",
                           f"{cfg.method} on {env_name} (seed {cfg.seed})")
         mlflow.log_artifact(str(png))
