@@ -80,3 +80,10 @@ def test_suite_presets_follow_the_reference_per_benchmark():
     # the YAML file and overrides still win over the suite preset
     assert config.resolve({"data.name": "drawer-open"}, {"labels.segment_length": 30}).labels.segment_length == 30
     assert config.suite_of("/data/some_file.hdf5") is None
+
+
+def test_small_locomotion_budgets_normalise_learned_rewards_to_non_negative():
+    for method in ("mr", "pt", "spot"):
+        assert config.resolve({"method": method, "budget": "small"}).relabel.normalize == "minmax"
+        assert config.resolve({"method": method, "budget": "paper"}).relabel.normalize == "pt"
+    assert config.resolve({"method": "oracle", "budget": "small"}).relabel.normalize == "iql"

@@ -297,6 +297,9 @@ def test_normalize_rewards_by_hand():
     np.testing.assert_array_equal(relabel.normalize_rewards(rewards, ds, "none"), rewards)
     # wiserl: 1000 / max(|R_min|, |R_max|, R_max - R_min, 1) = 1000 / max(6, 9, 3, 1) = 1000 / 9
     np.testing.assert_allclose(relabel.normalize_rewards(rewards, ds, "wiserl"), rewards * 1000 / 9, rtol=1e-6)
+    # minmax: steps to [0, 1] ((r - 1) / 4 -> returns 0.75 and 1.75, spread 1), then * 1000 / 1
+    np.testing.assert_allclose(relabel.normalize_rewards(rewards, ds, "minmax"), (rewards - 1) / 4 * 1000, rtol=1e-6)
+    assert relabel.normalize_rewards(-rewards, ds, "minmax").min() == 0.0
     small = np.array([0.1, 0.1, 0.1, 0.2, 0.1], np.float32)  # returns 0.3 and 0.3: all below 1 -> scale 1
     np.testing.assert_allclose(relabel.normalize_rewards(small, ds, "wiserl"), small * 1000, rtol=1e-6)
     with pytest.raises(SpotError, match="episode returns are equal"):

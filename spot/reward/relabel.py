@@ -44,7 +44,7 @@ from spot.nets import Params, compile_cached
 from spot.reward import mr, pt
 from spot.reward.train import cpu_seconds, init_params, peak_rss_mb
 
-NORMALIZE_MODES = ("pt", "iql", "wiserl", "none")
+NORMALIZE_MODES = ("pt", "iql", "wiserl", "minmax", "none")
 
 
 class Relabelled(NamedTuple):
@@ -187,7 +187,10 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
 
     ``pt``: ``r * max_episode_steps / (R_max - R_min) + 0.5``; ``iql``: without the ``+ 0.5``;
     ``wiserl``: ``r * max_episode_steps / max(|R_min|, |R_max|, R_max - R_min, 1)`` (HPL's WiseRL
-    ``relabel_reward``); ``none``: unchanged. ``max_episode_steps`` is the 1000 of the references
+    ``relabel_reward``); ``minmax``: each step's reward first mapped to [0, 1] with the min and max
+    over all transitions, then ``iql`` (every step non-negative, so staying alive never costs
+    reward: a learned reward's level is not identified by preferences, and a negative level makes
+    an IQL policy seek early termination in Hopper/Walker2d); ``none``: unchanged. ``max_episode_steps`` is the 1000 of the references
     (locomotion).
     """
     if mode not in NORMALIZE_MODES:
@@ -197,6 +200,13 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
         raise SpotError(f"rewards have shape {rewards.shape}; expected [{len(ds)}] (one per transition)")
     if mode == "none":
         return rewards.copy()
+    if mode == "minmax":
+        lo, hi = float(rewards.min()), float(rewards.max())
+        if not hi > lo:
+            raise SpotError(f"cannot normalise rewards of dataset '{ds.name}' with minmax: every step has "
+                            f"reward {lo:.6g}; use relabel.normalize=none")
+        rewards = ((rewards.astype(np.float64) - lo) / (hi - lo)).astype(np.float32)
+        mode = "iql"
     starts, _ = ds.episode_bounds()
     returns = np.add.reduceat(rewards.astype(np.float64), starts)
     spread = float(returns.max() - returns.min())
