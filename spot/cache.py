@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 # Bump a stage's version when its code changes what it computes.
-STAGE_VERSIONS = {"labels": 1, "reward": 1, "relabel": 1, "subgoals": 1, "cvae": 1}
+STAGE_VERSIONS = {"labels": 1, "reward": 1, "relabel": 1, "subgoals": 1, "cvae": 1, "hpl": 1, "hpl_relabel": 1}
 
 
 def cache_dir() -> Path:

@@ -259,7 +259,7 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "iql.steps": 200, "iql.chunk": 100, "iql.hidden": (32, 32), "iql.batch_size": 64,
         "eval.every": 100, "eval.episodes": 1,
         "ipl.subsample": 10, "ipl.feedback_batch": 4,
-        "hpl.seq_len": 20, "hpl.embd_dim": 16, "hpl.n_layer": 1, "hpl.n_head": 2, "hpl.latent_groups": 2,
+        "hpl.seq_len": 25, "hpl.embd_dim": 16, "hpl.n_layer": 1, "hpl.n_head": 2, "hpl.latent_groups": 2,
         "hpl.latent_classes": 4, "hpl.decoder_hidden": (16, 16), "hpl.decoder_embd": 8,
         "hpl.prior_hidden": (16, 16), "hpl.reward_hidden": (16, 16), "hpl.vae_steps": 20, "hpl.vae_batch": 4,
         "hpl.reward_steps": 20, "hpl.extra_batch": 16, "hpl.prior_samples": 3, "hpl.chunk": 10,

@@ -116,24 +116,17 @@ def _hpl_stage(cfg, ds, train_batch, eval_batch, deps, key, timer, progress):
     return np.asarray(rel["rewards"], np.float32), cache_key
 
 
-def _ipl_ranking(state, cfg, ds, train_batch, eval_batch) -> dict[str, float]:
-    """IPL's implied reward Q(s,a) - gamma V(s') summed over segments: how often it ranks the
-    preferred segment higher, on the training and held-out queries (``reward/*_acc``)."""
+def _ipl_ranking(state, cfg, train_batch, eval_batch) -> dict[str, float]:
+    """IPL's implied reward Q(s,a) - gamma V(s') summed over whole segments: how often it ranks
+    the preferred segment higher, on the training and held-out queries (``reward/*``, like the
+    reward models' metrics)."""
     from spot.policy import ipl
 
     out = {}
     for name, batch in (("train", train_batch), ("eval", eval_batch)):
-        if batch is None:
-            continue
-        sums = []
-        for side in ("1", "2"):
-            obs, act = batch[f"obs_{side}"], batch[f"act_{side}"]
-            r = np.asarray(ipl.implied_reward(state, obs[:, :-1], act[:, :-1], obs[:, 1:], cfg.iql, cfg.ipl))
-            sums.append(r.sum(axis=1))
-        y = np.asarray(batch["label"])
-        decided = y != 0.5
-        if decided.any():
-            out[f"reward/{name}_acc"] = float(np.mean((sums[1] > sums[0])[decided] == (y[decided] > 0.5)))
+        if batch is not None:
+            res = ipl.evaluate_preferences(state, ipl.feedback_from(batch), cfg.iql, cfg.ipl)
+            out[f"reward/{name}_acc"], out[f"reward/{name}_loss"] = res["ipl/eval_pref_acc"], res["ipl/eval_pref_loss"]
     if "reward/eval_acc" in out:
         out["reward/best_eval_acc"] = out["reward/eval_acc"]
     return out
@@ -320,11 +313,12 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
                 from spot.policy import ipl
 
                 feedback = ipl.feedback_from(train_batch)
-                state = ipl.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql, cfg.ipl)
+                state = ipl.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql)
                 ipl_chunk = ipl.make_train_chunk(cfg.iql, cfg.ipl)
+                replay = data if cfg.ipl.use_replay else None
 
-                def train_chunk(state, data, key):
-                    return ipl_chunk(state, data, feedback, key)
+                def train_chunk(state, _data, key):
+                    return ipl_chunk(state, replay, feedback, key)
             else:
                 state = iql.init_state(init_key, ds.obs_dim, ds.act_dim, cfg.iql)
                 train_chunk = iql.make_train_chunk(cfg.iql)
@@ -352,7 +346,7 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
         timer.times["time/eval_s"] = eval_time
         timer.times["time/iql_s"] -= eval_time
         if kind == "ipl":
-            _log(_ipl_ranking(state, cfg, ds, train_batch, eval_batch))
+            _log(_ipl_ranking(state, cfg, train_batch, eval_batch))
         png = _plot_curve(curve_steps, curve_scores, artifacts / "learning_curve.png",
                           f"{cfg.method} on {env_name} (seed {cfg.seed})")
         mlflow.log_artifact(str(png))

@@ -28,7 +28,7 @@ from spot.data.dataset import Dataset, RawDataset
 @dataclass(frozen=True)
 class Entry:
     name: str
-    family: str  # locomotion | metaworld
+    family: str  # locomotion | metaworld | robosuite
     recipe: str  # module under spot.data.recipes
     description: str
     pt_label_folder: str = ""  # folder name of the PT human labels for the real D4RL dataset
@@ -45,6 +45,12 @@ _MW = {
     "plate-slide": "Meta-World plate-slide-v3, IPL recipe",
     "button-press": "Meta-World button-press-v3, IPL recipe",
 }
+_ROBO = {
+    "lift-ph": "robosuite Lift, one proficient scripted operator (robomimic ph style, 200 demos)",
+    "lift-mh": "robosuite Lift, six scripted operators of mixed skill (robomimic mh style, 300 demos)",
+    "can-ph": "robosuite PickPlaceCan, one proficient scripted operator (ph style, 200 demos)",
+    "can-mh": "robosuite PickPlaceCan, six scripted operators of mixed skill (mh style, 300 demos)",
+}
 
 REGISTRY: dict[str, Entry] = {}
 for _env in ("hopper", "walker2d"):
@@ -54,6 +60,8 @@ for _env in ("hopper", "walker2d"):
         REGISTRY[_name] = Entry(_name, "locomotion", "locomotion", f"{_env} (gymnasium v5): {_desc}", _folder)
 for _name, _desc in _MW.items():
     REGISTRY[_name] = Entry(_name, "metaworld", "metaworld", _desc)
+for _name, _desc in _ROBO.items():
+    REGISTRY[_name] = Entry(_name, "robosuite", "robosuite", _desc)
 
 SIZES = ("tiny", "small", "paper")
 

@@ -2,13 +2,14 @@
 
 IPL trains no reward network. The reward is read off the Q-function through the inverse soft
 Bellman operator, ``r_Q(s, a, s') = Q(s, a) - gamma V(s')``, and the preference loss is put
-directly on Q. One update, in the order of the reference code
-[jhejna/inverse-preference-learning : research/algs/ipl_iql.py] (reference/algorithms.md §3.1):
+directly on Q. Everything below follows the reference code
+[jhejna/inverse-preference-learning : research/algs/ipl_iql.py] (reference/algorithms.md §3.1).
 
 A minibatch is ``B`` preference pairs, cut to one random contiguous window of ``S`` steps
 (shared across the batch) so that each segment gives ``S - 1`` transitions
 ``(s_t, a_t, s_{t+1}) = (obs[t], act[t], obs[t+1])`` with discount ``gamma`` and no terminal.
 With replay on, ``iql.batch_size`` dataset transitions are added (their ``mask`` = 1 - terminal).
+One update, in the reference's order:
 
 1. value: ``L_V = mix_v(L2_tau(min_i Qbar_i(s, a) - V(s)))`` (expectile loss toward the min of
    the target critics), where ``mix_w(x) = (1 - w) 1/2 (E_seg1 x + E_seg2 x) + w E_replay x``
@@ -32,13 +33,16 @@ of 2, one value net, polyak 0.005. Networks and state are IQL's (:mod:`spot.poli
 Deviations and choices:
 
 * The window start is uniform over all ``T - S + 1`` positions; the reference's feedback buffer
-  draws it from ``randint(0, T - S)``, which never picks the last window (and fails for S = T).
+  draws it from ``randint(0, T - S)``, which never picks the last window (and fails for S = T)
+  [jhejna/inverse-preference-learning : research/datasets/feedback_buffer.py].
   ``subsample >= T`` uses whole segments (the reference's ``subsample_size=None``).
 * Pairs of one minibatch are drawn without replacement (with replacement only when there are
   fewer pairs than ``feedback_batch``); the reference walks shuffled epochs of the feedback set.
 * As in the reference, ``s'`` of a segment's step ``t`` is ``obs[t + 1]`` of the segment, also
   where a segment crosses an episode end (PT's human segments may).
 * No terminals inside segments (the reference uses discount ``gamma`` for every feedback step).
+* The clip bound uses ``gamma``; the reference uses each row's ``gamma mask``, which differs only
+  on replay terminals, where ``mask V(s') = 0`` anyway.
 * ``ipl/pref_acc`` (non-tie pairs) uses the ensemble-mean logit; ``chi2_coeff = 0`` disables the
   clipping (its bound is infinite).
 
@@ -64,7 +68,7 @@ from spot.nets import Params
 from spot.policy import iql
 from spot.policy.iql import IQLState, Transitions
 
-# Python traces of the scanned update body per kind ("chunk", "vmapped_chunk"); tests assert one.
+# Python traces of the scanned update body ("chunk"); tests assert one per train chunk.
 TRACE_COUNT: collections.Counter[str] = collections.Counter()
 FEEDBACK_KEYS = ("obs_1", "act_1", "obs_2", "act_2", "label")
 
@@ -174,8 +178,15 @@ def _optimizers(iql_cfg: IQLConfig) -> tuple[optax.GradientTransformation, ...]:
     return optax.adam(iql_cfg.lr), optax.adam(iql_cfg.lr), optax.adam(iql_cfg.lr)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2, 3),
+                   compiler_options={"xla_backend_optimization_level": 0})
 def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -> IQLState:
-    """Fresh IQL networks (:func:`iql.init_state`) with IPL's constant-rate optimizers."""
+    """Fresh IQL networks (:func:`iql.init_state`) with IPL's constant-rate optimizers.
+
+    One jitted program at optimisation level 0 (as :func:`spot.nets.jit_init`): it runs once,
+    and eager initialisation compiles every primitive separately (several times slower).
+    Vmappable over ``key``.
+    """
     base = iql.init_state(key, obs_dim, act_dim, iql_cfg)
     nets, txs = iql._nets(iql_cfg, act_dim), _optimizers(iql_cfg)
     actor, critic, value = (iql._train_state(net, ts.params, tx)
@@ -333,12 +344,6 @@ def make_train_chunk(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tu
     all training pairs. Metrics are means over the chunk. ``state`` is donated.
     """
     return jax.jit(_chunk_fn(iql_cfg, ipl_cfg, "chunk"), donate_argnums=0)
-
-
-def make_vmapped_train_chunk(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tuple[IQLState, dict]]:
-    """:func:`make_train_chunk` for states and keys stacked over a leading seed axis."""
-    return jax.jit(jax.vmap(_chunk_fn(iql_cfg, ipl_cfg, "vmapped_chunk"), in_axes=(0, None, None, 0)),
-                   donate_argnums=0)
 
 
 @functools.partial(jax.jit, static_argnames=("iql_cfg", "ipl_cfg"))

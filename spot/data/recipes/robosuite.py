@@ -49,6 +49,7 @@ from tqdm import tqdm
 import spot
 from spot import SpotError
 from spot.data.dataset import RawDataset, raw_from_episodes
+from spot.envs import ROBOSUITE_HORIZON, make_env
 
 SIZES = {"tiny": {"ph": 3, "mh": 6}, "small": {"ph": 40, "mh": 60}, "paper": {"ph": 200, "mh": 300}}
 TASKS = ("lift", "can")
@@ -71,24 +72,26 @@ class Operator:
     pause_prob: float  # per-step chance of starting a hesitation pause
     pause_steps: tuple[int, int]  # pause length range [low, high)
     grip_steps: int  # steps the gripper is held closed (or open) before moving on
+    max_fumbles: int  # the attempt is abandoned at the next fumble (missed grasp or drop)
 
 
 PROFICIENT = Operator("ph", "proficient", noise=0.03, rot_noise=0.01, noise_corr=0.5, gain=12.0,
                       speed=1.0, jitter=0.002, tol=0.01, pause_prob=0.0, pause_steps=(1, 2),
-                      grip_steps=8)
+                      grip_steps=8, max_fumbles=3)
 MH_OPERATORS = (
-    Operator("better_operator_1", "better", 0.08, 0.03, 0.7, 12.0, 1.0, 0.004, 0.010, 0.005, (3, 8), 8),
-    Operator("better_operator_2", "better", 0.10, 0.03, 0.7, 9.0, 0.8, 0.005, 0.012, 0.010, (3, 8), 9),
-    Operator("okay_operator_1", "okay", 0.20, 0.06, 0.8, 8.0, 0.8, 0.008, 0.015, 0.015, (5, 15), 10),
-    Operator("okay_operator_2", "okay", 0.25, 0.06, 0.8, 14.0, 1.0, 0.009, 0.015, 0.020, (5, 15), 8),
-    Operator("worse_operator_1", "worse", 0.35, 0.10, 0.85, 6.0, 0.6, 0.012, 0.020, 0.030, (8, 25), 12),
-    Operator("worse_operator_2", "worse", 0.40, 0.10, 0.85, 16.0, 1.0, 0.013, 0.020, 0.030, (8, 25), 7),
+    Operator("better_operator_1", "better", 0.08, 0.03, 0.7, 12.0, 1.0, 0.004, 0.010, 0.005, (3, 8), 8, 3),
+    Operator("better_operator_2", "better", 0.10, 0.03, 0.7, 9.0, 0.8, 0.005, 0.012, 0.010, (3, 8), 9, 3),
+    Operator("okay_operator_1", "okay", 0.20, 0.06, 0.8, 8.0, 0.8, 0.008, 0.015, 0.015, (5, 15), 10, 2),
+    Operator("okay_operator_2", "okay", 0.25, 0.06, 0.8, 14.0, 1.0, 0.009, 0.015, 0.020, (5, 15), 8, 2),
+    Operator("worse_operator_1", "worse", 0.28, 0.08, 0.8, 8.0, 0.7, 0.010, 0.020, 0.030, (8, 25), 12, 1),
+    Operator("worse_operator_2", "worse", 0.32, 0.08, 0.8, 15.0, 1.0, 0.011, 0.020, 0.030, (8, 25), 7, 1),
 )
 
-# Geometry of the scripts (metres, world frame; table top z = 0.8, bins' floor z = 0.8).
+# Geometry of the scripts (metres, world frame; Lift's table top z = 0.8, Can's bin floors z = 0.82
+# with walls and dividers up to z = 0.9).
 _HOVER = 0.08  # approach height above the object's centre
 _GRASP_DZ = {"lift": -0.005, "can": 0.01}  # grasp point relative to the object's centre
-_LIFT_Z = {"lift": 1.0, "can": 1.0}  # eef height after lifting (clears Can's bin walls)
+_LIFT_Z = 1.0  # eef height after lifting (a grasped can's bottom then clears the bin walls)
 _RELEASE_Z = 0.91  # eef height at which the can is released over the target bin
 # The can's quadrant of the target bin spans x 0.10..0.30, y 0.28..0.53 behind 9 cm dividers; its
 # centre (0.1975, 0.4025) is at the edge of the Panda's reach with the gripper pointing down, so
@@ -109,12 +112,14 @@ def _obs_layout(task: str) -> dict[str, slice]:
 
 def _rotation_error(quat: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Axis-angle (world frame) that rotates orientation ``quat`` onto ``ref`` (both xyzw)."""
-    from robosuite.utils import transform_utils as tu
-
-    err = tu.quat_multiply(ref, tu.quat_inverse(quat))
-    if err[3] < 0:  # the short way round
-        err = -err
-    return tu.quat2axisangle(err)
+    v0, w0 = -quat[:3], quat[3]  # conjugate of quat
+    v1, w1 = ref[:3], ref[3]
+    v = w1 * v0 + w0 * v1 + np.cross(v1, v0)  # ref * conj(quat)
+    w = w1 * w0 - v1 @ v0
+    if w < 0:  # the short way round
+        v, w = -v, -w
+    sin = np.linalg.norm(v)
+    return np.zeros(3) if sin < 1e-9 else v / sin * 2.0 * np.arctan2(sin, w)
 
 
 class _Script:
@@ -127,7 +132,7 @@ class _Script:
         self.ref_quat = obs0[self.idx["eef_quat"]].copy()
         self.noise = np.zeros(6)
         self.pause = 0
-        self.regrasps = 0
+        self.fumbles = 0
         self._enter("above")
 
     def _enter(self, phase: str) -> None:
@@ -149,14 +154,14 @@ class _Script:
         if p == "close":
             return self.anchor, 1.0
         if p == "lift":
-            return np.array([*self.anchor[:2], _LIFT_Z[task]]) + self.offset, 1.0
+            return np.array([*self.anchor[:2], _LIFT_Z]) + self.offset, 1.0
         if p == "carry":
-            return np.array([*self.place_xy, _LIFT_Z[task]]) + self.offset, 1.0
+            return np.array([*self.place_xy, _LIFT_Z]) + self.offset, 1.0
         if p == "lower":
             return np.array([*self.place_xy, _RELEASE_Z]) + self.offset, 1.0
         if p == "release":
             return self.anchor, -1.0
-        return np.array([*self.anchor[:2], _LIFT_Z[task]]), -1.0  # "retreat"
+        return np.array([*self.anchor[:2], _LIFT_Z]), -1.0  # "retreat"
 
     def _advance(self, obj: np.ndarray, eef: np.ndarray, fingers: float, err: float) -> None:
         op, p = self.op, self.phase
@@ -166,7 +171,7 @@ class _Script:
         arrived = err < op.tol or (self.count > 30 and err < 2.5 * op.tol)
         held = np.linalg.norm(obj - eef) < _SLIP
         if p in ("lift", "carry", "lower") and not held:
-            self.regrasps += 1
+            self.fumbles += 1
             self._enter("above")
         elif p == "above" and arrived:
             self._enter("descend")
@@ -176,9 +181,9 @@ class _Script:
             # Panda fingers closed on nothing read a gap below ~1 cm.
             self._enter("lift" if fingers > 0.01 else "reopen")
         elif p == "reopen" and self.count >= op.grip_steps:
-            self.regrasps += 1
+            self.fumbles += 1
             self._enter("above")
-        elif p == "lift" and self.task == "can" and eef[2] > _LIFT_Z["can"] - 0.03:
+        elif p == "lift" and self.task == "can" and eef[2] > _LIFT_Z - 0.03:
             self._enter("carry")
         elif p == "carry" and np.linalg.norm((self.place_xy + self.offset[:2]) - eef[:2]) < 2 * op.tol:
             self._enter("lower")
@@ -186,6 +191,9 @@ class _Script:
             self._enter("release")
         elif p == "release" and self.count >= op.grip_steps:
             self._enter("retreat")
+        elif p == "retreat" and arrived:  # released, but not a success (e.g. on a divider)
+            self.fumbles += 1
+            self._enter("above")
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         obj, eef = obs[self.idx["object_pos"]], obs[self.idx["eef_pos"]]
@@ -214,7 +222,7 @@ def run_episode(env: Any, task: str, op: Operator, rng: np.random.Generator) -> 
     """One attempt of ``op`` in ``env`` (a :func:`spot.envs.make_env` robosuite env).
 
     Returns the episode in the :func:`raw_from_episodes` layout (ending at the first success,
-    or at the horizon with a timeout), whether it succeeded, and its number of regrasps.
+    or at the horizon with a timeout), whether it succeeded, and its number of fumbles.
     """
     obs, _ = env.reset(seed=int(rng.integers(2**31)))
     place_xy = None
@@ -224,7 +232,7 @@ def run_episode(env: Any, task: str, op: Operator, rng: np.random.Generator) -> 
     script = _Script(task, op, rng, place_xy, obs)
     steps: dict[str, list] = {"observations": [], "actions": [], "rewards": [], "next_observations": []}
     success = truncated = False
-    while not (success or truncated):
+    while not (success or truncated or script.fumbles > op.max_fumbles):
         action = script.act(obs)
         next_obs, reward, success, truncated, _ = env.step(action)
         for key, value in zip(steps, (obs, action, reward, next_obs), strict=True):
@@ -236,7 +244,7 @@ def run_episode(env: Any, task: str, op: Operator, rng: np.random.Generator) -> 
     episode["terminals"][-1] = success
     episode["timeouts"] = np.zeros(n, dtype=bool)
     episode["timeouts"][-1] = not success
-    return episode, success, script.regrasps
+    return episode, success, script.fumbles
 
 
 def operators(kind: str) -> tuple[Operator, ...]:
@@ -265,34 +273,32 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
                         f"{', '.join(f'{t}-{k}' for t in TASKS for k in ('ph', 'mh'))}")
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}' for dataset '{name}'; expected one of {', '.join(SIZES)}")
-    from spot.envs import make_env
-
     start = time.perf_counter()
     ops = operators(kind)
     total = SIZES[size][kind]
     per_op = [total // len(ops) + (i < total % len(ops)) for i in range(len(ops))]
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(len(ops))]
     env = make_env(name, seed)
-    episodes, op_names, skills, regrasps = [], [], [], []
-    attempts: dict[str, int] = {}
-    fail_lengths: dict[str, list[int]] = {}
+    episodes, op_names, skills, fumbles = [], [], [], []
+    attempts = dict.fromkeys((o.name for o in ops), 0)
+    failures = {o.name: {"abandoned": 0, "horizon": 0} for o in ops}
     bar = tqdm(total=total, desc=f"robosuite {name} ({size})", disable=not progress)
     try:
         for op, n, rng in zip(ops, per_op, rngs, strict=True):
-            attempts[op.name], fail_lengths[op.name], done = 0, [], 0
+            done = 0
             while done < n:
                 if attempts[op.name] >= MAX_ATTEMPTS_FACTOR * n:
                     raise SpotError(f"robosuite recipe '{name}': operator {op.name} succeeded {done} "
                                     f"times in {attempts[op.name]} attempts; expected {n}")
-                ep, success, regrasp = run_episode(env, task, op, rng)
+                ep, success, fumbled = run_episode(env, task, op, rng)
                 attempts[op.name] += 1
                 if not success:
-                    fail_lengths[op.name].append(len(ep["rewards"]))
+                    failures[op.name]["horizon" if len(ep["rewards"]) == ROBOSUITE_HORIZON else "abandoned"] += 1
                     continue
                 episodes.append(ep)
                 op_names.append(op.name)
                 skills.append(op.skill)
-                regrasps.append(regrasp)
+                fumbles.append(fumbled)
                 done += 1
                 bar.update()
     finally:
@@ -302,9 +308,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     raw = raw_from_episodes(episodes, name=f"{name}-{size}",
                             metadata={"episode_operator": op_names, "episode_skill": skills})
     lengths = np.array([len(ep["rewards"]) for ep in episodes])
-    names = np.array(op_names)
-    skill_arr = np.array(skills)
-    rate = {o.name: float((names == o.name).sum() / attempts[o.name]) for o in ops}
+    names, skill_arr, fumbles = np.array(op_names), np.array(skills), np.array(fumbles)
     levels = list(dict.fromkeys(o.skill for o in ops))
 
     def stats(x: np.ndarray) -> dict[str, float]:
@@ -318,7 +322,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "seed": seed,
         "robot": "Panda",
         "controller": "composite OSC_POSE (robosuite default for Panda), 20 Hz",
-        "horizon": 500,
+        "horizon": ROBOSUITE_HORIZON,
         "episodes": len(episodes),
         "transitions": len(raw),
         "obs_dim": int(raw.observations.shape[1]),
@@ -327,7 +331,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "operators": [asdict(o) for o in ops],
         "episodes_per_operator": {o.name: int((names == o.name).sum()) for o in ops},
         "attempts_per_operator": attempts,
-        "success_rate_per_operator": rate,
+        "success_rate_per_operator": {o.name: float((names == o.name).sum() / attempts[o.name])
+                                      for o in ops},
+        "failures_per_operator": failures,
         "success_rate_per_skill": {
             s: float((skill_arr == s).sum() / sum(attempts[o.name] for o in ops if o.skill == s))
             for s in levels},
@@ -335,8 +341,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "episode_length": stats(lengths),
         "episode_length_per_operator": {o.name: float(lengths[names == o.name].mean()) for o in ops},
         "episode_length_per_skill": {s: float(lengths[skill_arr == s].mean()) for s in levels},
-        "regrasps_per_operator": {o.name: int(sum(r for r, m in zip(regrasps, op_names, strict=True)
-                                                   if m == o.name)) for o in ops},
+        "fumbles_per_demo_per_operator": {o.name: float(fumbles[names == o.name].mean()) for o in ops},
         "build_time_s": round(time.perf_counter() - start, 2),
         "versions": {"spot": spot.__version__,
                      **{p: version(p) for p in ("robosuite", "mujoco", "numpy")}},
