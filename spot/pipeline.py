@@ -105,7 +105,13 @@ def _hpl_stage(cfg, ds, train_batch, eval_batch, deps, key, timer, progress):
             strict=True)))
     history = out["history"]
     _log({"cache/reward_hit": float(hit)})
-    _log({f"reward/{k}": v for k, v in history.items() if isinstance(v, (int, float, np.floating, np.integer))})
+    _log({f"reward/{k}": v for k, v in history.items()
+          if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)})
+    for i, step in enumerate(history.get("vae_step", [])):
+        _log({f"hpl/{k}": history[k][i] for k in ("vae_loss", "vae_recon", "vae_kl") if k in history}, step=int(step))
+    for i, step in enumerate(history.get("reward_step", [])):
+        _log({f"reward/{k}": history[k][i] for k in ("train_loss", "train_acc", "eval_loss", "eval_acc")
+              if k in history and len(history[k]) > i}, step=int(step))
     for name in ("vae_s", "reward_s"):
         if name in history:  # Table 8: HPL's two pretraining phases, as measured when it was trained
             _log({f"time/hpl_{name}": history[name]})

@@ -119,3 +119,21 @@ def test_corrupt_cache_entry_is_rebuilt_not_used(tmp_path, monkeypatch):
     assert not hit and calls == [1, 1] and value["x"].tolist() == [0, 1, 2]
     # a different dependency is a different key
     assert cache.key("cvae", {"a": 2}) != key
+
+
+@pytest.mark.parametrize("method", ["ipl", "hpl"])
+def test_baselines_run_end_to_end(method, tmp_path, spot_dirs, tiny_drawer, fresh_cache):
+    run = _run(_cfg(tmp_path, f"method={method}"))
+    m = run.data.metrics
+    assert run.info.status == "FINISHED" and run.data.tags["method"] == method
+    assert {"eval/score_final", "eval/score_best", "reward/eval_acc", "reward/train_acc", "time/iql_s"} <= set(m)
+    if method == "ipl":
+        # IPL trains no reward model and sees no reward: its critic's implied reward is ranked instead
+        assert "ipl/pref_loss" in m and "ipl/chi2_loss" in m and "time/reward_s" not in m
+        assert "iql/critic_loss" not in m
+    else:
+        # HPL's two pretraining phases are timed (Table 8) and the relabelled reward is cached
+        assert {"time/hpl_vae_s", "time/hpl_reward_s", "time/reward_s", "cache/reward_hit"} <= set(m)
+        assert m["cache/reward_hit"] == 0
+        again = _run(_cfg(tmp_path, f"method={method}", "iql.steps=100"))
+        assert again.data.metrics["cache/reward_hit"] == 1 and again.data.metrics["cache/relabel_hit"] == 1

@@ -54,7 +54,7 @@ def test_lift_ph_layout_and_success(lift_ph):
     ends = _check_demos(raw, card, 49, recipe.SIZES["tiny"]["ph"])
     # The robomimic layout of spot.envs: cube_pos first, table top at z = 0.8; every demo ends
     # with the cube lifted (robosuite Lift: cube above table + 0.04).
-    assert np.all(raw.observations[_episode_starts(raw), 2] < 0.83)
+    assert np.all(raw.observations[_episode_starts(raw), 2] < 0.835)
     assert np.all(raw.next_observations[ends, 2] > 0.84)
     assert raw.metadata["episode_operator"] == ["ph"] * 3
     assert card["success_rate_per_operator"]["ph"] >= 0.75
@@ -74,7 +74,8 @@ def test_registry_view_matches_the_evaluation_env(lift_ph, spot_dirs):
         first = env.reset(seed=5)[0]
         raw, _ = lift_ph
         spread = np.abs(raw.observations[_episode_starts(raw)] - first).max(axis=0)
-        assert spread[38:49].max() < 0.05  # eef pos/quat and gripper start the same
+        assert spread[38:45].max() < 0.1  # eef pos/quat, up to robosuite's initial joint noise
+        assert spread[45:49].max() < 1e-3  # gripper qpos/qvel
     finally:
         env.close()
     # qlearning view: the last raw row (the last demo's success) is dropped, as in d4rl.

@@ -178,14 +178,12 @@ def _optimizers(iql_cfg: IQLConfig) -> tuple[optax.GradientTransformation, ...]:
     return optax.adam(iql_cfg.lr), optax.adam(iql_cfg.lr), optax.adam(iql_cfg.lr)
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2, 3),
-                   compiler_options={"xla_backend_optimization_level": 0})
 def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -> IQLState:
-    """Fresh IQL networks (:func:`iql.init_state`) with IPL's constant-rate optimizers.
+    """Fresh IQL networks (:func:`iql.init_state`, one jitted init per network) with IPL's
+    constant-rate optimizers. Vmappable over ``key``.
 
-    One jitted program at optimisation level 0 (as :func:`spot.nets.jit_init`): it runs once,
-    and eager initialisation compiles every primitive separately (several times slower).
-    Vmappable over ``key``.
+    Not one jitted program for everything: on CPU (jaxlib 0.10.2) such a program never finishes
+    once the layers are 64 wide or more (see :func:`iql._jitted_init`).
     """
     base = iql.init_state(key, obs_dim, act_dim, iql_cfg)
     nets, txs = iql._nets(iql_cfg, act_dim), _optimizers(iql_cfg)

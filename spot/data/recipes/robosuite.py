@@ -3,7 +3,7 @@
 robomimic v0.1 (Mandlekar et al., 2021, arXiv:2108.03298, Sec. 3) recorded human teleoperation:
 ``ph`` = 200 successful demonstrations of one proficient operator; ``mh`` = 300 demonstrations of
 six operators of mixed skill, two each rated "better", "okay" and "worse", 50 demonstrations each.
-Both keep successful demonstrations only (failures went into the separate machine-generated sets).
+Both hold completed demonstrations only (failed rollouts appear only in the machine-generated sets).
 Nothing can be downloaded here, so scripted operators stand in for the humans:
 
 * The controller is a phase machine over the robomimic ``low_dim`` observation (object position
@@ -15,24 +15,28 @@ Nothing can be downloaded here, so scripted operators stand in for the humans:
   ``clip(gain · (target − eef), ±speed)`` for position, a P term that holds the initial
   (downward) gripper orientation for rotation, AR(1) Gaussian noise on both, gripper ±1.
 * Operators differ in action noise, speed and gain, the std of a per-phase offset of every
-  target ("sloppy" targets), the arrival tolerance, and hesitation pauses (a per-step chance of
-  holding still for a few steps). ``ph`` has one low-noise operator; ``mh`` six
+  target ("sloppy" targets), the arrival tolerance, hesitation pauses (a per-step chance of
+  holding still for a few steps), and how many fumbles (missed grasps, drops) they take before
+  abandoning an attempt, as a teleoperator resets a botched demo. ``ph`` has one low-noise
+  operator; ``mh`` six
   (:data:`MH_OPERATORS`), two per skill level, equal numbers of demonstrations each.
 
 Episodes run in the evaluation env (:func:`spot.envs.make_env`: Panda, composite OSC_POSE, 20 Hz,
 sparse reward, horizon 500, robomimic observation, Lift 49-D / Can 53-D) and end at the first
 success, as the evaluation episodes do; the success step has reward 1 and ``terminals = 1``, every
-other step reward 0. Attempts that reach the horizon without success are discarded (counted in the
-card's success rates); an operator keeps attempting until it has its share of demonstrations.
+other step reward 0. Attempts abandoned or still unsuccessful at the horizon are discarded (and
+counted in the card's success rates); an operator keeps attempting until it has its share of
+demonstrations. Success rates over 20 attempts per operator are in docs/datasets.md.
 
 Sizes (demonstrations ph / mh): ``tiny`` 3 / 6 (tests), ``small`` 40 / 60, ``paper`` 200 / 300
 (robomimic's). Deterministic for a seed: each operator draws placements and noise from its own
-generator spawned from the seed, and MuJoCo is deterministic.
+generator spawned from the seed, the env is built with the global numpy RNG seeded (robosuite
+draws Lift's cube size from it), and MuJoCo is deterministic.
 
-Differences from robomimic: scripted instead of human operators; episodes end at the first
-success where robomimic's recorder kept a few more steps; robosuite 1.5.1 and its observation
-layout (in particular Can's ``object`` block is [Can_to_eef_pos, Can_to_eef_quat, Can_pos,
-Can_quat], not robomimic v0.1's order) rather than the ``offline_study`` branch.
+Differences from robomimic: scripted instead of human operators; demos end at their first
+success step; robosuite 1.5.1 and its observation layout rather than the ``offline_study``
+branch (in particular Can's ``object`` block is [Can_to_eef_pos, Can_to_eef_quat, Can_pos,
+Can_quat], not robomimic v0.1's order).
 """
 
 from __future__ import annotations
@@ -278,7 +282,14 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     total = SIZES[size][kind]
     per_op = [total // len(ops) + (i < total % len(ops)) for i in range(len(ops))]
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(len(ops))]
-    env = make_env(name, seed)
+    # robosuite draws model parameters (Lift's cube size) from the global numpy RNG when it builds
+    # the env; seed it for that, and leave it as it was.
+    global_state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        env = make_env(name, seed)
+    finally:
+        np.random.set_state(global_state)
     episodes, op_names, skills, fumbles = [], [], [], []
     attempts = dict.fromkeys((o.name for o in ops), 0)
     failures = {o.name: {"abandoned": 0, "horizon": 0} for o in ops}
