@@ -63,7 +63,7 @@ def _labels_make(args: argparse.Namespace) -> None:
     prefs = labels.scripted_teacher(
         ds, args.num_queries, args.segment_length, teacher=args.teacher, discount=args.discount,
         tie_threshold=args.tie_threshold, mistake_rate=args.mistake_rate,
-        allow_cross_episode=args.allow_cross_episode, seed=args.label_seed,
+        allow_cross_episode=args.allow_cross_episode, seed=args.label_seed, score=args.score,
     )
     prefs.save_npz(args.out)
     print(f"wrote {len(prefs)} queries (segment length {prefs.segment_length}) to {args.out}")
@@ -227,6 +227,8 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--num-queries", type=int, default=500)
     d.add_argument("--segment-length", type=int, default=100)
     d.add_argument("--teacher", default="sum", choices=("sum", "discounted"))
+    d.add_argument("--score", default="reward", choices=("reward", "dense"),
+                   help="sum the dataset's reward or its dense reward infos/dense_reward (robosuite recipes)")
     d.add_argument("--discount", type=float, default=0.99)
     d.add_argument("--tie-threshold", type=float, default=-1.0, help="negative: no ties")
     d.add_argument("--mistake-rate", type=float, default=0.0)

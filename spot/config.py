@@ -51,6 +51,7 @@ class LabelsConfig:
     num_queries: int = F(500, "number of preference queries (pairs of segments)", range=(1, None))
     segment_length: int = F(100, "segment (query) length H", range=(2, None))
     teacher: str = F("sum", "scripted teacher score: undiscounted sum or discounted sum of true reward", choices=("sum", "discounted"))
+    score: str = F("reward", "per-step reward the scripted teacher sums: 'reward' = the dataset's reward; 'dense' = its dense reward infos/dense_reward (robosuite's staged reach/grasp/lift/hover reward, recorded by the robosuite recipe; the sparse success reward makes nearly every pair a tie)", choices=("reward", "dense"))
     discount: float = F(0.99, "discount of the 'discounted' teacher", range=(0.0, 1.0))
     tie_threshold: float = F(-1.0, "|S1 - S2| <= threshold gives y = 0.5; negative disables ties (PT's MuJoCo teacher)")
     mistake_rate: float = F(0.0, "probability that the scripted teacher flips a label", range=(0.0, 1.0))
@@ -283,7 +284,10 @@ SUITE_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
                            "ipl.feedback_batch": 16, "ipl.subsample": 16, "iql.hidden": (256, 256, 256)},
     # robomimic / robosuite (PT repo configs/adroit+robomimic: temperature 0.5; IPL robomimic:
     # beta 2 = temperature 0.5, chi2 4); segments of 50 (ph) or 100 (mh) follow the PT label files.
-    ("robosuite", "*"): {"iql.temperature": 0.5},
+    # Scripted labels score segments with robosuite's dense staged reward and tie equal scores
+    # (PT's robosuite teacher, label_type 1): the sparse reward of successful demos ties nearly all.
+    ("robosuite", "*"): {"iql.temperature": 0.5, "labels.score": "dense", "labels.tie_threshold": 0.0,
+                         "labels.allow_cross_episode": True},  # demos end at success (Lift: ~40 steps); PT segments cross episodes
     ("robosuite", "mr"): {"relabel.normalize": "iql"},
     ("robosuite", "pt"): {"relabel.normalize": "iql"},
     ("robosuite", "spot"): {"relabel.normalize": "iql"},

@@ -137,8 +137,10 @@ class _RobosuiteEnv(gym.Env):
     """robosuite Lift / PickPlaceCan as a gymnasium env with the robomimic low_dim observation.
 
     ``terminated`` is set at the first success (IPL's ``RoboMimicEnv``), ``truncated`` at the
-    horizon. robosuite 1.5.1 draws object placements from the global numpy RNG, so each reset
-    seeds it from this env's RNG and restores it afterwards.
+    horizon. robosuite 1.5.1 draws model parameters (Lift's cube size) when it builds the env and
+    object placements at every reset from the global numpy RNG, so construction seeds it from
+    ``seed`` and each reset from this env's RNG, and both restore it afterwards: envs built with
+    the same seed are identical in any process.
     """
 
     def __init__(self, env_id: str, seed: int, horizon: int = ROBOSUITE_HORIZON) -> None:
@@ -148,25 +150,30 @@ class _RobosuiteEnv(gym.Env):
             raise SpotError(
                 "robosuite evaluation needs robosuite 1.5.1: pip install 'spot-pbrl[robosuite]'"
             ) from e
-        self._env = robosuite.make(
-            env_id,
-            robots="Panda",
-            controller_configs=robosuite.load_composite_controller_config(robot="Panda"),
-            has_renderer=False,
-            has_offscreen_renderer=False,
-            use_camera_obs=False,
-            use_object_obs=True,
-            reward_shaping=False,
-            control_freq=20,
-            horizon=horizon,
-            ignore_done=True,
-            hard_reset=False,
-        )
+        global_state = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            self._env = robosuite.make(
+                env_id,
+                robots="Panda",
+                controller_configs=robosuite.load_composite_controller_config(robot="Panda"),
+                has_renderer=False,
+                has_offscreen_renderer=False,
+                use_camera_obs=False,
+                use_object_obs=True,
+                reward_shaping=False,
+                control_freq=20,
+                horizon=horizon,
+                ignore_done=True,
+                hard_reset=False,
+            )
+            obs = self._flatten(self._env.reset())
+        finally:
+            np.random.set_state(global_state)
         self._horizon = horizon
         self._t = 0
         low, high = self._env.action_spec
         self.action_space = gym.spaces.Box(low.astype(np.float32), high.astype(np.float32))
-        obs = self._flatten(self._env.reset())
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, obs.shape, np.float64)
         self.reset(seed=seed)
 
@@ -193,6 +200,19 @@ class _RobosuiteEnv(gym.Env):
         success = bool(self._env._check_success())
         info = dict(info, success=success)
         return self._flatten(obs), float(reward), success, self._t >= self._horizon, info
+
+    def staged_reward(self) -> float:
+        """robosuite's dense staged reward of the current state, in [0, 1].
+
+        The env's own ``reward()`` with ``reward_shaping=True`` (the env itself keeps the sparse
+        reward): Lift (reach + grasp) / 2.25; PickPlaceCan max(reach, grasp, lift, hover); 1 at
+        success in both.
+        """
+        self._env.reward_shaping = True
+        try:
+            return float(self._env.reward())
+        finally:
+            self._env.reward_shaping = False
 
     def close(self) -> None:
         self._env.close()

@@ -67,7 +67,7 @@ def make_preferences(cfg: ExperimentConfig, ds):
     return labels.scripted_teacher(
         ds, lc.num_queries, lc.segment_length, teacher=lc.teacher, discount=lc.discount,
         tie_threshold=lc.tie_threshold, mistake_rate=lc.mistake_rate,
-        allow_cross_episode=lc.allow_cross_episode, seed=lc.seed,
+        allow_cross_episode=lc.allow_cross_episode, seed=lc.seed, score=lc.score,
     )
 
 

@@ -37,6 +37,9 @@ def test_data_build_info_and_labels(tmp_path, spot_dirs, tiny_drawer):
         assert len(z["labels"]) == 30
     shown = run_cli("labels", "info", str(out), "--dataset", "drawer-open", "--size", "tiny")
     assert shown.returncode == 0 and "all segments fit" in shown.stdout
+    dense = run_cli("labels", "make", "drawer-open", "--size", "tiny", "--num-queries", "30",
+                    "--segment-length", "25", "--score", "dense", "--out", str(out))
+    assert dense.returncode == 2 and "no dense reward 'infos/dense_reward'" in dense.stderr
 
 
 def test_labels_info_on_real_pt_files():

@@ -82,6 +82,19 @@ def test_suite_presets_follow_the_reference_per_benchmark():
     assert config.suite_of("/data/some_file.hdf5") is None
 
 
+def test_robosuite_preset_labels_with_the_dense_reward_and_ties():
+    for method in config.METHODS:
+        for budget in config.BUDGETS:
+            robo = config.resolve({"method": method, "budget": budget, "data.name": "lift-ph"})
+            assert (robo.labels.score, robo.labels.tie_threshold) == ("dense", 0.0)
+    for name in ("hopper-medium-replay", "drawer-open", "/data/can/ph/low_dim.hdf5"):
+        other = config.resolve({"data.name": name})
+        assert (other.labels.score, other.labels.tie_threshold) == ("reward", -1.0)
+    assert config.resolve({"data.name": "can-mh"}, {"labels.score": "reward"}).labels.score == "reward"
+    with pytest.raises(SpotError, match="'labels.score': value 'shaped' is not one of 'reward', 'dense'"):
+        config.load(None, ["labels.score=shaped"])
+
+
 def test_small_locomotion_budgets_normalise_learned_rewards_to_non_negative():
     for method in ("mr", "pt", "spot"):
         assert config.resolve({"method": method, "budget": "small"}).relabel.normalize == "minmax"

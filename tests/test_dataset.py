@@ -1,5 +1,8 @@
 """The D4RL ``qlearning_dataset`` view and segment checks, against hand-built raw data."""
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 
@@ -77,3 +80,59 @@ def test_raw_from_episodes_layout():
     assert len(raw) == 5 and raw.timeouts.tolist() == [0, 0, 1, 0, 0] and raw.terminals.tolist() == [0, 0, 0, 0, 1]
     ds = raw.qlearning()
     assert len(ds) == 3 and ds.episode_returns().tolist() == [2.0, 1.0]
+
+
+def test_infos_ride_along_episodes_and_the_qlearning_view():
+    def ep(t, term, base):
+        return dict(observations=np.zeros((t, 2)), actions=np.zeros((t, 1)), rewards=np.zeros(t),
+                    next_observations=np.ones((t, 2)), terminals=np.eye(t)[-1] * term,
+                    timeouts=np.eye(t)[-1] * (1 - term), infos={"dense_reward": base + np.arange(t)})
+    raw = raw_from_episodes([ep(3, 0, 10.0), ep(3, 1, 20.0)], "eps")
+    np.testing.assert_array_equal(raw.infos["dense_reward"], [10, 11, 12, 20, 21, 22])
+    ds = raw.qlearning()  # row 2 (timeout) and row 5 (last) dropped
+    np.testing.assert_array_equal(ds.infos["dense_reward"], [10, 11, 20, 21])
+    assert ds.replace(name="x").infos.keys() == {"dense_reward"}
+    assert _raw().qlearning().infos == {}
+    with pytest.raises(SpotError, match=r"episode 1 has infos \[\]; expected \['dense_reward'\]"):
+        raw_from_episodes([ep(3, 0, 0.0), {k: v for k, v in ep(2, 1, 0.0).items() if k != "infos"}], "eps")
+    with pytest.raises(SpotError, match=r"hand: 'infos/dense_reward' has shape \(9,\); expected 10 rows"):
+        dataclasses.replace(_raw(), infos={"dense_reward": np.zeros(9)})
+
+
+# --------------------------------------------------------------------------- registry cache
+def test_registry_rebuilds_a_build_of_another_recipe_version(spot_dirs, monkeypatch):
+    """A cached build whose card has another RECIPE_VERSION (or none: built before the recipe
+    had one) is stale and rebuilt; a current one is reused. Fake recipe, no simulator."""
+    import sys
+    import types
+
+    from spot.data import formats, registry
+
+    calls = []
+
+    def build(name, size, seed, cache_dir, progress=True):
+        calls.append(name)
+        return _raw(), {"recipe": "fake"}
+
+    fake = types.ModuleType("spot.data.recipes.fake")
+    fake.RECIPE_VERSION, fake.build = 3, build
+    monkeypatch.setitem(sys.modules, "spot.data.recipes.fake", fake)
+    monkeypatch.setitem(registry.REGISTRY, "fake-task", registry.Entry("fake-task", "test", "fake", "fake"))
+    path = registry.build("fake-task", "tiny", 0, progress=False)
+    assert registry.read_card(path)["recipe_version"] == 3 and len(calls) == 1
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 1  # current: reused
+    # An old build: its card has no recipe_version.
+    card = registry.read_card(path)
+    del card["recipe_version"]
+    registry.card_path(path).write_text(json.dumps(card))
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 2 and registry.read_card(path)["recipe_version"] == 3
+    assert formats.read_d4rl_hdf5(path).metadata["spot_card"]["recipe_version"] == 3
+    fake.RECIPE_VERSION = 4  # the recipe changed: rebuilt once
+    registry.build("fake-task", "tiny", 0, progress=False)
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 3
+    del fake.RECIPE_VERSION  # recipes without a version are never stale
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 3

@@ -112,6 +112,29 @@ def test_metaworld_env_draws_a_new_task_per_reset_and_reseeds():
 
 
 @pytest.mark.slow
+def test_robosuite_env_is_the_same_for_a_seed_whatever_the_global_rng():
+    """robosuite draws Lift's cube size from the global numpy RNG when it builds the env: the
+    build seeds it from the env seed (and restores it), so a seed means one env in any process."""
+    pytest.importorskip("robosuite")
+    envs = []
+    try:
+        for global_seed, seed in ((1, 7), (2, 7), (3, 8)):
+            np.random.seed(global_seed)
+            state = np.random.get_state()
+            envs.append(make_env("lift-ph", seed))
+            assert np.random.get_state()[1].tolist() == state[1].tolist()  # left as it was
+        first = [env.reset(seed=0)[0] for env in envs]
+        sizes = [env.unwrapped._env.cube.size for env in envs]
+        np.testing.assert_array_equal(first[0], first[1])
+        np.testing.assert_array_equal(sizes[0], sizes[1])
+        assert not np.array_equal(sizes[0], sizes[2])  # another seed, another cube
+        assert not np.array_equal(first[0], first[2])
+    finally:
+        for env in envs:
+            env.close()
+
+
+@pytest.mark.slow
 def test_robosuite_lift_layout_and_scripted_success():
     pytest.importorskip("robosuite")
     env = make_env("lift-ph", 0)

@@ -1,5 +1,6 @@
 """Dataset file readers and writers, on small files written here in the real layouts."""
 
+import dataclasses
 import json
 import os
 
@@ -62,6 +63,25 @@ def test_d4rl_round_trip_keeps_arrays_card_and_metadata(tmp_path):
         assert f["observations"].compression == "gzip"
         assert json.loads(f.attrs["spot_card"]) == card
     assert os.listdir(path.parent) == ["hand.hdf5"]
+
+
+def test_d4rl_infos_round_trip_and_real_infos_group(tmp_path):
+    dense = np.linspace(0, 1, 10, dtype=np.float32)
+    path = tmp_path / "dense.hdf5"
+    formats.write_d4rl_hdf5(dataclasses.replace(_raw(), infos={"dense_reward": dense}), path)
+    back = formats.read_d4rl_hdf5(path)
+    assert back.infos.keys() == {"dense_reward"}
+    np.testing.assert_array_equal(back.infos["dense_reward"], dense)
+    assert back.infos["dense_reward"].dtype == np.float32
+    np.testing.assert_array_equal(back.qlearning().infos["dense_reward"], dense[[0, 1, 2, 4, 5, 6, 7, 8]])
+    # D4RL's own infos/ (per-step qpos here) are read; arrays of another length are skipped; a
+    # file written before infos existed reads with none.
+    real = _write_d4rl(tmp_path / "real.hdf5")
+    with h5py.File(real, "a") as f:
+        f.create_dataset("infos/per_episode", data=np.zeros(3))
+    assert formats.read_d4rl_hdf5(real).infos.keys() == {"qpos"}
+    formats.write_d4rl_hdf5(_raw(), tmp_path / "old.hdf5")
+    assert formats.read_d4rl_hdf5(tmp_path / "old.hdf5").infos == {}
 
 
 def test_d4rl_real_layout_and_qlearning_view(tmp_path):
@@ -205,6 +225,102 @@ def test_robomimic_obs_keys_and_errors(tmp_path):
         f["data/demo_2/rewards"] = np.zeros(7)
     with pytest.raises(SpotError, match=r"'data/demo_2' has rows .*'rewards': 7"):
         formats.read_robomimic_hdf5(path, obs_keys=("object",))
+
+
+# robomimic's Can "object" block as robosuite <= 1.4 (robomimic v0.1 / v1.4.1 files) writes it,
+# and as robosuite 1.5.1 (the evaluation env) does.
+_CAN_V01 = ("Can_pos", 3), ("Can_quat", 4), ("Can_to_robot0_eef_pos", 3), ("Can_to_robot0_eef_quat", 4)
+_CAN_V15 = ("Can_to_robot0_eef_pos", 3), ("Can_to_robot0_eef_quat", 4), ("Can_pos", 3), ("Can_quat", 4)
+
+
+def _write_robomimic_can(path, obs_steps, env_version=None):
+    """A Can file in robomimic's low_dim layout: one demo per list of per-step observation dicts
+    (robosuite observable names), ``object`` concatenated in robomimic v0.1's order."""
+    env_args = {"env_name": "PickPlaceCan", "type": 1,
+                "env_kwargs": {"robots": ["Panda"], "control_freq": 20, "reward_shaping": False}}
+    if env_version is not None:
+        env_args["env_version"] = env_version
+    with h5py.File(path, "w") as f:
+        data = f.create_group("data")
+        data.attrs["env_args"] = json.dumps(env_args)
+        data.attrs["total"] = sum(len(steps) - 1 for steps in obs_steps)
+        for n, steps in enumerate(obs_steps):
+            demo = data.create_group(f"demo_{n}")
+            rows = {k: np.stack([s[k] for s in steps]) for k in formats.ROBOMIMIC_OBS_KEYS[1:]}
+            rows["object"] = np.stack([np.concatenate([s[k] for k, _ in _CAN_V01]) for s in steps])
+            for key, value in rows.items():
+                demo.create_dataset(f"obs/{key}", data=value[:-1])
+                demo.create_dataset(f"next_obs/{key}", data=value[1:])
+            t = len(steps) - 1
+            demo.create_dataset("actions", data=np.zeros((t, 7)))
+            demo.create_dataset("rewards", data=np.eye(t)[-1])
+            demo.create_dataset("dones", data=np.eye(t, dtype=np.int64)[-1])
+            demo.create_dataset("states", data=np.zeros((t, 71)))
+            demo.attrs["num_samples"] = t
+    return path
+
+
+def _can_step(i):
+    """Observation dict of step ``i`` with every entry distinct: column c of key k = 100*i + 10*k + c."""
+    dims = dict(_CAN_V01) | dict(zip(formats.ROBOMIMIC_OBS_KEYS[1:], (7, 7, 7, 7, 3, 4, 2, 2), strict=True))
+    return {k: 100.0 * i + 10 * j + np.arange(d) for j, (k, d) in enumerate(dims.items())}
+
+
+def test_robomimic_can_object_block_is_reordered_to_robosuite_15(tmp_path):
+    steps = [[_can_step(i) for i in range(4)], [_can_step(i) for i in range(10, 13)]]
+    raw = formats.read_robomimic_hdf5(_write_robomimic_can(tmp_path / "can_ph.hdf5", steps))
+    assert raw.observations.shape == (5, 53) and raw.metadata["object_reordered"]
+    expected = [np.concatenate([s[k] for k, _ in _CAN_V15] + [s[k] for k in formats.ROBOMIMIC_OBS_KEYS[1:]])
+                for demo in steps for s in demo[:-1]]
+    np.testing.assert_array_equal(raw.observations, np.float32(expected))
+    np.testing.assert_array_equal(raw.next_observations[0], raw.observations[1])
+    # Can_pos sits at object[7:10], where the robosuite recipe's scripts read it.
+    np.testing.assert_array_equal(raw.observations[0, 7:10], steps[0][0]["Can_pos"])
+    # Recorded with robosuite 1.4.1 (robomimic's v141 files): same old order, reordered.
+    old = formats.read_robomimic_hdf5(_write_robomimic_can(tmp_path / "v141.hdf5", steps, "1.4.1"))
+    np.testing.assert_array_equal(old.observations, raw.observations)
+    # Regenerated with robosuite 1.5 (robomimic's v15 files): already in order, kept as written.
+    v15 = formats.read_robomimic_hdf5(_write_robomimic_can(tmp_path / "v15.hdf5", steps, "1.5.0"))
+    assert not v15.metadata["object_reordered"]
+    np.testing.assert_array_equal(v15.observations[0, :14], np.concatenate([steps[0][0][k] for k, _ in _CAN_V01]))
+    # Other tasks are never reordered.
+    lift = formats.read_robomimic_hdf5(_write_robomimic(tmp_path / "lift.hdf5"))
+    assert not lift.metadata["object_reordered"]
+
+
+def test_robomimic_can_with_a_wrong_object_block_or_version_fails_naming_it(tmp_path):
+    path = _write_robomimic_can(tmp_path / "can.hdf5", [[_can_step(i) for i in range(3)]])
+    with h5py.File(path, "a") as f:
+        for group in ("obs", "next_obs"):
+            obj = f[f"data/demo_0/{group}/object"][()]
+            del f[f"data/demo_0/{group}/object"]
+            f[f"data/demo_0/{group}/object"] = obj[:, :10]
+    with pytest.raises(SpotError, match=r"can\.hdf5': 'data/demo_0/obs/object' has 10 columns; expected 14"):
+        formats.read_robomimic_hdf5(path)
+    odd = _write_robomimic_can(tmp_path / "odd.hdf5", [[_can_step(i) for i in range(3)]], "dev")
+    with pytest.raises(SpotError, match=r"odd\.hdf5'.*env_version 'dev'"):
+        formats.read_robomimic_hdf5(odd)
+
+
+@pytest.mark.slow
+def test_robomimic_v01_can_file_reads_as_the_evaluation_env_observes(tmp_path):
+    """Observables of the real robosuite 1.5.1 PickPlaceCan, written as robomimic v0.1 would,
+    read back equal to the evaluation env's flat observation."""
+    pytest.importorskip("robosuite")
+    from spot.envs import make_env
+
+    env = make_env("can-ph", 0)
+    try:
+        flat, dicts = [], []
+        env.reset(seed=3)
+        for t in range(3):  # after a step robosuite fills the object-to-eef observables
+            flat.append(env.step(np.full(7, 0.3 * (-1) ** t))[0])
+            dicts.append({k: np.asarray(v) for k, v in env.unwrapped._env._get_observations().items()})
+    finally:
+        env.close()
+    assert np.abs(dicts[-1]["Can_to_robot0_eef_pos"]).max() > 0
+    raw = formats.read_robomimic_hdf5(_write_robomimic_can(tmp_path / "can.hdf5", [dicts]))
+    np.testing.assert_allclose(raw.observations, np.float32(flat[:-1]), rtol=1e-6)
 
 
 # --------------------------------------------------------------------------- Minari

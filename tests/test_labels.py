@@ -122,6 +122,30 @@ def test_segments_stay_inside_episodes_and_cover_every_valid_start():
         labels.scripted_teacher(ds, 5, 2, teacher="max")
 
 
+def test_dense_score_compares_the_dense_reward_and_names_a_missing_one():
+    # Sparse reward: 1 at the last step only (robosuite's success), so nearly every pair ties;
+    # the dense reward rises along the episode and decides them.
+    sparse = np.zeros(30)
+    sparse[-1] = 1.0
+    dense = np.linspace(0.0, 0.6, 30)
+    ds = _dataset(sparse)
+    ds = ds.replace(infos={"dense_reward": dense.astype(np.float32)})
+    by_reward = labels.scripted_teacher(ds, 400, 5, tie_threshold=0.0, seed=2)
+    by_dense = labels.scripted_teacher(ds, 400, 5, tie_threshold=0.0, seed=2, score="dense")
+    np.testing.assert_array_equal(by_reward.starts_1, by_dense.starts_1)  # same queries
+    assert np.mean(by_reward.labels == 0.5) > 0.7
+    same = by_dense.starts_1 == by_dense.starts_2
+    np.testing.assert_array_equal(by_dense.labels == 0.5, same)  # only identical segments tie
+    np.testing.assert_array_equal(by_dense.labels[~same], (by_dense.starts_1 < by_dense.starts_2)[~same])
+    np.testing.assert_array_equal(labels.score_rewards(ds, "reward"), ds.rewards)
+    with pytest.raises(SpotError, match=r"dataset 'hand' has no dense reward 'infos/dense_reward' \(infos: none\)"):
+        labels.scripted_teacher(_dataset(sparse), 10, 5, score="dense")
+    with pytest.raises(SpotError, match=r"'infos/dense_reward' has shape \(30,\) \(finite: False\)"):
+        labels.scripted_teacher(ds.replace(infos={"dense_reward": np.full(30, np.nan)}), 10, 5, score="dense")
+    with pytest.raises(SpotError, match="unknown teacher score 'shaped'; expected one of reward, dense"):
+        labels.scripted_teacher(ds, 10, 5, score="shaped")
+
+
 # --------------------------------------------------------------------------- Preferences
 def test_preferences_validate_subset_and_npz_round_trip(tmp_path):
     prefs = Preferences(np.array([0, 5, 9]), np.array([1, 2, 3]), np.array([0, 0.5, 1]), 4, "script")

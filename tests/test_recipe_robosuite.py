@@ -87,6 +87,50 @@ def test_lift_ph_deterministic(lift_ph, tmp_path):
     again, _ = recipe.build("lift-ph", "tiny", seed=0, cache_dir=tmp_path, progress=False)
     for key in ("observations", "actions", "rewards", "terminals", "next_observations"):
         np.testing.assert_array_equal(getattr(raw, key), getattr(again, key))
+    np.testing.assert_array_equal(raw.infos["dense_reward"], again.infos["dense_reward"])
+
+
+def test_lift_ph_dense_reward_rises_to_the_success(lift_ph):
+    raw, card = lift_ph
+    assert card["recipe_version"] == recipe.RECIPE_VERSION == 2
+    dense = raw.infos["dense_reward"]
+    assert dense.shape == raw.rewards.shape and dense.dtype == np.float32
+    ends = _episode_ends(raw)
+    np.testing.assert_array_equal(dense[ends], 1.0)  # success: robosuite's reward_scale
+    before = np.setdiff1d(np.arange(len(raw)), ends)
+    # Lift's stages before success: reach in [0, 1] + grasp 0.25, over 2.25.
+    assert dense[before].min() >= 0.0 and dense[before].max() <= 1.25 / 2.25
+    for start, end in zip(_episode_starts(raw), ends, strict=True):
+        episode = dense[start:end]  # up to the success step
+        quarters = [q.mean() for q in np.array_split(episode, 4)]
+        assert np.all(np.diff(quarters) > 0), quarters  # approach, descend, grasp, lift
+        assert episode[0] < 0.05 and episode[-1] > 0.5  # far from the cube / grasping it
+        assert np.mean(np.diff(episode) > -0.01) > 0.9  # almost never falls back
+    np.testing.assert_array_equal(raw.rewards, raw.terminals)  # the sparse reward is unchanged
+
+
+def test_robosuite_preset_labels_on_lift_ph_are_decided_and_follow_the_dense_return(lift_ph, spot_dirs):
+    from spot import config
+    from spot.data import labels
+
+    ds, _ = registry.load("lift-ph", "tiny", 0, progress=False)
+    lc = config.resolve({"data.name": "lift-ph", "budget": "tiny"}).labels
+    assert (lc.score, lc.tie_threshold) == ("dense", 0.0)
+    kw = dict(teacher=lc.teacher, tie_threshold=lc.tie_threshold, seed=lc.seed)
+    sparse = labels.scripted_teacher(ds, 500, lc.segment_length, score="reward", **kw)
+    dense = labels.scripted_teacher(ds, 500, lc.segment_length, score=lc.score, **kw)
+    assert np.mean(sparse.labels == 0.5) > 0.8  # measured 0.94: no segment holds the success
+    assert np.mean(dense.labels == 0.5) < 0.05  # measured 0.012: pairs of the same segment
+    window = np.arange(lc.segment_length)
+    s1, s2 = (ds.infos["dense_reward"][st[:, None] + window].sum(1) for st in (dense.starts_1, dense.starts_2))
+    decided = dense.labels != 0.5
+    np.testing.assert_array_equal(dense.labels[decided], (s1 < s2)[decided])
+    # The preferred segment is the one further into its demo (closer to the success).
+    starts, _ = ds.episode_bounds()
+    offset = [st - starts[ds.episode_ids[st]] for st in (dense.starts_1, dense.starts_2)]
+    later = (offset[1] > offset[0]).astype(np.float32)
+    differ = decided & (offset[0] != offset[1])
+    assert np.mean(dense.labels[differ] == later[differ]) > 0.9
 
 
 def test_can_mh_operators_and_layout(can_mh):

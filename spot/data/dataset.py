@@ -10,6 +10,11 @@ Two levels, as in D4RL:
   rows ``0..N-2``, minus every row whose ``timeouts`` flag is set. The PT human label files index
   into exactly this view, so a segment ``[start, start + L)`` of the view lines up with them.
 
+Extra per-step arrays travel in ``infos`` (D4RL's ``infos/`` group, e.g. ``infos/qpos``): a dict
+of arrays with one row per raw row, indexed like the other arrays in the ``qlearning`` view. The
+local robosuite recipe stores robosuite's staged dense reward there as ``infos/dense_reward``
+(:data:`DENSE_REWARD_KEY`), which the scripted teacher can score segments with.
+
 One deliberate difference: d4rl's ``qlearning_dataset`` always takes ``next_observations[i] =
 observations[i + 1]``, which at a terminal row is the first state of the *next* episode. When the
 file stores ``next_observations`` we use them (the true next state); without them we fall back to
@@ -27,6 +32,7 @@ import numpy as np
 from spot import SpotError
 
 RAW_KEYS = ("observations", "actions", "rewards", "terminals", "timeouts")
+DENSE_REWARD_KEY = "dense_reward"  # infos key of a per-step dense reward (robosuite recipe)
 
 
 def _check_finite(name: str, arr: np.ndarray, where: str) -> None:
@@ -40,7 +46,8 @@ def _check_finite(name: str, arr: np.ndarray, where: str) -> None:
 
 @dataclass(frozen=True, eq=False)
 class RawDataset:
-    """D4RL hdf5 layout, one row per environment step. Shapes: ``[N, obs_dim]``, ``[N, act_dim]``, ``[N]``."""
+    """D4RL hdf5 layout, one row per environment step. Shapes: ``[N, obs_dim]``, ``[N, act_dim]``, ``[N]``;
+    ``infos`` maps names to extra per-step arrays ``[N, ...]`` (the file's ``infos/`` group)."""
 
     observations: np.ndarray
     actions: np.ndarray
@@ -50,6 +57,7 @@ class RawDataset:
     next_observations: np.ndarray | None = None
     name: str = "unnamed"
     metadata: dict[str, Any] = field(default_factory=dict)
+    infos: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         validate_raw(self, where=self.name)
@@ -78,6 +86,7 @@ class RawDataset:
             raw_index=keep,
             name=self.name,
             metadata=dict(self.metadata),
+            infos={k: v[keep] for k, v in self.infos.items()},
         )
 
 
@@ -109,6 +118,12 @@ def validate_raw(raw: RawDataset, where: str) -> None:
         )
     if n is not None and n < 2:
         raise SpotError(f"{where}: dataset has {n} rows; expected at least 2")
+    for key, arr in raw.infos.items():
+        if not isinstance(arr, np.ndarray) or arr.ndim < 1 or arr.shape[0] != n:
+            shape = arr.shape if isinstance(arr, np.ndarray) else type(arr).__name__
+            raise SpotError(
+                f"{where}: 'infos/{key}' has shape {shape}; expected {n} rows like 'observations'"
+            )
     for key in ("observations", "actions", "rewards", "next_observations"):
         arr = getattr(raw, key)
         if arr is not None:
@@ -127,6 +142,7 @@ class Dataset:
       terminals: ``[N]`` bool, true environment termination (not timeouts).
       episode_ids: ``[N]`` int, which episode of the raw data each transition belongs to.
       raw_index: ``[N]`` int, the raw row of each transition.
+      infos: extra per-step arrays ``[N, ...]`` (e.g. ``dense_reward``), rows as above.
     """
 
     observations: np.ndarray
@@ -138,6 +154,7 @@ class Dataset:
     raw_index: np.ndarray
     name: str = "unnamed"
     metadata: dict[str, Any] = field(default_factory=dict)
+    infos: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.rewards.shape[0])
@@ -226,12 +243,22 @@ def raw_from_episodes(episodes: list[dict[str, np.ndarray]], name: str,
 
     Each episode is a dict with ``observations [T, o]``, ``actions [T, a]``, ``rewards [T]``,
     ``next_observations [T, o]``, ``terminals [T]`` and ``timeouts [T]`` (a truncated episode has
-    ``timeouts[-1] = True``; a terminated one ``terminals[-1] = True``). This is the writer side
-    used by the local recipes, so that their files read back through the same path as D4RL's.
+    ``timeouts[-1] = True``; a terminated one ``terminals[-1] = True``), and optionally ``infos``,
+    a dict of extra per-step arrays ``[T, ...]`` with the same keys in every episode. This is the
+    writer side used by the local recipes, so that their files read back through the same path as
+    D4RL's.
     """
     if not episodes:
         raise SpotError(f"dataset '{name}': no episodes to write")
     cat = {k: np.concatenate([ep[k] for ep in episodes]) for k in RAW_KEYS + ("next_observations",)}
+    info_keys = sorted(episodes[0].get("infos", {}))
+    for i, ep in enumerate(episodes):
+        if sorted(ep.get("infos", {})) != info_keys:
+            raise SpotError(
+                f"dataset '{name}': episode {i} has infos {sorted(ep.get('infos', {}))}; expected "
+                f"{info_keys} like episode 0"
+            )
+    infos = {k: np.concatenate([ep["infos"][k] for ep in episodes]) for k in info_keys}
     return RawDataset(
         observations=cat["observations"].astype(np.float32),
         actions=cat["actions"].astype(np.float32),
@@ -241,4 +268,5 @@ def raw_from_episodes(episodes: list[dict[str, np.ndarray]], name: str,
         next_observations=cat["next_observations"].astype(np.float32),
         name=name,
         metadata=dict(metadata or {}),
+        infos=infos,
     )

@@ -1,9 +1,11 @@
 """Readers and writers of offline-RL dataset files, all returning :class:`RawDataset`.
 
 * D4RL hdf5 (Fu et al., 2020, arXiv:2004.07219): top-level datasets ``observations``,
-  ``actions``, ``rewards``, ``terminals``, ``timeouts`` and optionally ``next_observations``; a
-  ``metadata`` group with scalars and strings. Locally built datasets are written in this layout
-  (gzip level 1, atomically) with their card as the JSON attribute ``spot_card``.
+  ``actions``, ``rewards``, ``terminals``, ``timeouts`` and optionally ``next_observations``; an
+  ``infos`` group of extra per-step arrays (read into ``RawDataset.infos``: every numeric array
+  with one row per step; arrays of another length are skipped); a ``metadata``
+  group with scalars and strings. Locally built datasets are written in this layout (gzip level 1,
+  atomically) with their card as the JSON attribute ``spot_card``.
 * robomimic ``low_dim`` hdf5 (Mandlekar et al., 2021, arXiv:2108.03298):
   ``data/demo_N/{obs/<key>, next_obs/<key>, actions, rewards, dones}`` and
   ``data.attrs['env_args']``. Read so that the ``qlearning`` view equals the view the PT human
@@ -11,7 +13,8 @@
   demos in the file's key order (``demo_0, demo_1, demo_10, ...``, what ``f['data'].keys()``
   gives) and the last step of every demo dropped. The observation concatenates the keys in the
   order of :data:`ROBOMIMIC_OBS_KEYS` (PT and IPL, jhejna/inverse-preference-learning :
-  research/datasets/robomimic_dataset.py).
+  research/datasets/robomimic_dataset.py). Can files recorded before robosuite 1.5 get their
+  ``object`` block reordered into the evaluation env's order (:func:`robomimic_object_order`).
 * Minari (Farama): episodes through ``minari.load_dataset`` / ``minari.MinariDataset``.
 
 Every bad input raises :class:`SpotError` naming the file, the key and what was expected.
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +46,14 @@ ROBOMIMIC_OBS_KEYS = (
     "robot0_gripper_qvel",
 )
 FORMATS = ("auto", "d4rl", "robomimic", "minari")
+
+# Can's 14-D ``object`` block. robosuite 1.5 (the evaluation env, :mod:`spot.envs`) concatenates
+# [Can_to_robot0_eef_pos, Can_to_robot0_eef_quat, Can_pos, Can_quat] (PickPlace._create_obj_sensors
+# lists the relative sensors first); the robosuite releases robomimic's files were recorded with
+# (v0.1: the offline_study branch; v1.4.1) list [Can_pos, Can_quat, Can_to_robot0_eef_pos,
+# Can_to_robot0_eef_quat]. Column j of the evaluation env's block is column _CAN_OBJECT_TO_V15[j]
+# of an older file's block.
+_CAN_OBJECT_TO_V15 = np.r_[7:14, 0:7]
 
 
 # --------------------------------------------------------------------------- helpers
@@ -137,6 +149,7 @@ def read_d4rl_hdf5(path: str | Path) -> RawDataset:
         ranks = {"observations": 2, "actions": 2, "rewards": 1, "terminals": 1, "timeouts": 1}
         arrays = {key: _array(f, key, path, rank) for key, rank in ranks.items()}
         next_obs = _array(f, "next_observations", path, 2) if "next_observations" in f else None
+        infos = _d4rl_infos(f, arrays["rewards"].shape[0], path)
         metadata = _d4rl_metadata(f, path)
     return _raw_dataset(
         path,
@@ -148,7 +161,18 @@ def read_d4rl_hdf5(path: str | Path) -> RawDataset:
         next_observations=None if next_obs is None else next_obs.astype(np.float32),
         name=path.stem,
         metadata=metadata,
+        infos=infos,
     )
+
+
+def _d4rl_infos(f: h5py.File, n: int, path: Path) -> dict[str, np.ndarray]:
+    """The numeric arrays directly under ``infos/`` with ``n`` rows, by name."""
+    group = f.get("infos")
+    if not isinstance(group, h5py.Group):
+        return {}
+    return {key: _array(group, key, path) for key, node in group.items()
+            if isinstance(node, h5py.Dataset) and node.ndim >= 1 and node.shape[0] == n
+            and (np.issubdtype(node.dtype, np.number) or node.dtype == np.bool_)}
 
 
 def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | None = None) -> None:
@@ -158,8 +182,8 @@ def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | No
     ``path`` is either the old file or the complete new one, never a partial write.
 
     Args:
-      raw: the dataset; its ``metadata`` (less any ``spot_card``) is stored as the JSON attribute
-        ``spot_metadata``.
+      raw: the dataset; its ``infos`` go to ``infos/<key>``, its ``metadata`` (less any
+        ``spot_card``) to the JSON attribute ``spot_metadata``.
       path: destination file; parent folders are created.
       card: dataset card, stored as the JSON attribute ``spot_card``.
     """
@@ -178,6 +202,8 @@ def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | No
                 arr = getattr(raw, key)
                 if arr is not None:
                     f.create_dataset(key, data=arr, compression="gzip", compression_opts=1)
+            for key, arr in raw.infos.items():
+                f.create_dataset(f"infos/{key}", data=arr, compression="gzip", compression_opts=1)
             f.attrs.update(attrs)
         os.replace(tmp, path)
     except BaseException:
@@ -186,9 +212,43 @@ def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | No
 
 
 # --------------------------------------------------------------------------- robomimic
-def _concat_obs(group: h5py.Group, keys: tuple[str, ...], path: Path) -> np.ndarray:
-    parts = [_array(group, k, path) for k in keys]
-    return np.concatenate([p.reshape(p.shape[0], -1) for p in parts], axis=1)
+def robomimic_object_order(env_args: dict[str, Any], path: str | Path = "") -> np.ndarray | None:
+    """Column order that puts a robomimic file's ``object`` block in the evaluation env's order.
+
+    Only Can files need it: ``env_args["env_name"] == "PickPlaceCan"`` recorded before robosuite
+    1.5 (``env_args["env_version"]`` below 1.5, or absent as in robomimic v0.1 files, whose
+    ``env_args`` predate the key). Returns None when the file already matches (every other task,
+    and Can files regenerated with robosuite 1.5, robomimic's ``*_v15.hdf5``).
+    """
+    if env_args.get("env_name") != "PickPlaceCan":
+        return None
+    version = env_args.get("env_version")
+    if version is None:
+        return _CAN_OBJECT_TO_V15
+    match = re.match(r"\s*(\d+)\.(\d+)", str(version))
+    if match is None:
+        raise SpotError(
+            f"dataset file '{path}': 'data.attrs[env_args]' has env_version {version!r}; expected "
+            "a robosuite version such as '1.4.1'"
+        )
+    return None if (int(match[1]), int(match[2])) >= (1, 5) else _CAN_OBJECT_TO_V15
+
+
+def _concat_obs(group: h5py.Group, keys: tuple[str, ...], path: Path,
+                object_order: np.ndarray | None = None) -> np.ndarray:
+    parts = []
+    for k in keys:
+        part = _array(group, k, path)
+        part = part.reshape(part.shape[0], -1)
+        if k == "object" and object_order is not None:
+            if part.shape[1] != object_order.size:
+                raise SpotError(
+                    f"dataset file '{path}': '{group.name.lstrip('/')}/object' has {part.shape[1]} "
+                    f"columns; expected {object_order.size} (PickPlaceCan's object block)"
+                )
+            part = part[:, object_order]
+        parts.append(part)
+    return np.concatenate(parts, axis=1)
 
 
 def read_robomimic_hdf5(path: str | Path, obs_keys: tuple[str, ...] | None = None) -> RawDataset:
@@ -197,14 +257,16 @@ def read_robomimic_hdf5(path: str | Path, obs_keys: tuple[str, ...] | None = Non
     Rows are the demos' steps in the file's key order. The last step of every demo is marked as a
     timeout, so the ``qlearning`` view drops it exactly as PT's loader does and the PT robomimic
     label indices line up; its ``terminals`` flag keeps the file's ``dones[-1]``. Earlier steps
-    get ``terminals = dones``.
+    get ``terminals = dones``. A Can file recorded before robosuite 1.5 has its ``object`` block
+    reordered into the evaluation env's order (:func:`robomimic_object_order`).
 
     Args:
       path: the ``low_dim.hdf5`` file.
       obs_keys: observation keys to concatenate; default :data:`ROBOMIMIC_OBS_KEYS`.
 
     Returns:
-      The raw dataset; ``metadata`` has ``env_name``, ``env_args`` and ``obs_keys``.
+      The raw dataset; ``metadata`` has ``env_name``, ``env_args``, ``obs_keys`` and
+      ``object_reordered`` (whether the ``object`` block was reordered).
     """
     path = Path(path)
     keys = tuple(obs_keys) if obs_keys is not None else ROBOMIMIC_OBS_KEYS
@@ -224,8 +286,9 @@ def read_robomimic_hdf5(path: str | Path, obs_keys: tuple[str, ...] | None = Non
             raise SpotError(
                 f"dataset file '{path}': 'data.attrs[env_args]' must be JSON with 'env_name' ({err!r})"
             ) from None
+        order = robomimic_object_order(env_args, path) if "object" in keys else None
         with_next = all("next_obs" in data[d] for d in demos)
-        episodes = [_robomimic_demo(data[d], keys, with_next, path) for d in demos]
+        episodes = [_robomimic_demo(data[d], keys, with_next, path, order) for d in demos]
     cat = {k: np.concatenate([ep[k] for ep in episodes]) for k in episodes[0]}
     return _raw_dataset(
         path,
@@ -237,22 +300,22 @@ def read_robomimic_hdf5(path: str | Path, obs_keys: tuple[str, ...] | None = Non
         next_observations=cat["next_observations"].astype(np.float32) if with_next else None,
         name=path.stem,
         metadata={"format": "robomimic", "env_name": env_name, "env_args": env_args,
-                  "obs_keys": list(keys), "demos": len(demos)},
+                  "obs_keys": list(keys), "demos": len(demos), "object_reordered": order is not None},
     )
 
 
-def _robomimic_demo(demo: h5py.Group, keys: tuple[str, ...], with_next: bool,
-                    path: Path) -> dict[str, np.ndarray]:
+def _robomimic_demo(demo: h5py.Group, keys: tuple[str, ...], with_next: bool, path: Path,
+                    object_order: np.ndarray | None) -> dict[str, np.ndarray]:
     if not isinstance(demo.get("obs"), h5py.Group):
         raise SpotError(f"dataset file '{path}': missing group '{demo.name.lstrip('/')}/obs'")
     ep = {
-        "observations": _concat_obs(demo["obs"], keys, path),
+        "observations": _concat_obs(demo["obs"], keys, path, object_order),
         "actions": _array(demo, "actions", path, 2),
         "rewards": _array(demo, "rewards", path, 1),
         "terminals": _array(demo, "dones", path, 1).astype(bool),
     }
     if with_next:
-        ep["next_observations"] = _concat_obs(demo["next_obs"], keys, path)
+        ep["next_observations"] = _concat_obs(demo["next_obs"], keys, path, object_order)
     steps = {k: v.shape[0] for k, v in ep.items()}
     if len(set(steps.values())) != 1:
         raise SpotError(

@@ -9,7 +9,11 @@ Sources:
 * :func:`scripted_teacher`: compares segment returns of the true reward, S_i = sum_t r_t or
   sum_k gamma^k r_k, y = 1[S_1 < S_2] (PT repo : JaxPref/reward_transform.py, label_type 0; IPL's
   discounted comparison, jhejna/inverse-preference-learning : scripts/create_comparison_dataset.py),
-  with an optional tie threshold (Uni-RLHF's epsilon) and mistake rate (B-Pref's epsilon_mistake).
+  with an optional tie threshold (Uni-RLHF's epsilon; 0 = PT's label_type 1) and mistake rate
+  (B-Pref's epsilon_mistake). ``score="dense"`` scores with the dataset's per-step dense reward
+  (``infos/dense_reward``, robosuite's staged reward in the local robosuite recipe) instead of its
+  reward: robosuite's sparse success reward is 1 only at the success step, so almost every pair
+  of segments of successful demonstrations would tie.
 * :func:`read_pt_labels`: the PT repo's human label files (``human_label/<dataset>/``), decoded
   with a restricted unpickler (they are pickles).
 """
@@ -28,9 +32,10 @@ import numpy as np
 from numpy._core.multiarray import _reconstruct, scalar
 
 from spot import SpotError
-from spot.data.dataset import Dataset
+from spot.data.dataset import DENSE_REWARD_KEY, Dataset
 
 TEACHERS = ("sum", "discounted")
+SCORES = ("reward", "dense")  # what the scripted teacher sums: ds.rewards or ds.infos["dense_reward"]
 PT_DEFAULT_SEGMENT_LENGTH = 100  # D4RL label files carry no _q{L} suffix (PT README: query_len 100)
 
 
@@ -165,9 +170,31 @@ def segment_scores(rewards: np.ndarray, teacher: str, discount: float) -> np.nda
     return rewards.astype(np.float64) @ weights
 
 
+def score_rewards(ds: Dataset, score: str) -> np.ndarray:
+    """The per-step rewards ``[N]`` the scripted teacher sums: ``ds.rewards`` (``score="reward"``)
+    or ``ds.infos["dense_reward"]`` (``score="dense"``); :class:`SpotError` if the latter is missing."""
+    if score not in SCORES:
+        raise SpotError(f"unknown teacher score '{score}'; expected one of {', '.join(SCORES)}")
+    if score == "reward":
+        return ds.rewards
+    if DENSE_REWARD_KEY not in ds.infos:
+        raise SpotError(
+            f"labels.score=dense: dataset '{ds.name}' has no dense reward 'infos/{DENSE_REWARD_KEY}' "
+            f"(infos: {sorted(ds.infos) or 'none'}); the local robosuite recipe records it (a build "
+            "from before it did is rebuilt on load), other datasets need labels.score=reward"
+        )
+    dense = np.asarray(ds.infos[DENSE_REWARD_KEY])
+    if dense.shape != ds.rewards.shape or not np.all(np.isfinite(dense)):
+        raise SpotError(
+            f"dataset '{ds.name}': 'infos/{DENSE_REWARD_KEY}' has shape {dense.shape} (finite: "
+            f"{bool(np.all(np.isfinite(dense)))}); expected finite values of shape {ds.rewards.shape}"
+        )
+    return dense
+
+
 def scripted_teacher(ds: Dataset, num_queries: int, segment_length: int, *, teacher: str = "sum",
                      discount: float = 0.99, tie_threshold: float = -1.0, mistake_rate: float = 0.0,
-                     allow_cross_episode: bool = False, seed: int = 0) -> Preferences:
+                     allow_cross_episode: bool = False, seed: int = 0, score: str = "reward") -> Preferences:
     """Label random segment pairs by comparing their true-reward scores.
 
     Args:
@@ -182,6 +209,8 @@ def scripted_teacher(ds: Dataset, num_queries: int, segment_length: int, *, teac
       allow_cross_episode: allow segments to cross episode ends; otherwise they lie inside one
         episode and episodes shorter than T are skipped.
       seed: seed of the ``numpy`` Generator (starts 1, starts 2, then mistakes).
+      score: ``reward`` sums ``ds.rewards``; ``dense`` sums the dataset's dense reward
+        ``ds.infos["dense_reward"]`` (:func:`score_rewards`).
 
     Returns:
       ``Preferences`` with ``source="script"``.
@@ -196,12 +225,13 @@ def scripted_teacher(ds: Dataset, num_queries: int, segment_length: int, *, teac
         raise SpotError(
             f"discount {discount} and mistake_rate {mistake_rate}; expected both in [0, 1]"
         )
+    rewards = score_rewards(ds, score)
     rng = np.random.default_rng(seed)
     starts_1 = _sample_starts(ds, num_queries, segment_length, allow_cross_episode, rng)
     starts_2 = _sample_starts(ds, num_queries, segment_length, allow_cross_episode, rng)
     window = np.arange(segment_length)
-    s1 = segment_scores(ds.rewards[starts_1[:, None] + window], teacher, discount)
-    s2 = segment_scores(ds.rewards[starts_2[:, None] + window], teacher, discount)
+    s1 = segment_scores(rewards[starts_1[:, None] + window], teacher, discount)
+    s2 = segment_scores(rewards[starts_2[:, None] + window], teacher, discount)
     labels = (s1 < s2).astype(np.float32)
     flip = rng.random(num_queries) < mistake_rate
     labels = np.where(flip, 1.0 - labels, labels)

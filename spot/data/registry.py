@@ -5,7 +5,8 @@ that builds the dataset in the real simulator and writes it, in the D4RL hdf5 la
 dir ``$SPOT_DATA_DIR`` (default ``~/.cache/spot/data``). A path to an existing file is read as
 it is (D4RL hdf5, robomimic hdf5). Built files are keyed by ``(name, size, seed)`` and built once;
 a build writes to a temporary name and renames, under a file lock, so concurrent trials of a sweep
-neither corrupt nor duplicate it.
+neither corrupt nor duplicate it. A recipe module that defines ``RECIPE_VERSION`` stores it in the
+card, and a cached build whose card holds another version (or none) is stale and rebuilt.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import fcntl
 import importlib
 import json
 import os
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -109,7 +111,11 @@ def _lock(path: Path) -> Iterator[None]:
 
 def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True,
           force: bool = False) -> Path:
-    """Build a registered dataset with its local recipe (once) and return the file path."""
+    """Build a registered dataset with its local recipe (once) and return the file path.
+
+    A cached build is reused unless ``force`` or its card's ``recipe_version`` differs from the
+    recipe's ``RECIPE_VERSION`` (recipes without one are never stale).
+    """
     from spot.data import formats
 
     e = entry(name)
@@ -117,11 +123,19 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
     path = dataset_path(e.name, size, seed)
     with _lock(path):
-        if path.exists() and card_path(path).exists() and not force:
-            return path
         recipe = importlib.import_module(f"spot.data.recipes.{e.recipe}")
+        version = getattr(recipe, "RECIPE_VERSION", None)
+        if path.exists() and card_path(path).exists() and not force:
+            built = read_card(path).get("recipe_version")
+            if version is None or built == version:
+                return path
+            if progress:
+                print(f"spot: {path.name} was built by recipe version {built}; rebuilding with "
+                      f"version {version}", file=sys.stderr)
         raw, card = recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
         card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
+        if version is not None:
+            card["recipe_version"] = version
         formats.write_d4rl_hdf5(raw, path, card)
         tmp = card_path(path).with_suffix(f".tmp-{os.getpid()}")
         tmp.write_text(json.dumps(card, indent=2, default=str))

@@ -28,15 +28,25 @@ other step reward 0. Attempts abandoned or still unsuccessful at the horizon are
 counted in the card's success rates); an operator keeps attempting until it has its share of
 demonstrations. Success rates over 20 attempts per operator are in docs/datasets.md.
 
+Each step also records robosuite's dense staged reward of the state it reached
+(``infos/dense_reward``, :meth:`spot.envs._RobosuiteEnv.staged_reward`: the env's own reward with
+``reward_shaping=True``; Lift (reach + grasp) / 2.25, Can max(reach, grasp, lift, hover), 1 at the
+success step), which ``labels.score=dense`` makes the scripted teacher compare: with the sparse
+reward nearly every pair of segments of successful demonstrations ties. ``rewards`` stays sparse.
+
 Sizes (demonstrations ph / mh): ``tiny`` 3 / 6 (tests), ``small`` 40 / 60, ``paper`` 200 / 300
 (robomimic's). Deterministic for a seed: each operator draws placements and noise from its own
-generator spawned from the seed, the env is built with the global numpy RNG seeded (robosuite
-draws Lift's cube size from it), and MuJoCo is deterministic.
+generator spawned from the seed, :func:`spot.envs.make_env` builds the env with the global numpy
+RNG seeded (robosuite draws Lift's cube size from it), and MuJoCo is deterministic.
+
+``RECIPE_VERSION`` is stored in the card; :func:`spot.data.registry.build` rebuilds a cached build
+whose card has another version (builds from before version 2 lack the dense reward).
 
 Differences from robomimic: scripted instead of human operators; demos end at their first
 success step; robosuite 1.5.1 and its observation layout rather than the ``offline_study``
 branch (in particular Can's ``object`` block is [Can_to_eef_pos, Can_to_eef_quat, Can_pos,
-Can_quat], not robomimic v0.1's order).
+Can_quat], not robomimic v0.1's order; :func:`spot.data.formats.read_robomimic_hdf5` reorders
+real robomimic Can files to match).
 """
 
 from __future__ import annotations
@@ -52,9 +62,10 @@ from tqdm import tqdm
 
 import spot
 from spot import SpotError
-from spot.data.dataset import RawDataset, raw_from_episodes
+from spot.data.dataset import DENSE_REWARD_KEY, RawDataset, raw_from_episodes
 from spot.envs import ROBOSUITE_HORIZON, make_env
 
+RECIPE_VERSION = 2  # bump when a change here alters the datasets (2: infos/dense_reward)
 SIZES = {"tiny": {"ph": 3, "mh": 6}, "small": {"ph": 40, "mh": 60}, "paper": {"ph": 200, "mh": 300}}
 TASKS = ("lift", "can")
 MAX_ATTEMPTS_FACTOR = 10  # give up when an operator needs more than this many attempts per demo
@@ -226,7 +237,8 @@ def run_episode(env: Any, task: str, op: Operator, rng: np.random.Generator) -> 
     """One attempt of ``op`` in ``env`` (a :func:`spot.envs.make_env` robosuite env).
 
     Returns the episode in the :func:`raw_from_episodes` layout (ending at the first success,
-    or at the horizon with a timeout), whether it succeeded, and its number of fumbles.
+    or at the horizon with a timeout; ``infos["dense_reward"]`` is robosuite's staged reward of
+    each step's next state), whether it succeeded, and its number of fumbles.
     """
     obs, _ = env.reset(seed=int(rng.integers(2**31)))
     place_xy = None
@@ -235,15 +247,18 @@ def run_episode(env: Any, task: str, op: Operator, rng: np.random.Generator) -> 
         place_xy = inner.target_bin_placements[inner.object_to_id["can"], :2] + _PLACE_SHIFT
     script = _Script(task, op, rng, place_xy, obs)
     steps: dict[str, list] = {"observations": [], "actions": [], "rewards": [], "next_observations": []}
+    dense = []
     success = truncated = False
     while not (success or truncated or script.fumbles > op.max_fumbles):
         action = script.act(obs)
         next_obs, reward, success, truncated, _ = env.step(action)
         for key, value in zip(steps, (obs, action, reward, next_obs), strict=True):
             steps[key].append(value)
+        dense.append(env.unwrapped.staged_reward())
         obs = next_obs
     n = len(steps["rewards"])
     episode = {k: np.asarray(v) for k, v in steps.items()}
+    episode["infos"] = {DENSE_REWARD_KEY: np.asarray(dense, dtype=np.float32)}
     episode["terminals"] = np.zeros(n, dtype=bool)
     episode["terminals"][-1] = success
     episode["timeouts"] = np.zeros(n, dtype=bool)
@@ -282,14 +297,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     total = SIZES[size][kind]
     per_op = [total // len(ops) + (i < total % len(ops)) for i in range(len(ops))]
     rngs = [np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(len(ops))]
-    # robosuite draws model parameters (Lift's cube size) from the global numpy RNG when it builds
-    # the env; seed it for that, and leave it as it was.
-    global_state = np.random.get_state()
-    np.random.seed(seed)
-    try:
-        env = make_env(name, seed)
-    finally:
-        np.random.set_state(global_state)
+    env = make_env(name, seed)  # seeds the global numpy RNG robosuite builds the model with
     episodes, op_names, skills, fumbles = [], [], [], []
     attempts = dict.fromkeys((o.name for o in ops), 0)
     failures = {o.name: {"abandoned": 0, "horizon": 0} for o in ops}
@@ -319,6 +327,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     raw = raw_from_episodes(episodes, name=f"{name}-{size}",
                             metadata={"episode_operator": op_names, "episode_skill": skills})
     lengths = np.array([len(ep["rewards"]) for ep in episodes])
+    dense_returns = np.array([ep["infos"][DENSE_REWARD_KEY].sum() for ep in episodes], dtype=np.float64)
     names, skill_arr, fumbles = np.array(op_names), np.array(skills), np.array(fumbles)
     levels = list(dict.fromkeys(o.skill for o in ops))
 
@@ -339,6 +348,11 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "obs_dim": int(raw.observations.shape[1]),
         "act_dim": int(raw.actions.shape[1]),
         "successful_only": True,
+        "recipe_version": RECIPE_VERSION,
+        "rewards": "sparse: 1 at the success step (the last of each demo), else 0",
+        "infos": {DENSE_REWARD_KEY: "robosuite's staged reward (reward_shaping=True) of each step's "
+                                    "next state, in [0, 1]; 1 at success"},
+        "dense_reward_return": stats(dense_returns),
         "operators": [asdict(o) for o in ops],
         "episodes_per_operator": {o.name: int((names == o.name).sum()) for o in ops},
         "attempts_per_operator": attempts,
