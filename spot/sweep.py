@@ -50,7 +50,7 @@ from spot import config as config_lib
 
 SWEEP_KEYS = ("name", "base", "grid", "zip", "seeds", "seed_mode", "resources", "max_concurrent", "table", "smoke")
 TABLES = (1, 2, 3, 4, 7, 8)
-SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent")
+SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources")
 SEED_MODES = ("trials", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
@@ -301,6 +301,9 @@ def load(path: str | Path, *, smoke: bool = False) -> Sweep:
             raise SpotError(f"{where}: --smoke needs a 'smoke:' block (see docs/sweeps.md)")
         base, grid, zipped = {**base, **smoke_base}, smoke_grid, smoke_zip
         seeds, max_concurrent = smoke_seeds, smoke_mc
+        # Smoke runs are tiny CPU checks: no GPU unless the smoke block asks for one.
+        resources = (_resources(block["resources"], f"{where} smoke") if "resources" in block
+                     else {**resources, "gpu": 0.0})
 
     lengths = {k: len(v) for k, v in zipped.items()}
     if len(set(lengths.values())) > 1:
@@ -621,6 +624,18 @@ def _close_orphans(client: Any, experiment_id: str, sweep_id: str, parent_run_id
     return len(orphans)
 
 
+def _check_gpus(sweep: Sweep) -> None:
+    """Stop before any run is opened if trials ask for a GPU the Ray cluster does not have
+    (Tune would otherwise wait for it forever)."""
+    import ray
+
+    if sweep.resources["gpu"] > 0 and float(ray.cluster_resources().get("GPU", 0.0)) == 0:
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.gpu = {sweep.resources['gpu']:g} per trial, but the Ray "
+            "cluster has no GPU; set resources: {gpu: 0} (--smoke uses no GPU unless its block asks), or "
+            "give --address of a cluster with GPUs")
+
+
 def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_errored: bool,
          max_concurrent: int | None, run_fn: RunFn | None) -> tuple[dict[str, str], bool]:
     """Run (or restore) the Tune experiment.
@@ -772,6 +787,7 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
         parent_id = None
         crashed = True
         try:
+            _check_gpus(sweep)
             store.wait_ready()
             client = MlflowClient(store.uri)
             exp_id = tracking.experiment_id(sweep.experiment, store.uri)

@@ -256,3 +256,11 @@ def test_trial_skips_a_config_and_seed_that_already_finished(killed_and_resumed,
     assert reports == [{"seed": 1, "run_id": done.info.run_id, "skipped": 1,
                         "score_final": done.data.metrics["eval/score_final"],
                         "score_best": done.data.metrics["eval/score_best"]}]
+
+
+def test_smoke_asks_for_no_gpu_unless_its_block_does(tmp_path):
+    text = "grid: {method: [pt]}\nresources: {cpu: 1, gpu: 0.25}\nsmoke: {base: {budget: tiny}}\n"
+    assert sweep.load(_write(tmp_path, text)).resources == {"cpu": 1.0, "gpu": 0.25}
+    assert sweep.load(_write(tmp_path, text), smoke=True).resources == {"cpu": 1.0, "gpu": 0.0}
+    text2 = text.replace("smoke: {base: {budget: tiny}}", "smoke: {base: {budget: tiny}, resources: {gpu: 1}}")
+    assert sweep.load(_write(tmp_path, text2), smoke=True).resources == {"cpu": 1.0, "gpu": 1.0}
