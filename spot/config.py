@@ -295,20 +295,13 @@ SUITE_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
 }
 _SUITE_SEGMENT = {"-ph": {"labels.segment_length": 50, "ipl.subsample": 32},
                   "-mh": {"labels.segment_length": 100, "ipl.subsample": 64}}
-_LOCOMOTION_PREFIXES = ("hopper-", "walker2d-", "halfcheetah-")
-_METAWORLD_TASKS = ("drawer-open", "plate-slide", "button-press")
-
-
 def suite_of(data_name: str) -> str | None:
-    """``locomotion``, ``metaworld``, ``robosuite`` or None (a file path: no suite preset)."""
-    name = data_name[:-3] if data_name.endswith(("-v2", "-v3")) else data_name
-    if name.startswith(_LOCOMOTION_PREFIXES):
-        return "locomotion"
-    if name in _METAWORLD_TASKS:
-        return "metaworld"
-    if name.startswith(("lift-", "can-")):
-        return "robosuite"
-    return None
+    """The registry family of a dataset name (``locomotion``, ``metaworld``, ``robosuite``), or
+    None for anything else (a file path: no suite preset)."""
+    from spot.data import registry
+
+    entry = registry.REGISTRY.get(registry.canonical(data_name))
+    return entry.family if entry else None
 
 
 def suite_preset(data_name: str, method: str, budget: str) -> dict[str, Any]:
@@ -322,7 +315,7 @@ def suite_preset(data_name: str, method: str, budget: str) -> dict[str, Any]:
     if suite == "locomotion" and budget != "paper" and method in ("mr", "pt", "spot"):
         # Locally built small/tiny datasets have short episodes (hopper-medium-replay small: 30 steps
         # on average), where PT's "+0.5" leaves most learned rewards negative and IQL learns to fall
-        # (measured: PT score 0.88 with pt, 7.79 with minmax, oracle 7.95; docs/config.md).
+        # (measured: PT score 0.88 with pt, 7.60 with minmax, oracle 7.95; docs/design.md).
         out["relabel.normalize"] = "minmax"
     if suite == "robosuite" and budget == "paper":
         for tail, keys in _SUITE_SEGMENT.items():

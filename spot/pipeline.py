@@ -105,8 +105,8 @@ def _hpl_stage(cfg, ds, train_batch, eval_batch, deps, key, timer, progress):
             strict=True)))
     history = out["history"]
     _log({"cache/reward_hit": float(hit)})
-    _log({f"reward/{k}": v for k, v in history.items()
-          if isinstance(v, (int, float, np.floating, np.integer)) and not isinstance(v, bool)})
+    _log({f"reward/{k}": history[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")
+          if k in history})
     for i, step in enumerate(history.get("vae_step", [])):
         _log({f"hpl/{k}": history[k][i] for k in ("vae_loss", "vae_recon", "vae_kl") if k in history}, step=int(step))
     for i, step in enumerate(history.get("reward_step", [])):
@@ -133,8 +133,6 @@ def _ipl_ranking(state, cfg, train_batch, eval_batch) -> dict[str, float]:
         if batch is not None:
             res = ipl.evaluate_preferences(state, ipl.feedback_from(batch), cfg.iql, cfg.ipl)
             out[f"reward/{name}_acc"], out[f"reward/{name}_loss"] = res["ipl/eval_pref_acc"], res["ipl/eval_pref_loss"]
-    if "reward/eval_acc" in out:
-        out["reward/best_eval_acc"] = out["reward/eval_acc"]
     return out
 
 

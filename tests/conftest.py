@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import spot  # noqa: F401  (XLA flags before jax)
@@ -38,3 +39,18 @@ def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None, timeou
     full_env = {**os.environ, **(env or {})}
     return subprocess.run([sys.executable, "-m", "spot.cli", *args], capture_output=True, text=True,
                           cwd=cwd, env=full_env, timeout=timeout)
+
+
+def make_dataset(episode_lengths: list[int], seed: int = 0, obs_dim: int = 4, act_dim: int = 2):
+    """A qlearning-view Dataset of random transitions in episodes of the given lengths."""
+    from spot.data.dataset import Dataset
+
+    rng = np.random.default_rng(seed)
+    n = sum(episode_lengths)
+    obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
+    return Dataset(
+        observations=obs, actions=rng.uniform(-1, 1, size=(n, act_dim)).astype(np.float32),
+        rewards=rng.normal(size=n).astype(np.float32), next_observations=obs, terminals=np.zeros(n, bool),
+        episode_ids=np.repeat(np.arange(len(episode_lengths)), episode_lengths), raw_index=np.arange(n),
+        name="test",
+    )

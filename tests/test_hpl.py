@@ -22,8 +22,8 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import NonFiniteError, SpotError
 from spot.config import HPLConfig
 from spot.data import labels, registry
-from spot.data.dataset import Dataset
 from spot.reward import hpl, train
+from tests.conftest import make_dataset
 
 OBS, ACT = 4, 2
 TINY = HPLConfig(seq_len=8, future_len=2, latent_groups=2, latent_classes=3, embd_dim=16, n_layer=1, n_head=2,
@@ -38,17 +38,6 @@ def np_softmax(x: np.ndarray) -> np.ndarray:
     e = np.exp(x - x.max(-1, keepdims=True))
     return e / e.sum(-1, keepdims=True)
 
-
-def make_dataset(episode_lengths: list[int], seed: int = 0) -> Dataset:
-    rng = np.random.default_rng(seed)
-    n = sum(episode_lengths)
-    obs = rng.normal(size=(n, OBS)).astype(np.float32)
-    return Dataset(
-        observations=obs, actions=rng.uniform(-1, 1, size=(n, ACT)).astype(np.float32),
-        rewards=rng.normal(size=n).astype(np.float32), next_observations=obs, terminals=np.zeros(n, bool),
-        episode_ids=np.repeat(np.arange(len(episode_lengths)), episode_lengths), raw_index=np.arange(n),
-        name="test",
-    )
 
 
 def random_pairs(num_pairs: int, length: int, seed: int) -> dict[str, np.ndarray]:

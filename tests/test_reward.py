@@ -19,9 +19,9 @@ import pytest
 import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import SpotError
 from spot.config import MRConfig, PTConfig, RelabelConfig, RewardConfig
-from spot.data.dataset import Dataset
 from spot.nets import MLP, Dropout, param_count
 from spot.reward import mr, pt, relabel, train
+from tests.conftest import make_dataset
 
 PT_TINY = PTConfig(embd_dim=16, n_layer=2, n_head=2, dropout=0.1, pref_attn_dim=8, max_timestep=50)
 MR_TINY = MRConfig(hidden=(32, 32), lr=3e-3)
@@ -42,17 +42,6 @@ def synthetic_pairs(num_pairs: int, length: int, seed: int) -> dict[str, np.ndar
     batch["label"] = (ret["2"] > ret["1"]).astype(np.float32)
     return batch
 
-
-def make_dataset(episode_lengths: list[int], seed: int = 0) -> Dataset:
-    rng = np.random.default_rng(seed)
-    n = sum(episode_lengths)
-    obs = rng.normal(size=(n, OBS)).astype(np.float32)
-    return Dataset(
-        observations=obs, actions=rng.uniform(-1, 1, size=(n, ACT)).astype(np.float32),
-        rewards=rng.normal(size=n).astype(np.float32), next_observations=obs,
-        terminals=np.zeros(n, bool), episode_ids=np.repeat(np.arange(len(episode_lengths)), episode_lengths),
-        raw_index=np.arange(n), name="test",
-    )
 
 
 @pytest.fixture(scope="module")

@@ -185,11 +185,7 @@ def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -
     Not one jitted program for everything: on CPU (jaxlib 0.10.2) such a program never finishes
     once the layers are 64 wide or more (see :func:`iql._jitted_init`).
     """
-    base = iql.init_state(key, obs_dim, act_dim, iql_cfg)
-    nets, txs = iql._nets(iql_cfg, act_dim), _optimizers(iql_cfg)
-    actor, critic, value = (iql._train_state(net, ts.params, tx)
-                            for net, ts, tx in zip(nets, (base.actor, base.critic, base.value), txs, strict=True))
-    return base._replace(actor=actor, critic=critic, value=value)
+    return iql.init_state(key, obs_dim, act_dim, iql_cfg, optimizers=_optimizers(iql_cfg))
 
 
 def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_cfg: IQLConfig,

@@ -149,10 +149,9 @@ def _optimizers(cfg: IQLConfig) -> tuple[optax.GradientTransformation, ...]:
 def _jitted_init(module: nn.Module) -> Callable[..., Params]:
     """``module.init`` as one jitted program per network (cached; modules are hashable).
 
-    Eager initialisation compiles every primitive separately (~17 s for three 256-wide nets);
-    one program per network compiles in ~1 s. Not one program for all three networks: on CPU
-    (jaxlib 0.10.2) a jitted init of actor, critics and value together never finishes once the
-    layers are 64 wide or more; each network on its own does.
+    Not one program for all three networks: on CPU (jaxlib 0.10.2) a jitted init of actor,
+    critics and value together never finishes once the layers are 64 wide or more; each network
+    on its own does.
     """
     return jax.jit(module.init)
 
@@ -181,19 +180,22 @@ def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, act: jax.Array) -> ja
 
 
 # --------------------------------------------------------------------------- state and update
-def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig) -> IQLState:
+def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig,
+               optimizers: tuple[optax.GradientTransformation, ...] | None = None) -> IQLState:
     """Fresh networks and Adam states. Vmappable over ``key`` to stack seeds.
 
     Args:
       key: PRNG key of this run's IQL stage.
       obs_dim, act_dim: data sizes.
       cfg: IQL hyperparameters (``hidden``, ``lr``, ``steps`` for the actor's cosine schedule).
+      optimizers: (actor, critic, value) optimizers; default IQL's. Pass the same objects on every
+        call (they are static fields of the state: new ones recompile the train chunk).
     """
     actor_key, critic_key, value_key = jax.random.split(key, 3)
     actor_def, critic_def, value_def = _nets(cfg, act_dim)
     obs, act = jnp.zeros((1, obs_dim), jnp.float32), jnp.zeros((1, act_dim), jnp.float32)
     critic_params = _jitted_init(critic_def)(critic_key, obs, act)
-    actor_tx, critic_tx, value_tx = _optimizers(cfg)
+    actor_tx, critic_tx, value_tx = optimizers or _optimizers(cfg)
     return IQLState(
         actor=_train_state(actor_def, _jitted_init(actor_def)(actor_key, obs), actor_tx),
         critic=_train_state(critic_def, critic_params, critic_tx),
