@@ -16,13 +16,14 @@ import spot  # noqa: F401  (XLA flags before jax)
 from spot.config import CVAEConfig, IQLConfig, PTConfig, RelabelConfig
 
 
-def bench_iql(small: bool = False, seeds: int = 1) -> dict[str, Any]:
+def bench_iql(small: bool = False, seeds: int = 1, order: str = IQLConfig.order) -> dict[str, Any]:
     from spot.policy import iql
 
-    cfg = IQLConfig(hidden=(64, 64), chunk=100) if small else IQLConfig(chunk=1000)
+    cfg = IQLConfig(hidden=(64, 64), chunk=100, order=order) if small else IQLConfig(chunk=1000, order=order)
     n = 10_000 if small else 1_000_000
     steps = 300 if small else 3000
-    return {"what": f"IQL updates (batch {cfg.batch_size}, {cfg.hidden}, obs 11, act 3, {n} transitions, {seeds} seed(s))",
+    return {"what": f"IQL updates (batch {cfg.batch_size}, {cfg.hidden}, obs 11, act 3, {n} transitions, "
+                    f"{seeds} seed(s), order {order})",
             **iql.bench_iql(obs_dim=11, act_dim=3, n=n, steps=steps, seeds=seeds, cfg=cfg)}
 
 

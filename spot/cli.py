@@ -129,7 +129,7 @@ def _bench(args: argparse.Namespace) -> None:
 
     kwargs = {"small": args.small}
     if args.what == "iql":
-        kwargs["seeds"] = args.seeds
+        kwargs["seeds"], kwargs["order"] = args.seeds, args.order
     if args.what == "pt":
         kwargs["dtype"] = args.dtype
     if args.what == "relabel":
@@ -252,6 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"))
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
     d.add_argument("--seeds", type=int, default=1, help="iql: seeds as a vmap axis")
+    d.add_argument("--order", default="parallel", choices=("parallel", "sequential"), help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
     d.set_defaults(fn=_bench)

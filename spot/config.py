@@ -133,6 +133,7 @@ class IQLConfig:
     batch_size: int = F(256, "transitions per update", range=(1, None))
     steps: int = F(1_000_000, "gradient updates", range=(1, None))
     chunk: int = F(1000, "updates per jitted lax.scan chunk", range=(1, None))
+    order: str = F("parallel", "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; faster), 'sequential' the just-updated one (ikostrikov/PT repo)", choices=("parallel", "sequential"))
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ Every test uses one small config and one dataset, so the train chunk compiles on
 
 import spot  # noqa: F401, I001  (first: sets the XLA flags before jax)
 
+import dataclasses
 import math
 
 import jax
@@ -130,16 +131,40 @@ def test_transitions_from_dataset():
 
 
 # --------------------------------------------------------------------------- update and chunk
-def test_update_jit_matches_no_jit(data):
-    state = iql.init_state(jax.random.key(3), 2, 2, CFG)
-    batch = jax.tree.map(lambda x: x[: CFG.batch_size], data)
+@pytest.mark.parametrize("order", ["parallel", "sequential"])
+def test_update_jit_matches_no_jit(data, order):
+    cfg = dataclasses.replace(CFG, order=order)
+    state = iql.init_state(jax.random.key(3), 2, 2, cfg)
+    batch = jax.tree.map(lambda x: x[: cfg.batch_size], data)
     with jax.disable_jit():
-        eager_state, eager_metrics = iql.update(state, batch, CFG)
-    jit_state, jit_metrics = jax.jit(iql.update, static_argnames="cfg")(state, batch, CFG)
+        eager_state, eager_metrics = iql.update(state, batch, cfg)
+    jit_state, jit_metrics = jax.jit(iql.update, static_argnames="cfg")(state, batch, cfg)
     for name, value in eager_metrics.items():
         np.testing.assert_allclose(jit_metrics[name], value, rtol=1e-5, atol=1e-6, err_msg=name)
     jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6), jit_state, eager_state)
     assert int(jit_state.step) == 1
+
+
+def test_update_order_picks_the_value_network(data):
+    """parallel: advantages and critic targets from V before the value step (CORL, unifloral);
+    sequential: from V' after it (ikostrikov). Checked against V applied by hand."""
+    batch = jax.tree.map(lambda x: x[: CFG.batch_size], data)
+    state = iql.init_state(jax.random.key(4), 2, 2, CFG)
+    target_q = np.min(np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)), axis=0)
+    seen = {}
+    for order in ("parallel", "sequential"):
+        cfg = dataclasses.replace(CFG, order=order)
+        new_state, metrics = jax.jit(iql.update, static_argnames="cfg")(state, batch, cfg)
+        value = state.value if order == "parallel" else new_state.value
+        v, next_v = (np.asarray(value.apply_fn(value.params, x)) for x in (batch.obs, batch.next_obs))
+        np.testing.assert_allclose(metrics["iql/target_mean"],
+                                   np.mean(batch.rew + CFG.discount * batch.mask * next_v), rtol=1e-5)
+        np.testing.assert_allclose(metrics["iql/adv_mean"], np.mean(target_q - v), rtol=1e-4, atol=1e-6)
+        seen[order] = float(metrics["iql/target_mean"])
+        # the value step itself does not depend on the order
+        jax.tree.map(np.testing.assert_array_equal, new_state.value.params,
+                     seen.setdefault("value", new_state.value.params))
+    assert abs(seen["parallel"] - seen["sequential"]) > 1e-6  # the two orders differ
 
 
 def test_chunk_traces_once(trained, chunk_fn):
@@ -163,7 +188,7 @@ def test_chunk_is_deterministic(data, chunk_fn):
 
 def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
     init_keys, train_keys = jax.random.split(jax.random.key(11), 2), jax.random.split(jax.random.key(12), 2)
-    states = jax.vmap(iql.init_state, in_axes=(0, None, None, None))(init_keys, 2, 2, CFG)
+    states = iql.init_state(init_keys, 2, 2, CFG)
     states, metrics = iql.make_vmapped_train_chunk(CFG)(states, data, train_keys)
     for s in range(2):
         alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), data, train_keys[s])

@@ -1,28 +1,43 @@
 """Implicit Q-Learning (Kostrikov, Nair & Levine, 2021, arXiv:2110.06169), Sec. 4 and Alg. 1.
 
-One update, in the order of the reference code [ikostrikov/implicit_q_learning : learner.py]
-(reference/algorithms.md §2.1):
+One update (value, actor, critics, target) with the losses of the paper:
 
-1. value, eq. (5): ``L_V = E[L2_tau(min_i Qbar_i(s, a) - V(s))]`` with the expectile loss
-   ``L2_tau(u) = |tau - 1(u < 0)| u^2`` against the *target* critics;
-2. actor, eq. (7) (AWR): ``L_pi = -E[min(exp(beta (min_i Qbar_i(s, a) - V'(s))), 100) log pi(a|s)]``
-   with the just-updated value V'; pi is a Gaussian with mean ``tanh(MLP(s))`` and a
-   state-independent log-std clipped to [-5, 2], no tanh-squash correction (the reference's
-   ``NormalTanhPolicy(state_dependent_std=False, tanh_squash_distribution=False)``);
-3. critics, eq. (6): ``L_Q = E[sum_i (Q_i(s, a) - r - gamma mask V'(s'))^2]``, ``mask = 1 - terminal``;
-4. target: ``Qbar <- tau_polyak Q + (1 - tau_polyak) Qbar``.
+* value, eq. (5): ``L_V = E[L2_tau(min_i Qbar_i(s, a) - V(s))]`` with the expectile loss
+  ``L2_tau(u) = |tau - 1(u < 0)| u^2`` against the *target* critics;
+* actor, eq. (7) (AWR): ``L_pi = -E[min(exp(beta (min_i Qbar_i(s, a) - V(s))), 100) log pi(a|s)]``;
+  pi is a Gaussian with mean ``tanh(MLP(s))`` and a state-independent log-std clipped to [-5, 2],
+  no tanh-squash correction (the reference's ``NormalTanhPolicy(state_dependent_std=False,
+  tanh_squash_distribution=False)``);
+* critics, eq. (6): ``L_Q = E[sum_i (Q_i(s, a) - r - gamma mask V(s'))^2]``, ``mask = 1 - terminal``;
+* target: ``Qbar <- tau_polyak Q + (1 - tau_polyak) Qbar``.
+
+Which value network V feeds the actor's advantages and the critics' targets is
+``IQLConfig.order``:
+
+* ``parallel`` (default): the value network as it was at the start of the update, so the three
+  losses are independent of each other; the order of CORL's IQL [tinkoff-ai/CORL :
+  algorithms/offline/iql.py] and unifloral's [EmptyJackson/unifloral : algorithms/iql.py]. The
+  advantages come out of the value loss's own forward pass.
+* ``sequential``: the just-updated value V' (V, then actor, then critics), the order of the
+  ikostrikov reference that the PT repo vendors (reference/algorithms.md §2.1); V' is evaluated
+  once on ``[s; s']``.
+
+The two differ by one Adam step of V (lr 3e-4) in what the actor and critics see. ``parallel``
+needs 15 instead of 16 batch-256 passes through a 256x256 layer, and its three independent
+updates keep both cores busy: 255-260 against 230-235 updates/s on this 2-core CPU
+(``spot bench iql --order ...``).
 
 Networks: every MLP is ``IQLConfig.hidden`` (256-256) ReLU with orthogonal init sqrt(2) on all
-layers (reference ``common.py``); the two critics are one ``nn.vmap`` ensemble. Adam 3e-4 for all
-three; the actor's learning rate follows a cosine decay to 0 over ``IQLConfig.steps``.
+layers (reference ``common.py``); the two critics are two separate MLPs whose outputs are stacked
+(``[NUM_CRITICS, ...]``). The reference vmaps one critic module over stacked weights; on XLA:CPU
+the batched matmuls and their layout copies made the update ~6 % slower than two plain MLPs, and
+the numbers are the same. Adam 3e-4 for all three; the actor's learning rate follows a cosine
+decay to 0 over ``IQLConfig.steps``.
 
-Work the update shares instead of recomputing (same numbers as the reference): the target-critic
-forward pass feeds both the value loss and the advantages, and V' is evaluated once on
-``[s; s']`` for the advantages and the critic targets.
-
-Speed (2-core CPU, reference sizes): an update is ~0.57 GFLOP, 16 passes of 256x256 matmuls at
-batch 256; a profile puts ~85 % of its time in those matmuls, which already run at about this
-CPU's single-core matmul peak (~70 GFLOP/s); Adam and the Polyak step are ~5 %.
+Speed: an update is ~0.5 GFLOP (15-16 passes of 256x256 matmuls at batch 256); the matmuls run at
+about this CPU's peak (~160 GFLOP/s on 2 cores for the plain and transposed-right products, ~130
+for the weight gradients, which XLA hands to Eigen); Adam, the Polyak step and the elementwise
+work are the rest.
 
 Training runs as a jitted ``lax.scan`` over ``IQLConfig.chunk`` updates with minibatches drawn
 inside jit (STYLE.md rules 4 and 7); several seeds can run as a vmap axis in one program
@@ -56,6 +71,7 @@ from spot.nets import MLP, Params, create_train_state, orthogonal_init
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # reference learner.py passes log_std_min=-5; policy.py max 2
 AWR_WEIGHT_MAX = 100.0  # reference actor.py: exp_a = minimum(exp(beta * adv), 100)
 NUM_CRITICS = 2
+UPDATE_ORDERS = ("parallel", "sequential")  # IQLConfig.order, see the module docstring
 
 # Python traces of the scanned update body per kind ("chunk", "vmapped_chunk"); tests assert one.
 TRACE_COUNT: collections.Counter[str] = collections.Counter()
@@ -125,16 +141,20 @@ class Critic(nn.Module):
         return MLP(self.hidden, out_dim=1, kernel_init=orthogonal_init())(x)[..., 0]
 
 
-DoubleCritic = nn.vmap(
-    Critic, variable_axes={"params": 0}, split_rngs={"params": True},
-    in_axes=None, out_axes=0, axis_size=NUM_CRITICS,
-)  # outputs [NUM_CRITICS, ...]
+class Critics(nn.Module):
+    """``NUM_CRITICS`` independent critics, outputs stacked ``[NUM_CRITICS, ...]``."""
+
+    hidden: tuple[int, ...]
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
+        return jnp.stack([Critic(self.hidden)(obs, act) for _ in range(NUM_CRITICS)])
 
 
 @functools.cache
 def _nets(cfg: IQLConfig, act_dim: int) -> tuple[Actor, nn.Module, Value]:
     hidden = tuple(cfg.hidden)
-    return Actor(hidden, act_dim), DoubleCritic(hidden), Value(hidden)
+    return Actor(hidden, act_dim), Critics(hidden), Value(hidden)
 
 
 @functools.cache
@@ -151,7 +171,8 @@ def _jitted_init(module: nn.Module) -> Callable[..., Params]:
 
     Not one program for all three networks: on CPU (jaxlib 0.10.2) a jitted init of actor,
     critics and value together never finishes once the layers are 64 wide or more; each network
-    on its own does.
+    on its own does. Vmapping these inits over seeds hangs the same way (256 wide, 5 seeds), so
+    :func:`init_state` stacks per-seed states instead.
     """
     return jax.jit(module.init)
 
@@ -182,15 +203,19 @@ def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, act: jax.Array) -> ja
 # --------------------------------------------------------------------------- state and update
 def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig,
                optimizers: tuple[optax.GradientTransformation, ...] | None = None) -> IQLState:
-    """Fresh networks and Adam states. Vmappable over ``key`` to stack seeds.
+    """Fresh networks and Adam states; with keys ``[S]``, ``S`` states stacked on a leading axis
+    (the input of :func:`make_vmapped_train_chunk`), state ``s`` equal to ``init_state(key[s])``.
 
     Args:
-      key: PRNG key of this run's IQL stage.
+      key: PRNG key of this run's IQL stage, or keys ``[S]`` for stacked seeds.
       obs_dim, act_dim: data sizes.
       cfg: IQL hyperparameters (``hidden``, ``lr``, ``steps`` for the actor's cosine schedule).
       optimizers: (actor, critic, value) optimizers; default IQL's. Pass the same objects on every
         call (they are static fields of the state: new ones recompile the train chunk).
     """
+    if key.ndim == 1:  # one state per seed, stacked (see _jitted_init for why not vmap)
+        states = [init_state(k, obs_dim, act_dim, cfg, optimizers) for k in key]
+        return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
     actor_key, critic_key, value_key = jax.random.split(key, 3)
     actor_def, critic_def, value_def = _nets(cfg, act_dim)
     obs, act = jnp.zeros((1, obs_dim), jnp.float32), jnp.zeros((1, act_dim), jnp.float32)
@@ -206,7 +231,8 @@ def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig,
 
 
 def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLState, dict[str, jax.Array]]:
-    """One IQL update (value, actor, critics, target), pure.
+    """One IQL update (value, actor, critics, target), pure; ``cfg.order`` picks which value
+    network the actor and critics see (module docstring).
 
     Args:
       state: current state.
@@ -218,23 +244,26 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
     """
     if batch.obs.ndim != 2 or batch.rew.shape != batch.obs.shape[:1]:
         raise ValueError(f"expected obs [B, o] and rew [B], got {batch.obs.shape} and {batch.rew.shape}")
+    if cfg.order not in UPDATE_ORDERS:
+        raise ValueError(f"iql.order is {cfg.order!r}; expected one of {UPDATE_ORDERS}")
     batch_size = batch.obs.shape[0]
 
     # Target critics once: the value loss and the actor's advantages both use min_i Qbar_i(s, a).
     target_q = jnp.min(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act), axis=0)
+    if cfg.order == "parallel":  # V(s') before the value step; nothing below waits for it
+        next_v = state.value.apply_fn(state.value.params, batch.next_obs)
 
-    def value_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
+    def value_loss_fn(params: Params) -> tuple[jax.Array, tuple[jax.Array, dict[str, jax.Array]]]:
         v = state.value.apply_fn(params, batch.obs)
         loss = expectile_loss(target_q - v, cfg.expectile).mean()
-        return loss, {"iql/value_loss": loss, "iql/v_mean": v.mean()}
+        return loss, (target_q - v, {"iql/value_loss": loss, "iql/v_mean": v.mean()})
 
-    value_grads, value_info = jax.grad(value_loss_fn, has_aux=True)(state.value.params)
+    value_grads, (adv, value_info) = jax.grad(value_loss_fn, has_aux=True)(state.value.params)
     value = state.value.apply_gradients(grads=value_grads)
 
-    # V' on [s; s'] in one pass: V'(s) for the advantages, V'(s') for the critic targets.
-    v_both = value.apply_fn(value.params, jnp.concatenate([batch.obs, batch.next_obs], axis=0))
-    v_new, next_v = v_both[:batch_size], v_both[batch_size:]
-    adv = target_q - v_new
+    if cfg.order == "sequential":  # V' on [s; s'] in one pass: advantages and critic targets
+        v_both = value.apply_fn(value.params, jnp.concatenate([batch.obs, batch.next_obs], axis=0))
+        adv, next_v = target_q - v_both[:batch_size], v_both[batch_size:]
     weights = awr_weights(adv, cfg.temperature)
 
     def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -272,13 +301,21 @@ def _chunk_fn(cfg: IQLConfig, kind: str) -> Callable[[IQLState, Transitions, jax
     def train_chunk(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict]:
         n = data.rew.shape[0]
 
-        def body(state: IQLState, _: None) -> tuple[IQLState, dict[str, jax.Array]]:
-            TRACE_COUNT[kind] += 1
+        def step(state: IQLState) -> tuple[IQLState, dict[str, jax.Array]]:
             idx = jax.random.randint(jax.random.fold_in(key, state.step), (cfg.batch_size,), 0, n)
             return update(state, jax.tree.map(lambda x: x[idx], data), cfg)
 
-        state, metrics = jax.lax.scan(body, state, None, length=cfg.chunk)
-        return state, jax.tree.map(lambda m: m.mean(axis=0), metrics)
+        def body(carry: tuple[IQLState, dict], _: None) -> tuple[tuple[IQLState, dict], None]:
+            TRACE_COUNT[kind] += 1
+            state, sums = carry
+            state, metrics = step(state)
+            return (state, jax.tree.map(jnp.add, sums, metrics)), None
+
+        # Metrics summed in the carry: one fused add per update instead of a stacked output per
+        # metric (~2 % of an update at the reference sizes).
+        zeros = jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), jax.eval_shape(step, state)[1])
+        (state, sums), _ = jax.lax.scan(body, (state, zeros), None, length=cfg.chunk)
+        return state, jax.tree.map(lambda m: m / cfg.chunk, sums)
 
     return train_chunk
 
@@ -296,7 +333,7 @@ def make_vmapped_train_chunk(cfg: IQLConfig) -> Callable[[IQLState, Transitions,
     """Like :func:`make_train_chunk` for ``S`` seeds in one program.
 
     The returned ``fn(states, data, keys)`` takes states stacked over a leading seed axis
-    (e.g. ``jax.vmap(init_state, in_axes=(0, None, None, None))(keys, ...)``), the shared
+    (``init_state(keys, ...)`` with keys ``[S]``), the shared
     ``data`` and keys ``[S]``; metrics come back with shape ``[S]``.
     """
     return jax.jit(jax.vmap(_chunk_fn(cfg, "vmapped_chunk"), in_axes=(0, None, 0)), donate_argnums=0)
@@ -377,7 +414,7 @@ def bench_iql(obs_dim: int = 11, act_dim: int = 3, batch: int | None = None,
     if seeds == 1:
         state, key, fn = init_state(keys[0], obs_dim, act_dim, cfg), keys[0], make_train_chunk(cfg)
     else:
-        state = jax.vmap(init_state, in_axes=(0, None, None, None))(keys, obs_dim, act_dim, cfg)
+        state = init_state(keys, obs_dim, act_dim, cfg)
         key, fn = keys, make_vmapped_train_chunk(cfg)
     t0 = time.perf_counter()
     compiled = fn.lower(state, data, key).compile()
