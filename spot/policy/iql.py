@@ -31,8 +31,8 @@ Networks: every MLP is ``IQLConfig.hidden`` (256-256) ReLU with orthogonal init 
 layers (reference ``common.py``); the two critics are two separate MLPs whose outputs are stacked
 (``[NUM_CRITICS, ...]``). The reference vmaps one critic module over stacked weights; on XLA:CPU
 the batched matmuls and their layout copies made the update ~6 % slower than two plain MLPs,
-which compute the same function (only the initial weights drawn from a key differ). Adam 3e-4 for all three; the actor's learning rate follows a cosine
-decay to 0 over ``IQLConfig.steps``.
+which compute the same function (only the initial weights drawn from a key differ). Adam 3e-4
+for all three; the actor's learning rate follows a cosine decay to 0 over ``IQLConfig.steps``.
 
 Speed: an update is ~0.5 GFLOP (15-16 passes of 256x256 matmuls at batch 256); the matmuls run at
 about this CPU's peak (~160 GFLOP/s on 2 cores for the plain and transposed-right products, ~130
