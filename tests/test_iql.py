@@ -188,7 +188,8 @@ def test_chunk_is_deterministic(data, chunk_fn):
 
 def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
     init_keys, train_keys = jax.random.split(jax.random.key(11), 2), jax.random.split(jax.random.key(12), 2)
-    states = iql.init_state(init_keys, 2, 2, CFG)
+    states = iql.init_state(init_keys, 2, 2, CFG)  # stacked: state s is init_state(init_keys[s])
+    jax.tree.map(lambda a, b: np.testing.assert_array_equal(a[1], b), states, iql.init_state(init_keys[1], 2, 2, CFG))
     states, metrics = iql.make_vmapped_train_chunk(CFG)(states, data, train_keys)
     for s in range(2):
         alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), data, train_keys[s])
