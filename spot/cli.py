@@ -200,6 +200,8 @@ def _figures(args: argparse.Namespace) -> None:
 
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
+    from spot.config import IQL_ORDERS, IQLConfig
+
     p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -252,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"))
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
     d.add_argument("--seeds", type=int, default=1, help="iql: seeds as a vmap axis")
-    d.add_argument("--order", default="parallel", choices=("parallel", "sequential"), help="iql: update order (iql.order)")
+    d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
     d.set_defaults(fn=_bench)

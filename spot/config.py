@@ -122,6 +122,9 @@ class ShapingConfig:
     subgoal: str = F("mean", "g_hat from the prior mean or a prior sample", choices=("mean", "sample"))
 
 
+IQL_ORDERS = ("parallel", "sequential")  # IQLConfig.order; spot.policy.iql explains both
+
+
 @dataclass(frozen=True)
 class IQLConfig:
     expectile: float = F(0.7, "expectile tau of the value loss", range=(0.0, 1.0))
@@ -133,7 +136,7 @@ class IQLConfig:
     batch_size: int = F(256, "transitions per update", range=(1, None))
     steps: int = F(1_000_000, "gradient updates", range=(1, None))
     chunk: int = F(1000, "updates per jitted lax.scan chunk", range=(1, None))
-    order: str = F("parallel", "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; faster), 'sequential' the just-updated one (ikostrikov/PT repo)", choices=("parallel", "sequential"))
+    order: str = F("parallel", "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; faster), 'sequential' the just-updated one (ikostrikov/PT repo)", choices=IQL_ORDERS)
 
 
 @dataclass(frozen=True)

@@ -179,12 +179,8 @@ def _optimizers(iql_cfg: IQLConfig) -> tuple[optax.GradientTransformation, ...]:
 
 
 def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -> IQLState:
-    """Fresh IQL networks (:func:`iql.init_state`, one jitted init per network) with IPL's
-    constant-rate optimizers. Vmappable over ``key``.
-
-    Not one jitted program for everything: on CPU (jaxlib 0.10.2) such a program never finishes
-    once the layers are 64 wide or more (see :func:`iql._jitted_init`).
-    """
+    """Fresh IQL networks (:func:`iql.init_state`: keys ``[S]`` give stacked states) with IPL's
+    constant-rate optimizers."""
     return iql.init_state(key, obs_dim, act_dim, iql_cfg, optimizers=_optimizers(iql_cfg))
 
 

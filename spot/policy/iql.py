@@ -64,14 +64,13 @@ import optax
 from flax.training.train_state import TrainState
 
 from spot import NonFiniteError
-from spot.config import IQLConfig
+from spot.config import IQL_ORDERS, IQLConfig
 from spot.data.dataset import Dataset
 from spot.nets import MLP, Params, create_train_state, orthogonal_init
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # reference learner.py passes log_std_min=-5; policy.py max 2
 AWR_WEIGHT_MAX = 100.0  # reference actor.py: exp_a = minimum(exp(beta * adv), 100)
 NUM_CRITICS = 2
-UPDATE_ORDERS = ("parallel", "sequential")  # IQLConfig.order, see the module docstring
 
 # Python traces of the scanned update body per kind ("chunk", "vmapped_chunk"); tests assert one.
 TRACE_COUNT: collections.Counter[str] = collections.Counter()
@@ -244,8 +243,8 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
     """
     if batch.obs.ndim != 2 or batch.rew.shape != batch.obs.shape[:1]:
         raise ValueError(f"expected obs [B, o] and rew [B], got {batch.obs.shape} and {batch.rew.shape}")
-    if cfg.order not in UPDATE_ORDERS:
-        raise ValueError(f"iql.order is {cfg.order!r}; expected one of {UPDATE_ORDERS}")
+    if cfg.order not in IQL_ORDERS:
+        raise ValueError(f"iql.order is {cfg.order!r}; expected one of {IQL_ORDERS}")
     batch_size = batch.obs.shape[0]
 
     # Target critics once: the value loss and the actor's advantages both use min_i Qbar_i(s, a).
@@ -255,8 +254,9 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
 
     def value_loss_fn(params: Params) -> tuple[jax.Array, tuple[jax.Array, dict[str, jax.Array]]]:
         v = state.value.apply_fn(params, batch.obs)
-        loss = expectile_loss(target_q - v, cfg.expectile).mean()
-        return loss, (target_q - v, {"iql/value_loss": loss, "iql/v_mean": v.mean()})
+        adv = target_q - v
+        loss = expectile_loss(adv, cfg.expectile).mean()
+        return loss, (adv, {"iql/value_loss": loss, "iql/v_mean": v.mean()})
 
     value_grads, (adv, value_info) = jax.grad(value_loss_fn, has_aux=True)(state.value.params)
     value = state.value.apply_gradients(grads=value_grads)
