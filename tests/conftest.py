@@ -13,10 +13,14 @@ import spot  # noqa: F401  (XLA flags before jax)
 
 @pytest.fixture(scope="session")
 def spot_dirs(tmp_path_factory):
-    """Session-wide SPOT_DATA_DIR / SPOT_CACHE_DIR so built datasets are shared by tests."""
+    """Session-wide SPOT_DATA_DIR / SPOT_CACHE_DIR so built datasets are shared by tests.
+
+    An existing ``SPOT_DATA_DIR`` is kept (CI and developers reuse built datasets across sessions;
+    builds are keyed by name, size, seed and recipe version); the stage cache is always fresh.
+    """
     root = tmp_path_factory.mktemp("spot")
     old = {k: os.environ.get(k) for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR")}
-    os.environ["SPOT_DATA_DIR"] = str(root / "data")
+    os.environ.setdefault("SPOT_DATA_DIR", str(root / "data"))
     os.environ["SPOT_CACHE_DIR"] = str(root / "cache")
     yield root
     for k, v in old.items():
