@@ -330,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
         args.overrides = [args.config, *args.overrides]
         args.config = None
     try:
+        from spot import stages
+
+        stages.load_plugins()  # methods other packages register (docs/design.md, "Adding a method")
         rc = args.fn(args)
     except SpotError as e:
         print(f"error: {e}", file=sys.stderr)

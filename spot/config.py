@@ -443,7 +443,7 @@ def _coerce(key: str, value: Any) -> Any:
     except (ValueError, TypeError):
         expected = f"a tuple of {_type_name(typing.get_args(tp)[0])}" if origin is tuple else _type_name(tp)
         raise SpotError(f"config key '{key}': value {value!r} is not {expected}") from None
-    choices = meta.get("choices")
+    choices = _REGISTERED_CHOICES[key]() if key in _REGISTERED_CHOICES else meta.get("choices")
     if choices and out not in choices:
         raise SpotError(f"config key '{key}': value {out!r} is not one of {', '.join(map(repr, choices))}")
     rng = meta.get("range")
@@ -497,6 +497,46 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
     return _check_keys(flat, "override")
 
 
+# --------------------------------------------------------------------------- methods and cross-field rules
+REWARD_KINDS: list[str] = ["none", "mr", "pt", "hpl", "ipl"]  # RewardConfig.kind; grows by register_method
+_REGISTERED_CHOICES = {"method": lambda: tuple(METHOD_PRESETS), "reward.kind": lambda: tuple(REWARD_KINDS)}
+
+
+def register_method(method: str, preset: dict[str, Any]) -> None:
+    """Make ``method=<method>`` a valid config with ``preset`` (flat dotted keys) as its method
+    preset; a new ``reward.kind`` in the preset becomes valid too. Used by
+    :func:`spot.stages.register`, which adds the method's stages."""
+    if method in METHOD_PRESETS:
+        raise SpotError(f"method {method!r} is already registered")
+    kind = preset.get("reward.kind")
+    if kind is not None and kind not in REWARD_KINDS:
+        REWARD_KINDS.append(kind)
+    METHOD_PRESETS[method] = dict(_check_keys(preset, f"method preset {method!r}"))
+
+
+def _rule(ok: bool, message: str) -> None:
+    if not ok:
+        raise SpotError(f"config: {message}")
+
+
+def check(cfg: ExperimentConfig) -> ExperimentConfig:
+    """Rules between fields, checked when a config is resolved (so `spot sweep` rejects a bad
+    trial before launch). Returns ``cfg``; raises :class:`spot.SpotError` naming the keys."""
+    kind = cfg.reward.kind
+    _rule(cfg.shaping.kind == "none" or kind == "pt",
+          f"shaping.kind={cfg.shaping.kind!r} needs reward.kind=pt (subgoals come from PT attention); "
+          f"got reward.kind={kind!r}")
+    _rule(cfg.eval.every % cfg.iql.chunk == 0,
+          f"eval.every={cfg.eval.every} must be a multiple of iql.chunk={cfg.iql.chunk} (the policy is "
+          f"evaluated between jitted chunks; e.g. eval.every={max(1, round(cfg.eval.every / cfg.iql.chunk)) * cfg.iql.chunk})")
+    _rule(kind == "none" or cfg.labels.source != "human" or bool(cfg.labels.path),
+          "labels.source=human needs labels.path (a folder of PT label files)")
+    _rule(kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,
+          f"labels.segment_length={cfg.labels.segment_length} exceeds hpl.seq_len={cfg.hpl.seq_len}: "
+          f"HPL's hindsight encoder sees at most hpl.seq_len steps")
+    return cfg
+
+
 def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     """Resolve flat layers (YAML file, overrides, ...) on top of method and budget presets."""
     user: dict[str, Any] = {}
@@ -511,7 +551,7 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat.update(suite_preset(data_name, method, budget))
     flat.update(user)
     flat["method"], flat["budget"] = method, budget
-    return _build({k: _coerce(k, v) for k, v in flat.items()})
+    return check(_build({k: _coerce(k, v) for k, v in flat.items()}))
 
 
 def load(path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()) -> ExperimentConfig:
@@ -525,7 +565,7 @@ def replace(cfg: ExperimentConfig, **dotted: Any) -> ExperimentConfig:
     """Copy of ``cfg`` with dotted-key changes, e.g. ``replace(cfg, **{"iql.steps": 10})``."""
     flat = to_flat(cfg)
     flat.update(_check_keys(dotted, "replace"))
-    return _build({k: _coerce(k, v) for k, v in flat.items()})
+    return check(_build({k: _coerce(k, v) for k, v in flat.items()}))
 
 
 def to_yaml(cfg: ExperimentConfig) -> str:

@@ -1,0 +1,557 @@
+"""The stages of one run, their typed outputs, and the table that picks them per method.
+
+A run is ``labels -> reward -> relabel -> [subgoals -> cvae -> shaping -> diagnostics] -> policy``
+(docs/design.md draws it). Each stage is a function ``stage(ctx, *inputs) -> output`` over a
+:class:`Context` (config, dataset, keys, tracker, stage cache) and the typed outputs of earlier
+stages (:class:`Labelled`, :class:`RewardModel`, :class:`Rewards`, :class:`Subgoals`,
+:class:`Policy`). :meth:`Context.stage` wraps every stage the same way: it times it
+(``time/<stage>_s``) and the stage's expensive part goes through :meth:`Context.cached`, which
+logs ``cache/<stage>_hit``. Which functions fill the reward, relabel and policy slots is read from
+:data:`REWARD_KINDS` by ``reward.kind`` (set by the method preset); adding a method is one
+:func:`register` call plus the module with its stage functions.
+
+Where normalisation sits: the reward model's per-step output is relabelled over the whole dataset,
+normalised (``relabel.normalize``), and only then is the shaping term added,
+``r = norm(r_model) + λ r_shape`` (eq. 13), so that λ = 1 adds a bonus in [0, 1] beside a reward of
+the scale IQL's hyperparameters expect.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from spot import SpotError, cache
+from spot import config as config_lib
+from spot.config import ExperimentConfig
+from spot.tracking import Tracker
+
+
+# --------------------------------------------------------------------------- typed outputs
+@dataclass(frozen=True)
+class Labelled:
+    """Preference queries: all of them, the training split, and their segment batches."""
+
+    prefs: Any  # spot.data.labels.Preferences, all queries
+    train_prefs: Any
+    train_batch: dict[str, np.ndarray]
+    eval_batch: dict[str, np.ndarray] | None
+    deps: dict[str, Any]  # what identifies them in stage-cache keys
+
+
+@dataclass(frozen=True)
+class RewardModel:
+    """A trained reward model: its parameters and the stage-cache key that identifies it."""
+
+    kind: str
+    params: Any
+    cache_key: str
+
+
+@dataclass(frozen=True)
+class Rewards:
+    """Per-transition rewards ``[N]``: the model's raw output and the normalised training reward."""
+
+    model: np.ndarray
+    normalised: np.ndarray
+    source: RewardModel | None = None
+
+
+@dataclass(frozen=True)
+class Subgoals:
+    """Attention subgoals of the preferred segments and the CVAE trained to propose them."""
+
+    triplets: Any  # spot.subgoal.extract.Triplets (s, a, g)
+    states: np.ndarray
+    cvae_params: Any
+
+
+@dataclass(frozen=True)
+class Shaped:
+    """The reward the policy trains on, and the cosine to the subgoal (Fig. 2's proximity axis)."""
+
+    reward: np.ndarray
+    cos_to_subgoal: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Policy:
+    """The trained policy's state and its evaluation curve."""
+
+    state: Any
+    steps: list[int]
+    scores: list[float]
+    eval_s: float
+
+
+# --------------------------------------------------------------------------- context
+@dataclass
+class Context:
+    """Everything a stage may read besides earlier stages' outputs."""
+
+    cfg: ExperimentConfig
+    ds: Any  # spot.data.dataset.Dataset (qlearning view)
+    card: dict[str, Any]
+    env_name: str
+    tracker: Tracker
+    keys: dict[str, Any]  # PRNG keys per stage: reward, cvae, shaping, policy
+    progress: bool = True
+    on_eval: Callable[[dict[str, float]], None] | None = None
+    artifacts: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="spot-run-")))
+    times: dict[str, float] = field(default_factory=dict)
+
+    def log(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
+        self.tracker.log_metrics(metrics, step=step)
+
+    @contextmanager
+    def timed(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            k = f"time/{name}_s"
+            self.times[k] = self.times.get(k, 0.0) + time.perf_counter() - t0
+
+    def stage(self, name: str, fn: Callable[..., Any], *inputs: Any) -> Any:
+        """Run one stage, timed as ``time/<name>_s`` (stages marked :func:`untimed` are not)."""
+        if getattr(fn, "untimed", False):
+            return fn(self, *inputs)
+        with self.timed(name):
+            return fn(self, *inputs)
+
+    def cached(self, name: str, deps: dict[str, Any], compute: Callable[[], Any]) -> tuple[Any, str]:
+        """``(value, key)`` of stage ``name`` from the stage cache (computed and stored on a miss);
+        logs ``cache/<name>_hit``."""
+        value, hit, key = cache.cached(name, deps, compute)
+        self.log({f"cache/{name}_hit": float(hit)})
+        return value, key
+
+
+def untimed(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """Mark a stage that computes nothing worth timing (e.g. the Oracle's "reward model"), so that
+    Table 8 charges no reward-model time to methods without one."""
+    fn.untimed = True  # type: ignore[attr-defined]
+    return fn
+
+
+def dataset_deps(ds: Any) -> dict[str, Any]:
+    """What identifies the dataset in stage-cache keys."""
+    return {"obs": ds.observations, "act": ds.actions, "rew": ds.rewards, "term": ds.terminals}
+
+
+# --------------------------------------------------------------------------- labels
+def make_preferences(cfg: ExperimentConfig, ds: Any) -> Any:
+    """The run's preference queries (scripted teacher or PT human label files), checked against ``ds``."""
+    from spot.data import labels
+
+    lc = cfg.labels
+    if lc.source == "human":
+        if not lc.path:
+            raise SpotError("labels.source=human needs labels.path (a folder of PT label files)")
+        prefs = labels.read_pt_labels(lc.path, num_queries=lc.num_queries)
+        labels.check_against(prefs, ds, allow_cross_episode=True)
+        return prefs
+    return labels.scripted_teacher(
+        ds, lc.num_queries, lc.segment_length, teacher=lc.teacher, discount=lc.discount,
+        tie_threshold=lc.tie_threshold, mistake_rate=lc.mistake_rate,
+        allow_cross_episode=lc.allow_cross_episode, seed=lc.seed, score=lc.score,
+    )
+
+
+def labels_stage(ctx: Context) -> Labelled:
+    """Queries, their train/held-out split and segment batches."""
+    from spot.data import labels
+
+    cfg, ds = ctx.cfg, ctx.ds
+    prefs = make_preferences(cfg, ds)
+    train_prefs, eval_prefs = labels.split_eval(prefs, cfg.labels.eval_fraction, cfg.labels.seed)
+    train_batch = labels.segment_batch(ds, train_prefs)
+    eval_batch = labels.segment_batch(ds, eval_prefs) if len(eval_prefs) else None
+    ctx.log({"labels/queries": len(prefs), "labels/ties": float(np.sum(prefs.labels == 0.5)),
+             "labels/segment_length": prefs.segment_length})
+    deps = {"s1": prefs.starts_1, "s2": prefs.starts_2, "y": prefs.labels,
+            "split": (cfg.labels.eval_fraction, cfg.labels.seed)}
+    return Labelled(prefs, train_prefs, train_batch, eval_batch, deps)
+
+
+def _reward_deps(ctx: Context, labelled: Labelled, **extra: Any) -> dict[str, Any]:
+    return {"data": dataset_deps(ctx.ds), "labels": labelled.deps, "seed": ctx.cfg.seed, **extra}
+
+
+def _corr_true(r_model: np.ndarray, r_true: np.ndarray) -> float:
+    return float(np.corrcoef(r_model, r_true)[0, 1]) if r_model.std() > 0 else 0.0
+
+
+# --------------------------------------------------------------------------- reward stages
+@untimed
+def true_reward(ctx: Context, labelled: Labelled | None) -> None:
+    """Oracle: no reward model."""
+    return None
+
+
+def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
+    """MR or PT trained on the preferences (eq. 1-2), best held-out checkpoint; cached."""
+    from spot.reward import train as reward_train
+
+    cfg = ctx.cfg
+    kind = cfg.reward.kind
+    model_cfg = cfg.pt if kind == "pt" else cfg.mr
+    deps = _reward_deps(ctx, labelled, reward=kind, reward_cfg=cfg.reward, model_cfg=model_cfg)
+
+    def compute() -> dict[str, Any]:
+        params, history = reward_train.train_reward_model(
+            kind, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward,
+            pt_cfg=cfg.pt, mr_cfg=cfg.mr, progress=ctx.progress)
+        return {"params": params, "history": history}
+
+    out, key = ctx.cached("reward", deps, compute)
+    h = out["history"]
+    names = ("train_loss", "train_acc", "eval_loss", "eval_acc")
+    for name in names:
+        ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
+    ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
+    return RewardModel(kind, out["params"], key)
+
+
+def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
+    """HPL: hindsight VAE + reward r(s, a, z) trained on the preferences; cached."""
+    import jax
+
+    from spot.reward import hpl
+
+    cfg = ctx.cfg
+    train_key, _ = jax.random.split(ctx.keys["reward"])
+    deps = _reward_deps(ctx, labelled, reward="hpl", hpl=cfg.hpl, reward_cfg=cfg.reward)
+
+    def compute() -> dict[str, Any]:
+        params, history = hpl.train_hpl(train_key, ctx.ds, labelled.train_batch, labelled.eval_batch,
+                                        cfg.hpl, progress=ctx.progress)
+        return {"params": params, "history": history}
+
+    out, key = ctx.cached("reward", deps, compute)
+    h = out["history"]
+    ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")
+             if k in h})
+    for k in ("vae_loss", "vae_recon", "vae_kl"):
+        if k in h:
+            ctx.tracker.log_series(f"hpl/{k}", h["vae_step"], h[k])
+    for k in ("train_loss", "train_acc", "eval_loss", "eval_acc"):
+        if k in h:
+            n = min(len(h["reward_step"]), len(h[k]))
+            ctx.tracker.log_series(f"reward/{k}", h["reward_step"][:n], h[k][:n])
+    # Table 8: HPL's two pretraining phases, as measured when it was trained
+    ctx.log({f"time/hpl_{name}": h[name] for name in ("vae_s", "reward_s") if name in h})
+    return RewardModel("hpl", out["params"], key)
+
+
+# --------------------------------------------------------------------------- relabel stages
+def _normalised(ctx: Context, r_model: np.ndarray, model: RewardModel | None) -> Rewards:
+    from spot.reward import relabel
+
+    if model is not None:
+        ctx.log({"reward/corr_true": _corr_true(r_model, ctx.ds.rewards.astype(np.float32))})
+    return Rewards(r_model, relabel.normalize_rewards(r_model, ctx.ds, ctx.cfg.relabel.normalize), model)
+
+
+@untimed
+def true_rewards(ctx: Context, model: None) -> Rewards:
+    """The dataset's reward, normalised."""
+    return _normalised(ctx, ctx.ds.rewards.astype(np.float32), None)
+
+
+def model_rewards(ctx: Context, model: RewardModel) -> Rewards:
+    """MR/PT: every transition relabelled by the reward model (chunked or sliding windows); cached."""
+    from spot.reward import relabel
+
+    cfg = ctx.cfg
+    rel, _ = ctx.cached("relabel", {"reward": model.cache_key, "relabel": cfg.relabel},
+                        lambda: relabel.relabel_rewards(model.kind, model.params, ctx.ds, cfg.relabel,
+                                                        pt_cfg=cfg.pt, mr_cfg=cfg.mr,
+                                                        progress=ctx.progress)._asdict())
+    return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
+
+
+def hpl_rewards(ctx: Context, model: RewardModel) -> Rewards:
+    """HPL: the reward marginalised over the prior's latents; cached."""
+    import jax
+
+    from spot.reward import hpl
+
+    _, relabel_key = jax.random.split(ctx.keys["reward"])
+    rel, _ = ctx.cached("relabel", {"hpl": model.cache_key, "seed": ctx.cfg.seed},
+                        lambda: {"rewards": hpl.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)})
+    return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
+
+
+@untimed
+def zero_rewards(ctx: Context, model: None) -> Rewards:
+    """IPL learns no reward: the replay transitions carry zeros so no true reward leaks in."""
+    zeros = np.zeros(len(ctx.ds), np.float32)
+    return Rewards(zeros, zeros, None)
+
+
+# --------------------------------------------------------------------------- subgoals, CVAE, shaping
+def needs_subgoals(cfg: ExperimentConfig) -> bool:
+    """SPOT shapes with subgoals; PT runs also extract them for the Fig. 2 diagnostics."""
+    return cfg.reward.kind == "pt" and (cfg.shaping.kind != "none" or cfg.subgoal.diagnostics)
+
+
+def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
+    """Eq. 5-6: attention subgoals on the preferred training segments -> (s, a, g) triplets."""
+    from spot.reward import train as reward_train
+    from spot.subgoal import extract
+
+    model = rewards.source
+    f = reward_train.model_fn("pt", model.params, pt_cfg=ctx.cfg.pt)
+    batch = labelled.train_batch
+    sides = []
+    for side in ("1", "2"):
+        mask = np.ones(batch[f"obs_{side}"].shape[:2], np.float32)
+        r_hat, w = f(batch[f"obs_{side}"], batch[f"act_{side}"], batch[f"timesteps_{side}"], mask)
+        sides.append(extract.Segments(batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat),
+                                      np.asarray(w)))
+    triplets, states, info = extract.extract(sides[0], sides[1], batch["label"], ctx.cfg.subgoal)
+    ctx.log(info)
+    return triplets, states
+
+
+def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
+    """Eq. 7: the CVAE G(s, a) -> g trained on the triplets; cached."""
+    from spot.subgoal import cvae
+
+    cfg = ctx.cfg
+    triplets, states = extracted
+    deps = {"reward": rewards.source.cache_key, "subgoal": cfg.subgoal, "cvae": cfg.cvae, "seed": cfg.seed}
+    out, key = ctx.cached("cvae", deps, lambda: dict(zip(("params", "history"), cvae.train_cvae(
+        ctx.keys["cvae"], triplets.s, triplets.a, triplets.g, cfg.cvae,
+        cvae.obs_stats(ctx.ds.observations), progress=ctx.progress), strict=False)))
+    ctx.tracker.set_tags({"cache.cvae_key": key, "cache.reward_key": rewards.source.cache_key})
+    for row in out["history"]:
+        ctx.log({k: v for k, v in row.items() if k != "step"}, step=int(row["step"]))
+    return Subgoals(triplets, states, out["params"])
+
+
+def shaping_stage(ctx: Context, rewards: Rewards, subgoals: Subgoals | None) -> Shaped:
+    """Eq. 13: ``norm(r_model) + λ r_shape(s', G(s, a))`` (no subgoals: the normalised reward)."""
+    if subgoals is None:
+        return Shaped(rewards.normalised)
+    from spot.subgoal import shaping
+
+    ds, cfg = ctx.ds, ctx.cfg
+    shaped, info = shaping.shaped_rewards(
+        subgoals.cvae_params, ds.observations, ds.actions, ds.next_observations, rewards.normalised,
+        cfg.shaping, ctx.keys["shaping"], gamma=cfg.iql.discount, terminals=ds.terminals)
+    ctx.log(info)
+    return Shaped(shaped.reward, shaped.cos_to_subgoal)
+
+
+def in_segments_mask(n: int, prefs: Any) -> np.ndarray:
+    """``[n]`` bool: transitions inside any segment of ``prefs``."""
+    inside = np.zeros(n, bool)
+    length = prefs.segment_length
+    for starts in (prefs.starts_1, prefs.starts_2):
+        idx = (np.asarray(starts)[:, None] + np.arange(length)[None, :]).ravel()
+        inside[idx[idx < n]] = True
+    return inside
+
+
+def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shaped: Shaped) -> None:
+    """Fig. 2 extrapolation error by proximity to the subgoal; subgoal precision/recall; Fig. 4."""
+    from spot.subgoal import cvae, diagnostics
+
+    ds, art = ctx.ds, ctx.artifacts
+    in_dist = in_segments_mask(len(ds), labelled.prefs)
+    table = diagnostics.extrapolation_error_bins(shaped.reward, ds.rewards.astype(np.float32),
+                                                 shaped.cos_to_subgoal, in_dist,
+                                                 bins=np.linspace(-1.0, 1.0, 21))
+    ctx.log(table.metrics())
+    bins = range(table.mean_error.shape[1])
+    ctx.tracker.log_series("diag/extrap_bin_in", bins, table.mean_error[0])
+    ctx.tracker.log_series("diag/extrap_bin_ood", bins, table.mean_error[1])
+    ctx.tracker.log_artifact(diagnostics.plot_extrapolation({ctx.cfg.method: table},
+                                                            art / "extrapolation_error.png"))
+    generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)
+    ctx.log(diagnostics.precision_recall(subgoals.states, generated))
+    ctx.tracker.log_artifact(diagnostics.plot_projection(ds.observations, generated,
+                                                         art / "subgoal_projection.png"))
+    ctx.tracker.log_dict({"edges": table.edges.tolist(), "mean_error": table.mean_error.tolist(),
+                          "count": table.count.tolist(), "groups": list(diagnostics.GROUP_NAMES)},
+                         "extrapolation_error.json")
+
+
+# --------------------------------------------------------------------------- policy stages
+def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
+    """``evaluate(actor_params, step)``: the policy's mean action in the evaluation env."""
+    from spot import envs
+    from spot.policy import iql
+
+    cfg = ctx.cfg
+
+    def evaluate(actor_params: Any, step: int) -> dict[str, float]:
+        res = envs.evaluate(lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)), ctx.env_name,
+                            cfg.eval.episodes, seed=10_000 * (cfg.seed + 1))
+        ctx.log({"eval/score": res["score_mean"], "eval/score_std": res["score_std"],
+                 "eval/return": res["return_mean"]}, step=step)
+        if ctx.on_eval is not None:
+            ctx.on_eval({"step": step, "score": float(res["score_mean"])})
+        return res
+
+    return evaluate
+
+
+def _train_policy(ctx: Context, state: Any, train_chunk: Callable, data: Any) -> Policy:
+    """Chunks of ``iql.chunk`` updates with an evaluation every ``eval.every`` updates and at the end."""
+    import jax
+
+    from spot.policy import iql
+
+    cfg = ctx.cfg
+    _, train_key = jax.random.split(ctx.keys["policy"])
+    evaluate = _evaluate_fn(ctx)
+    steps_done, curve_steps, curve_scores, eval_s = 0, [], [], 0.0
+    n_chunks = -(-cfg.iql.steps // cfg.iql.chunk)
+    next_eval = min(cfg.eval.every, cfg.iql.steps)
+    for c in range(n_chunks):
+        state, metrics = train_chunk(state, data, jax.random.fold_in(train_key, c))
+        steps_done += cfg.iql.chunk
+        ctx.log(iql.check_finite(metrics, steps_done), step=steps_done)
+        if steps_done >= next_eval or c == n_chunks - 1:
+            t0 = time.perf_counter()
+            res = evaluate(state.actor.params, steps_done)
+            eval_s += time.perf_counter() - t0
+            curve_steps.append(steps_done)
+            curve_scores.append(float(res["score_mean"]))
+            next_eval += cfg.eval.every
+    return Policy(state, curve_steps, curve_scores, eval_s)
+
+
+def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Policy:
+    """IQL on the (shaped) reward."""
+    import jax
+
+    from spot.policy import iql
+
+    data = iql.transitions_from(ctx.ds, shaped.reward)
+    init_key, _ = jax.random.split(ctx.keys["policy"])
+    state = iql.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, ctx.cfg.iql)
+    return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), data)
+
+
+def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
+    """IPL: the critic's implied reward is trained on the preferences (no reward model)."""
+    import jax
+
+    from spot.policy import ipl, iql
+
+    cfg = ctx.cfg
+    data = iql.transitions_from(ctx.ds, shaped.reward)
+    init_key, _ = jax.random.split(ctx.keys["policy"])
+    feedback = ipl.feedback_from(labelled.train_batch)
+    state = ipl.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, cfg.iql)
+    chunk = ipl.make_train_chunk(cfg.iql, cfg.ipl)
+    replay = data if cfg.ipl.use_replay else None
+    policy = _train_policy(ctx, state, lambda st, _data, key: chunk(st, replay, feedback, key), data)
+    # IPL's implied reward Q(s,a) - γV(s') summed over segments: how often it ranks the preferred
+    # segment higher, on the training and held-out queries (reward/*, like the reward models').
+    for name, batch in (("train", labelled.train_batch), ("eval", labelled.eval_batch)):
+        if batch is not None:
+            res = ipl.evaluate_preferences(policy.state, ipl.feedback_from(batch), cfg.iql, cfg.ipl)
+            ctx.log({f"reward/{name}_acc": res["ipl/eval_pref_acc"],
+                     f"reward/{name}_loss": res["ipl/eval_pref_loss"]})
+    return policy
+
+
+# --------------------------------------------------------------------------- the method table
+@dataclass(frozen=True)
+class RewardKind:
+    """The stages that fill the reward, relabel and policy slots for one ``reward.kind``."""
+
+    reward: Callable[[Context, Labelled | None], RewardModel | None]
+    relabel: Callable[[Context, Any], Rewards]
+    policy: Callable[[Context, Shaped, Labelled | None], Policy] = iql_policy
+    uses_labels: bool = True
+
+
+REWARD_KINDS: dict[str, RewardKind] = {
+    "none": RewardKind(true_reward, true_rewards, uses_labels=False),  # Oracle
+    "mr": RewardKind(learned_reward, model_rewards),                    # MR
+    "pt": RewardKind(learned_reward, model_rewards),                    # PT, SPOT
+    "hpl": RewardKind(hpl_reward, hpl_rewards),                         # HPL
+    "ipl": RewardKind(true_reward, zero_rewards, policy=ipl_policy),    # IPL
+}
+
+
+def register(method: str, kind: RewardKind, preset: dict[str, Any] | None = None) -> None:
+    """Add a method: its stages (under ``reward.kind = method``) and its config preset.
+
+    ``spot run method=<method>`` then runs ``kind``'s stages; see docs/design.md, "Adding a method".
+    """
+    if method in REWARD_KINDS or method in config_lib.METHOD_PRESETS:
+        raise SpotError(f"method {method!r} is already registered")
+    config_lib.register_method(method, {"shaping.kind": "none", **(preset or {}), "reward.kind": method})
+    REWARD_KINDS[method] = kind
+
+
+PLUGIN_GROUP = "spot.methods"
+
+
+def load_plugins() -> list[str]:
+    """Call every ``spot.methods`` entry point (a function that calls :func:`register`), once per
+    process, so that a method shipped in another package works with ``spot run`` and ``spot sweep``.
+    Returns the entry points' names."""
+    from importlib.metadata import entry_points
+
+    names = []
+    for ep in entry_points(group=PLUGIN_GROUP):
+        if ep.name not in _LOADED_PLUGINS:
+            ep.load()()
+            _LOADED_PLUGINS.add(ep.name)
+        names.append(ep.name)
+    return names
+
+
+_LOADED_PLUGINS: set[str] = set()
+
+
+def stages_of(cfg: ExperimentConfig) -> RewardKind:
+    try:
+        return REWARD_KINDS[cfg.reward.kind]
+    except KeyError:
+        raise SpotError(f"reward.kind={cfg.reward.kind!r} has no stages; registered: "
+                        f"{', '.join(REWARD_KINDS)}") from None
+
+
+def plot_curve(steps: list[int], scores: list[float], path: Path, title: str) -> Path:
+    """The evaluation curve as a PNG (the run's ``learning_curve.png``)."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5, 3.2))
+    ax = fig.subplots()
+    ax.plot(steps, scores, marker="o")
+    ax.set_xlabel("IQL updates")
+    ax.set_ylabel("normalised score")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def finish(ctx: Context, policy: Policy, t_start: float) -> dict[str, Any]:
+    """Learning curve artifact and the run's final metrics (``eval/score_final``, ``_best``, times)."""
+    png = plot_curve(policy.steps, policy.scores, ctx.artifacts / "learning_curve.png",
+                                 f"{ctx.cfg.method} on {ctx.env_name} (seed {ctx.cfg.seed})")
+    ctx.tracker.log_artifact(png)
+    ctx.times["time/eval_s"] = policy.eval_s
+    ctx.times["time/iql_s"] = ctx.times.get("time/iql_s", 0.0) - policy.eval_s
+    ctx.times["time/total_s"] = time.perf_counter() - t_start
+    final = {"eval/score_final": policy.scores[-1], "eval/score_best": max(policy.scores), **ctx.times}
+    ctx.log(final)
+    return {"run_id": ctx.tracker.run_id, **final}
