@@ -102,6 +102,7 @@ class SubgoalConfig:
     top_k: float = F(10.0, "K of the top-K% attention filter, eq. 6", range=(0.0, 100.0))
     group: str = F("top", "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom K%", choices=("top", "top_next", "bottom_next", "bottom"))
     reward_filter: bool = F(True, "also require r_t >= segment mean (eq. 5); off = ablation")
+    filter_groups: str = F("top", "groups the reward filter applies to: top = the top group only, the other Table 2 groups by attention alone (the authors' code, which produced Table 2); all = every group (eq. 5 read literally)", choices=("top", "all"))
 
 
 @dataclass(frozen=True)
@@ -120,6 +121,8 @@ class ShapingConfig:
     kind: str = F("none", "shaping term: none, cosine (eq. 11-12), neg_distance, potential", choices=("none", "cosine", "neg_distance", "potential"))
     weight: float = F(1.0, "lambda of eq. 13", range=(-1.0, 1.0))
     subgoal: str = F("mean", "g_hat from the prior mean or a prior sample", choices=("mean", "sample"))
+    potential_sign: str = F("neg", "potential of the potential-based term (Table 3): neg = Phi(x) = -||x - g_hat|| (higher near the subgoal); pos = +||x - g_hat|| (the authors' code, which produced Table 3: its lambda axis is the negative of neg's)", choices=("neg", "pos"))
+    potential_terminal: bool = F(True, "Phi(s') = 0 where the transition terminates (Ng et al.); the authors' code does not mask")
 
 
 IQL_ORDERS = ("parallel", "sequential")  # IQLConfig.order; spot.policy.iql explains both

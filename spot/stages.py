@@ -362,12 +362,18 @@ def in_segments_mask(n: int, prefs: Any) -> np.ndarray:
     return inside
 
 
+def in_distribution(n: int, labelled: Labelled) -> np.ndarray:
+    """Fig. 2's in-distribution transitions: inside the reward model's *training* segments (§5.3:
+    "only on the reward model training data"); held-out queries count as out of distribution."""
+    return in_segments_mask(n, labelled.train_prefs)
+
+
 def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shaped: Shaped) -> None:
     """Fig. 2 extrapolation error by proximity to the subgoal; subgoal precision/recall; Fig. 4."""
     from spot.subgoal import cvae, diagnostics
 
     ds, art = ctx.ds, ctx.artifacts
-    in_dist = in_segments_mask(len(ds), labelled.prefs)
+    in_dist = in_distribution(len(ds), labelled)
     table = diagnostics.extrapolation_error_bins(shaped.reward, ds.rewards.astype(np.float32),
                                                  shaped.cos_to_subgoal, in_dist,
                                                  bins=np.linspace(-1.0, 1.0, 21))

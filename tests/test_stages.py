@@ -64,6 +64,17 @@ def test_run_with_a_memory_tracker_writes_no_store(tmp_path, spot_dirs, tiny_dra
     assert not (tmp_path / "mlruns").exists()
 
 
+def test_fig2_in_distribution_is_the_training_segments_only():
+    class P:
+        def __init__(self, s1, s2):
+            self.starts_1, self.starts_2, self.segment_length = np.array(s1), np.array(s2), 2
+
+    labelled = stages.Labelled(prefs=P([0, 10], [4, 14]), train_prefs=P([0], [4]), train_batch={},
+                               eval_batch=None, deps={})
+    # training segments [0, 1] and [4, 5]; the held-out query's [10, 11], [14, 15] are out of distribution
+    assert np.flatnonzero(stages.in_distribution(16, labelled)).tolist() == [0, 1, 4, 5]
+
+
 # --------------------------------------------------------------------------- adding a method
 def constant_rewards(ctx, model):
     """The toy method's relabel stage: reward 1 for every transition."""

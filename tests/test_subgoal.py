@@ -23,8 +23,8 @@ W = np.array([0.05, 0.20, 0.02, 0.10, 0.08, 0.15, 0.01, 0.12, 0.03, 0.24])
 R = np.array([1.0, 0.0, 2.0, 3.0, 0.0, 1.0, 5.0, -1.0, 0.0, 4.0])
 
 # Hand-computed with numpy's linear quantile q(p) at position p * (T - 1):
-# K = 10: q(.9) = .236, q(.8) = .19, q(.1) = .019, q(.2) = .028.
-# K = 20: q(.8) = .19, q(.6) = .108, q(.2) = .028, q(.4) = .068.
+# K = 10: q(.9) = .204, q(.8) = .16, q(.1) = .019, q(.2) = .028.
+# K = 20: q(.8) = .16, q(.6) = .108, q(.2) = .028, q(.4) = .068.
 EXPECTED = {
     (10, "top"): ({9}, {9}),
     (10, "top_next"): ({1}, set()),
@@ -43,10 +43,26 @@ def test_subgoal_mask_by_hand(top_k, group, reward_filter):
     # Row 1 is row 0 reversed in time, scaled: the quantile and the mean are per segment.
     w = np.stack([W, 3 * W[::-1]])
     r = np.stack([R, R[::-1] + 100.0])
-    mask = extract.subgoal_mask(w, r, top_k, group, reward_filter)
+    mask = extract.subgoal_mask(w, r, top_k, group, reward_filter, filter_groups="all")
     want = EXPECTED[(top_k, group)][int(reward_filter)]
     assert set(np.flatnonzero(mask[0])) == want
     assert set(np.flatnonzero(mask[1])) == {9 - i for i in want}
+    # Default (the authors' rule behind Table 2): the reward filter only narrows the top group.
+    mask = extract.subgoal_mask(w, r, top_k, group, reward_filter)
+    want = EXPECTED[(top_k, group)][int(reward_filter and group == "top")]
+    assert set(np.flatnonzero(mask[0])) == want
+
+
+def test_reward_filter_group_rule_from_the_config():
+    # K = 20, top_next: attention alone gives {5, 7}; both have r < mean (1.5), so the literal
+    # eq. 5 (all) empties the group while the authors' rule (top) keeps it.
+    seg = extract.Segments(np.arange(10.0)[None, :, None], np.zeros((1, 10, 1)), R[None], W[None])
+    other = extract.Segments(np.zeros((1, 10, 1)), np.zeros((1, 10, 1)), np.zeros((1, 10)), W[None])
+    cfg = SubgoalConfig(top_k=20.0, group="top_next", filter_groups="top")
+    _, states, _ = extract.extract(seg, other, np.array([0.0]), cfg)  # y = 0: segment 1 preferred
+    assert sorted(states[:, 0].astype(int).tolist()) == [5, 7]
+    with pytest.raises(SpotError, match="no subgoal triplets"):
+        extract.extract(seg, other, np.array([0.0]), dataclasses.replace(cfg, filter_groups="all"))
 
 
 def test_subgoal_mask_groups_partition_t100():
@@ -234,6 +250,10 @@ def test_shape_reward_by_hand():
     np.testing.assert_allclose(
         shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, 0.9, terminals=np.array([0, 1, 0], bool)),
         [1.0, 1.0, -0.9 * math.sqrt(2)], atol=1e-6)
+    # The authors' potential Φ(x) = +||x - ĝ||: Φ(s') = [0, 3, √2], Φ(s) = [1, 1, 0]
+    np.testing.assert_allclose(
+        shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, 0.9, potential_sign="pos"),
+        [-1.0, 1.7, 0.9 * math.sqrt(2)], atol=1e-6)
     np.testing.assert_allclose(shaping.shape_reward("none", NEXT_OBS, G_HAT), [0.0, 0.0, 0.0])
     rand = np.random.default_rng(0).standard_normal((2, 100, 4))
     cos = np.asarray(shaping.shape_reward("cosine", rand[0], rand[1]))

@@ -22,6 +22,9 @@ matrix, eq. 4; it sums to 1 over the segment). Subgoals are taken from *preferre
   bottom        ``w ≤ q(k)``                            Bottom 10%
   ============  ======================================  =============================
 
+  The reward criterion ``r̂_t ≥ mean_t r̂`` applies to the ``top`` group; the other groups use
+  attention alone, as in the authors' code that produced Table 2 (``subgoal.filter_groups=all``
+  applies it to every group).
   With ``T = 100`` and ``K = 10`` each group holds exactly 10 steps when the weights are
   distinct. Equal weights all pass the same threshold (a uniform ``w`` selects every step for
   ``top`` and ``bottom``).
@@ -44,6 +47,7 @@ from spot import SpotError
 from spot.config import SubgoalConfig
 
 GROUPS = ("top", "top_next", "bottom_next", "bottom")
+FILTER_GROUPS = ("top", "all")
 TIES = ("skip", "both")
 
 
@@ -117,7 +121,7 @@ def _expand(pick: np.ndarray, ndim: int) -> np.ndarray:
 
 
 def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
-                 reward_filter: bool = True) -> np.ndarray:
+                 reward_filter: bool = True, filter_groups: str = "top") -> np.ndarray:
     """Dual-criteria subgoal filter, eq. 5-6 (see the module docstring for the groups).
 
     Args:
@@ -126,12 +130,17 @@ def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
       top_k: ``K`` in percent, e.g. 10.
       group: ``top`` | ``top_next`` | ``bottom_next`` | ``bottom``.
       reward_filter: also require ``r̂_t ≥ mean_t r̂`` of the segment (eq. 5).
+      filter_groups: ``top``: the reward filter applies to the ``top`` group only, the other
+        groups use attention alone (the authors' code, which produced Table 2's numbers);
+        ``all``: to every group (eq. 5 read literally for each group).
 
     Returns:
       ``[Q, T]`` bool, True at subgoal steps.
     """
     if group not in GROUPS:
         raise SpotError(f"subgoal group {group!r}; expected one of {GROUPS}")
+    if filter_groups not in FILTER_GROUPS:
+        raise SpotError(f"subgoal filter_groups {filter_groups!r}; expected one of {FILTER_GROUPS}")
     w = np.asarray(w, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
     if w.ndim != 2 or w.shape != r.shape:
@@ -149,7 +158,7 @@ def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
         mask = (w > q(k)) & (w <= q(2 * k))
     else:
         mask = w <= q(k)
-    if reward_filter:
+    if reward_filter and (group == "top" or filter_groups == "all"):
         mask &= r >= r.mean(axis=1, keepdims=True)
     return mask
 
@@ -198,7 +207,7 @@ def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
       SpotError: if no triplet is left (every label a tie, or no step passes the filter).
     """
     pref = take_preferred(seg_1, seg_2, y, ties)
-    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter)
+    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups)
     triplets, info = make_triplets(pref.obs, pref.act, mask)
     if triplets.s.shape[0] == 0:
         raise SpotError(

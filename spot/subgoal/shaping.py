@@ -9,7 +9,10 @@ term measures how ``s'`` relates to it:
 * ``potential`` (Ng et al., 1999): ``r_shape = γ Φ(s') - Φ(s)`` with ``Φ(x) = -||x - ĝ||``. Both
   potentials use the *same* ``ĝ = G(s, a)`` (the CVAE has no ``a'`` for ``s'``), so the term
   telescopes only while ĝ stays put; Φ(s') is set to 0 at terminal transitions (absorbing state)
-  when ``terminals`` are given.
+  when ``terminals`` are given (``shaping.potential_terminal``). The paper does not define Φ; the
+  authors' code uses ``Φ(x) = +||x - ĝ||`` without the terminal mask
+  (``shaping.potential_sign=pos``, ``shaping.potential_terminal=false``), so the λ axis of their
+  Table 3 is the negative of the ``neg`` sign's; ``sweeps/table3_shaping.yaml`` uses theirs.
 
 All distances and cosines are taken on raw states, as eq. 11 writes them.
 
@@ -36,6 +39,7 @@ from spot.config import ShapingConfig
 from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate
 
 KINDS = ("none", "cosine", "neg_distance", "potential")
+POTENTIAL_SIGNS = ("neg", "pos")
 
 
 class ShapedRewards(NamedTuple):
@@ -54,7 +58,8 @@ class ShapedRewards(NamedTuple):
 
 
 def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Array | None = None,
-                 gamma: float = 0.99, terminals: jax.Array | None = None) -> jax.Array:
+                 gamma: float = 0.99, terminals: jax.Array | None = None,
+                 potential_sign: str = "neg") -> jax.Array:
     """Shaping term ``r_shape [N]`` for raw ``next_obs [N, o]`` and subgoals ``g_hat [N, o]``.
 
     Args:
@@ -64,6 +69,8 @@ def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Arra
       obs: ``s``; required for ``potential``.
       gamma: discount of the potential-based term.
       terminals: optional ``[N]`` bool; ``Φ(s') = 0`` where set (``potential`` only).
+      potential_sign: ``neg``: ``Φ(x) = -||x - ĝ||``; ``pos``: ``Φ(x) = +||x - ĝ||`` (the
+        authors' code; the same term as ``neg`` at ``-λ`` where no terminal is masked).
     """
     if kind not in KINDS:
         raise SpotError(f"shaping kind {kind!r}; expected one of {KINDS}")
@@ -77,10 +84,13 @@ def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Arra
         return -jnp.linalg.norm(next_obs - g_hat, axis=-1)
     if obs is None:
         raise SpotError("potential-based shaping needs obs (s) as well as next_obs (s')")
-    phi_next = -jnp.linalg.norm(next_obs - g_hat, axis=-1)
+    if potential_sign not in POTENTIAL_SIGNS:
+        raise SpotError(f"potential_sign {potential_sign!r}; expected one of {POTENTIAL_SIGNS}")
+    sign = -1.0 if potential_sign == "neg" else 1.0
+    phi_next = sign * jnp.linalg.norm(next_obs - g_hat, axis=-1)
     if terminals is not None:
         phi_next = jnp.where(jnp.asarray(terminals, bool), 0.0, phi_next)
-    phi = -jnp.linalg.norm(obs - g_hat, axis=-1)
+    phi = sign * jnp.linalg.norm(obs - g_hat, axis=-1)
     return gamma * phi_next - phi
 
 
@@ -114,7 +124,9 @@ def shaped_rewards(cvae_params: CVAEParams, ds_obs: np.ndarray, ds_act: np.ndarr
                         f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}")
     g_hat = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
     obs, next_obs = np.asarray(ds_obs, np.float32), np.asarray(ds_next_obs, np.float32)
-    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, terminals), np.float32)
+    masked = terminals if cfg.potential_terminal else None
+    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, masked, cfg.potential_sign),
+                         np.float32)
     r_model = np.asarray(r_model_normalised, np.float32)
     reward = np.asarray(final_reward(r_model, r_shape, cfg.weight), np.float32)
     cos_s = np.asarray(cosine_similarity(obs, g_hat), np.float32)
