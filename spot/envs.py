@@ -3,9 +3,14 @@
 Three families, each evaluated the way its reference papers report it:
 
 * **locomotion** (``hopper-*``, ``walker2d-*``, ``halfcheetah-*``; a trailing ``-v2`` is dropped):
-  gymnasium's MuJoCo ``Hopper-v5`` / ``Walker2d-v5`` / ``HalfCheetah-v5`` (D4RL's ``-v2`` datasets
-  were recorded in the mujoco-py ``-v3`` envs, which cannot run here; v5 has the same model and
-  reward). Score: the D4RL normalised return ``100 · (R − R_random) / (R_expert − R_random)``
+  gymnasium's MuJoCo ``Hopper-v5`` / ``Walker2d-v5`` / ``HalfCheetah-v5`` in the *model D4RL's data
+  were recorded in*. D4RL's ``-v2`` datasets come from the mujoco-py ``-v3`` envs, which cannot run
+  here. ``Walker2d-v5``'s own model gives both feet friction 1.9, while the v2-v4 model has 0.9 on
+  the right foot (gymnasium's v5 version notes), so walker2d runs in ``Walker2d-v5`` with
+  gymnasium's bundled v2-v4 ``walker2d.xml`` (:data:`LOCOMOTION_MODELS`). ``Hopper-v5`` and
+  ``HalfCheetah-v5`` load the same xml as their v2-v4 versions. Every v5 env differs from v2-v4 in
+  one reward detail: no healthy reward on the terminating step (at most 1 of an episode's return,
+  about 0.02 normalised points for Hopper). Score: the D4RL normalised return ``100 · (R − R_random) / (R_expert − R_random)``
   with the ``-random-v0`` / expert references of ``d4rl/infos.py`` that the ``-v2`` datasets
   inherit (reference/algorithms.md §2.4; PT's ``EpisodeMonitor`` multiplies by 100).
 * **metaworld** (``drawer-open``, ``plate-slide``, ``button-press``): the goal-observable v3
@@ -34,6 +39,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Literal
 
 import gymnasium as gym
@@ -52,6 +58,9 @@ D4RL_REF_SCORES: dict[str, tuple[float, float]] = {
     "halfcheetah": (-280.178953, 12135.0),
 }
 _LOCOMOTION_ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
+# Model files (in gymnasium's MuJoCo assets) for envs whose v5 default model is not the v2-v4 one
+# D4RL recorded in: walker2d.xml keeps the feet frictions 0.9 / 1.9 (walker2d_v5.xml: 1.9 / 1.9).
+LOCOMOTION_MODELS = {"walker2d": "walker2d.xml"}
 _LOCOMOTION_DATASETS = ("random", "medium", "expert", "medium-replay", "medium-expert", "full-replay")
 
 METAWORLD_TASKS = ("drawer-open", "plate-slide", "button-press")
@@ -71,6 +80,7 @@ class EnvSpec:
       env_id: ``"Hopper-v5"``, ``"drawer-open-v3"``, ``"Lift"``, ...
       max_episode_steps: evaluation episode length limit.
       score: ``"d4rl"`` (normalised return) or ``"success"`` (100 × success rate).
+      make_kwargs: extra ``gym.make`` keyword arguments (locomotion: the model file), as pairs.
     """
 
     name: str
@@ -78,6 +88,17 @@ class EnvSpec:
     env_id: str
     max_episode_steps: int
     score: ScoreKind
+    make_kwargs: tuple[tuple[str, Any], ...] = ()
+
+
+def locomotion_make_kwargs(env: str) -> tuple[tuple[str, Any], ...]:
+    """``gym.make`` kwargs that select the v2-v4 model of locomotion env ``env`` (``"walker2d"``)."""
+    if env not in LOCOMOTION_MODELS:
+        return ()
+    import gymnasium.envs.mujoco as mujoco_envs
+
+    xml = Path(mujoco_envs.__file__).parent / "assets" / LOCOMOTION_MODELS[env]
+    return (("xml_file", str(xml)),)
 
 
 def valid_names() -> list[str]:
@@ -92,7 +113,7 @@ def env_spec(dataset_name: str) -> EnvSpec:
     name = re.sub(r"-v2$", "", dataset_name.strip())
     env, _, kind = name.partition("-")
     if env in _LOCOMOTION_ENV_IDS and kind in _LOCOMOTION_DATASETS:
-        return EnvSpec(name, "locomotion", _LOCOMOTION_ENV_IDS[env], 1000, "d4rl")
+        return EnvSpec(name, "locomotion", _LOCOMOTION_ENV_IDS[env], 1000, "d4rl", locomotion_make_kwargs(env))
     if name in METAWORLD_TASKS:
         return EnvSpec(name, "metaworld", f"{name}-v3", METAWORLD_MAX_PATH_LENGTH, "success")
     if env in _ROBOSUITE_ENV_IDS and kind in ("ph", "mh"):
@@ -225,7 +246,7 @@ def make_env(name: str, seed: int) -> gym.Env:
     """
     spec = env_spec(name)
     if spec.family == "locomotion":
-        env = gym.make(spec.env_id)
+        env = gym.make(spec.env_id, **dict(spec.make_kwargs))
         env.reset(seed=seed)
         env.action_space.seed(seed)
         return env

@@ -167,3 +167,19 @@ def test_robosuite_lift_layout_and_scripted_success():
     out = evaluate(lift, "lift-ph", 1, seed=0)
     assert out["success_rate"] == 1.0 and out["score_mean"] == 100.0
     assert out["lengths"][0] < 100  # the episode ends at the first success
+
+
+def _foot_frictions(env, geoms):
+    import mujoco
+
+    model = env.unwrapped.model
+    return [float(model.geom_friction[mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, g)][0]) for g in geoms]
+
+
+def test_walker2d_is_evaluated_in_the_model_d4rl_recorded_in():
+    # D4RL's walker2d-*-v2 data come from the v2-v4 model: right foot 0.9, left foot 1.9 (v5's own
+    # model has 1.9 on both); Hopper's foot keeps 2.0 in both.
+    walker = make_env("walker2d-medium-replay-v2", 0)
+    assert _foot_frictions(walker, ["foot_geom", "foot_left_geom"]) == pytest.approx([0.9, 1.9])
+    hopper = make_env("hopper-medium-replay", 0)
+    assert _foot_frictions(hopper, ["foot_geom"]) == pytest.approx([2.0])
