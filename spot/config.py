@@ -93,6 +93,7 @@ class RelabelConfig:
     mode: str = F("chunked", "PT relabelling: 'chunked' = whole trajectory chunks in one pass (default, fast); 'sliding' = PT repo's causal window ending at t", choices=("chunked", "sliding"))
     window: int = F(100, "chunk length (chunked) or window length (sliding; PT repo flag default 25)", range=(1, None))
     batch_size: int = F(256, "windows/chunks per forward pass", range=(1, None))
+    scale: float = F(0.0, "the return range the normalisation scales to (the 1000 in relabel.normalize's formulas): 0 = the evaluation env's max episode steps, as the PT repo does (1000 locomotion, 500 robosuite and Meta-World)", range=(0.0, None))
     normalize: str = F("pt", "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = r*1000/(Rmax-Rmin), minmax = steps mapped to [0,1] then iql (default for mr/pt/spot on locomotion below budget paper), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none", choices=("pt", "iql", "wiserl", "minmax", "none"))
 
 

@@ -252,12 +252,20 @@ def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
 
 
 # --------------------------------------------------------------------------- relabel stages
+def normalisation_scale(cfg: ExperimentConfig, env_name: str) -> float:
+    """``relabel.scale``, or the evaluation env's max episode steps where it is 0 (PT repo)."""
+    from spot import envs
+
+    return cfg.relabel.scale or float(envs.env_spec(env_name).max_episode_steps)
+
+
 def _normalised(ctx: Context, r_model: np.ndarray, model: RewardModel | None) -> Rewards:
     from spot.reward import relabel
 
     if model is not None:
         ctx.log({"reward/corr_true": _corr_true(r_model, ctx.ds.rewards.astype(np.float32))})
-    return Rewards(r_model, relabel.normalize_rewards(r_model, ctx.ds, ctx.cfg.relabel.normalize), model)
+    scale = normalisation_scale(ctx.cfg, ctx.env_name)
+    return Rewards(r_model, relabel.normalize_rewards(r_model, ctx.ds, ctx.cfg.relabel.normalize, scale), model)
 
 
 @untimed

@@ -75,6 +75,22 @@ def test_fig2_in_distribution_is_the_training_segments_only():
     assert np.flatnonzero(stages.in_distribution(16, labelled)).tolist() == [0, 1, 4, 5]
 
 
+@pytest.mark.parametrize(("name", "scale"), [("lift-ph", 500), ("drawer-open", 500), ("hopper-medium-replay", 1000)])
+def test_normalisation_scales_returns_to_the_envs_episode_length(name, scale):
+    from tests.conftest import make_dataset
+
+    ds = make_dataset([5, 7, 3], seed=1)
+    ctx = stages.Context(config.resolve({"method": "oracle", "data.name": name}), ds, {}, name,
+                         tracking.MemoryTracker(), {})
+    r = stages.true_rewards(ctx, None).normalised  # oracle: relabel.normalize=iql, r * scale / spread
+    returns = np.add.reduceat(r.astype(np.float64), [0, 5, 12])
+    assert returns.max() - returns.min() == pytest.approx(scale, rel=1e-5)
+    fixed = stages.Context(config.resolve({"method": "oracle", "data.name": name, "relabel.scale": 7}), ds, {},
+                           name, tracking.MemoryTracker(), {})
+    returns = np.add.reduceat(stages.true_rewards(fixed, None).normalised.astype(np.float64), [0, 5, 12])
+    assert returns.max() - returns.min() == pytest.approx(7, rel=1e-5)
+
+
 # --------------------------------------------------------------------------- adding a method
 def constant_rewards(ctx, model):
     """The toy method's relabel stage: reward 1 for every transition."""
