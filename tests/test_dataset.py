@@ -114,9 +114,9 @@ def test_registry_rebuilds_a_build_of_another_recipe_version(spot_dirs, monkeypa
         calls.append(name)
         return _raw(), {"recipe": "fake"}
 
-    fake = types.ModuleType("spot.data.recipes.fake")
+    fake = types.ModuleType("spot.recipes.fake")
     fake.RECIPE_VERSION, fake.build = 3, build
-    monkeypatch.setitem(sys.modules, "spot.data.recipes.fake", fake)
+    monkeypatch.setitem(sys.modules, "spot.recipes.fake", fake)
     monkeypatch.setitem(registry.REGISTRY, "fake-task", registry.Entry("fake-task", "test", "fake", "fake"))
     path = registry.build("fake-task", "tiny", 0, progress=False)
     assert registry.read_card(path)["recipe_version"] == 3 and len(calls) == 1

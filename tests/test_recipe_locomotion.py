@@ -7,7 +7,7 @@ import pytest
 from scipy import stats
 
 from spot import SpotError
-from spot.data.recipes import locomotion
+from spot.recipes import locomotion
 from spot.policy import sac
 
 RAW_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError
-from spot.data.recipes import metaworld
+from spot.recipes import metaworld
 
 
 @pytest.fixture(scope="module")

@@ -5,7 +5,7 @@ import pytest
 
 from spot import SpotError
 from spot.data import formats, registry
-from spot.data.recipes import robosuite as recipe
+from spot.recipes import robosuite as recipe
 
 pytestmark = pytest.mark.slow
 pytest.importorskip("robosuite")

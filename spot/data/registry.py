@@ -31,7 +31,7 @@ from spot.data.dataset import Dataset, RawDataset
 class Entry:
     name: str
     family: str  # locomotion | metaworld | robosuite
-    recipe: str  # module under spot.data.recipes
+    recipe: str  # module under spot.recipes
     description: str
     pt_label_folder: str = ""  # folder name of the PT human labels for the real D4RL dataset
 
@@ -123,7 +123,7 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
     path = dataset_path(e.name, size, seed)
     with _lock(path):
-        recipe = importlib.import_module(f"spot.data.recipes.{e.recipe}")
+        recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
         version = getattr(recipe, "RECIPE_VERSION", None)
         if path.exists() and card_path(path).exists() and not force:
             built = read_card(path).get("recipe_version")
