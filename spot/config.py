@@ -474,6 +474,11 @@ def _flatten_yaml(data: Any, where: str, prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+# Public for sweep files (spot.sweep.spec), whose base/grid/zip blocks follow the same rules.
+flatten_yaml = _flatten_yaml
+check_keys = _check_keys
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML run config into a flat dict (keys checked, values not yet coerced)."""
     path = Path(path)
