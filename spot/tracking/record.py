@@ -1,9 +1,9 @@
-"""Everything MLflow: where runs go, what every run records, and how a failed run is marked.
+"""What every run records, and how a failed run is marked.
 
 Every run logs the full resolved config as params (flat dotted keys), tags naming the method,
 dataset, dataset source, label source, seed, budget, git commit and package versions, and the
-config YAML as an artifact. With no tracking URI the store is ``sqlite:///<cwd>/mlruns/mlflow.db``
-with artifacts under ``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server).
+config YAML as an artifact. The pipeline writes through the :class:`Tracker` interface;
+:class:`MlflowTracker` is its MLflow implementation, :class:`MemoryTracker` an in-memory one.
 """
 
 from __future__ import annotations
@@ -12,7 +12,6 @@ import contextlib
 import functools
 import importlib.metadata
 import math
-import os
 import subprocess
 import time
 from collections.abc import Iterator, Mapping, Sequence
@@ -20,19 +19,10 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
+from spot.tracking.store import experiment_id, resolve_uri
 
 PACKAGES = ("spot-pbrl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium",
             "metaworld", "robosuite", "mlflow", "ray", "h5py")
-
-
-def default_uri() -> str:
-    root = Path.cwd() / "mlruns"
-    root.mkdir(exist_ok=True)
-    return f"sqlite:///{root / 'mlflow.db'}"
-
-
-def resolve_uri(uri: str) -> str:
-    return uri or os.environ.get("MLFLOW_TRACKING_URI", "") or default_uri()
 
 
 @functools.cache
@@ -57,26 +47,6 @@ def package_versions() -> dict[str, str]:
         except importlib.metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
-
-
-def experiment_id(name: str, uri: str) -> str:
-    """Get or create the experiment (with an explicit artifact location for local stores)."""
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(uri)
-    exp = client.get_experiment_by_name(name)
-    if exp is not None:
-        return exp.experiment_id
-    location = None
-    if uri.startswith("sqlite:///"):
-        location = (Path(uri[len("sqlite:///"):]).parent / "artifacts").resolve().as_uri()
-    try:
-        return client.create_experiment(name, artifact_location=location)
-    except Exception:  # noqa: BLE001 - created concurrently by another process
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            raise
-        return exp.experiment_id
 
 
 def run_tags(cfg: config_lib.ExperimentConfig, card: dict[str, Any], extra: dict[str, str] | None = None) -> dict[str, str]:
@@ -222,7 +192,8 @@ class MlflowTracker:
         self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
 
-def _log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> None:
+def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> None:
+    """The full resolved config as params (flat dotted keys), in batches of MLflow's limit."""
     from mlflow.entities import Param
 
     flat = config_lib.to_flat(cfg)
@@ -255,7 +226,7 @@ def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_nam
     run = client.create_run(exp_id, run_name=name, tags=tags)
     tracker = MlflowTracker(client, run.info.run_id)
     try:
-        _log_params(client, run.info.run_id, cfg)
+        log_params(client, run.info.run_id, cfg)
         tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
         tracker.log_dict(card, "dataset_card.json")
         tracker.log_dict(package_versions(), "package_versions.json")
