@@ -1,0 +1,75 @@
+"""spot.stats against hand-computed values and an independent stratified bootstrap."""
+
+import numpy as np
+
+from spot import stats
+
+
+def test_probability_of_improvement_by_hand():
+    # task 1: x = 1, 2, 3 vs y = 2, 2: pairs (1,2)x2 -> 0, (2,2)x2 -> 1/2 each, (3,2)x2 -> 1 each
+    #   = 3 / 6 = 0.5;  task 2: 5 vs 1 -> 1.  Mean over tasks: 0.75.
+    got = stats.probability_of_improvement(np.array([1.0, 2, 3]), np.array([5.0]), np.array([2.0, 2]),
+                                           np.array([1.0]))
+    assert got == 0.75
+
+
+def test_iqm_pools_runs_and_trims_a_quarter_each_side():
+    # pooled 1..8: drop 1, 2 and 7, 8 -> mean(3, 4, 5, 6) = 4.5
+    assert stats.iqm(np.array([1.0, 8, 3, 6]), np.array([2.0, 7, 4, 5])) == 4.5
+
+
+def test_mean_difference_weighs_tasks_equally():
+    # task 1: 2 - 1 = 1; task 2: mean(10, 20, 30) - 0 = 20 -> (1 + 20) / 2
+    got = stats.mean_difference(np.array([2.0, 2]), np.array([10.0, 20, 30]), np.array([1.0]), np.array([0.0]))
+    assert got == 10.5
+
+
+def _independent_stratified_bootstrap(strata, fn, n=20000, seed=123):
+    """Resample each stratum with replacement on its own; percentile interval of fn."""
+    rng = np.random.default_rng(seed)
+    values = []
+    for _ in range(n):
+        values.append(fn([rng.choice(s, size=len(s), replace=True) for s in strata]))
+    return np.percentile(values, [2.5, 97.5])
+
+
+def test_bootstrap_ci_matches_an_independent_stratified_bootstrap():
+    rng = np.random.default_rng(0)
+    strata = [rng.normal(10, 3, size=5), rng.normal(50, 10, size=3), rng.normal(0, 1, size=4)]
+    low, high = stats.bootstrap_ci(strata, stats.mean_of_means, n_resamples=20000)
+    want = _independent_stratified_bootstrap(strata, lambda ss: np.mean([s.mean() for s in ss]))
+    width = want[1] - want[0]
+    assert abs(low - want[0]) < 0.05 * width and abs(high - want[1]) < 0.05 * width
+    # the stratified interval is narrower than pooling all runs and resampling them together
+    point = stats.mean_of_means(*strata)
+    assert low < point < high
+
+
+def test_difference_ci_matches_an_independent_computation():
+    x = [np.array([5.0, 6, 7]), np.array([1.0, 3, 2])]
+    y = [np.array([4.0, 4.5, 5]), np.array([1.0, 1.5, 2])]  # means 4.5, 1.5
+    est = stats.estimate([*x, *y], stats.mean_difference)
+    assert est.value == np.mean([6 - 4.5, 2 - 1.5])
+    want = _independent_stratified_bootstrap([*x, *y], lambda ss: np.mean(
+        [ss[0].mean() - ss[2].mean(), ss[1].mean() - ss[3].mean()]))
+    width = want[1] - want[0]
+    assert abs(est.low - want[0]) < 0.06 * width and abs(est.high - want[1]) < 0.06 * width
+    assert est.n == 12
+
+
+def test_cell_reports_mean_std_and_ci_and_drops_non_finite():
+    c = stats.cell([1.0, 2.0, 3.0, float("nan")])
+    assert c["n"] == 3 and c["mean"] == 2.0 and c["std"] == 1.0
+    assert 1.0 <= c["ci_low"] < 2.0 < c["ci_high"] <= 3.0
+
+
+def test_one_seed_gives_no_interval_and_verdict_says_so():
+    est = stats.estimate([[3.0], [1.0]], stats.mean_difference)
+    assert np.isnan(est.low) and stats.verdict(est) == stats.TOO_FEW
+
+
+def test_verdicts():
+    assert stats.verdict(stats.Estimate(2.0, 0.5, 3.0, 6)) == stats.SUPPORTED
+    assert stats.verdict(stats.Estimate(-2.0, -3.0, -0.5, 6)) == stats.NOT_SUPPORTED
+    assert stats.verdict(stats.Estimate(0.2, -1.0, 1.5, 6)) == stats.INCONCLUSIVE
+    assert stats.verdict(stats.Estimate(0.7, 0.55, 0.9, 6), null=0.5) == stats.SUPPORTED
