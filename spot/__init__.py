@@ -1,15 +1,9 @@
 """spot: offline preference-based RL with attention-guided subgoals (SPOT) and its baselines.
 
-Importing ``spot`` sets one XLA flag before jax is imported (if jax is not imported yet): jaxlib
-0.10.2 on CPU crashes in transformer training at batch 256 with ``YNNPACK operation failed`` unless
-the YNN reduce fusion is turned off (see docs/install.md). Nothing else happens at import.
+Importing ``spot`` (or any of its modules) changes nothing in the process: the XLA flag and the
+``MUJOCO_GL`` default that spot needs are set by an explicit :func:`spot.runtime.configure` call,
+which the ``spot`` command, sweep trials and the tests make first.
 """
-
-import os as _os
-
-_YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-LIBRARY_FUSION_TYPE_REDUCE"
-if _YNN_FLAG not in _os.environ.get("XLA_FLAGS", ""):
-    _os.environ["XLA_FLAGS"] = (_os.environ.get("XLA_FLAGS", "") + " " + _YNN_FLAG).strip()
 
 __version__ = "0.1.0"
 

@@ -323,6 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from spot import runtime
+
+    runtime.configure()  # XLA flag and MUJOCO_GL, before anything imports jax or mujoco
     parser = build_parser()
     args = parser.parse_args(argv)
     # `spot config show key=value` without a file: the first positional is an override.

@@ -18,9 +18,9 @@
   ``subgoal_projection.png``; :func:`fetch_artifact` copies it out of a run, and
   :func:`projection_from_cvae` redraws it for a dataset from a CVAE.
 
-Headless rendering: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when it is first imported,
-so importing this module sets ``MUJOCO_GL=egl`` if the variable is unset and mujoco is not imported
-yet (nothing else happens at import). EGL works with Mesa's software driver on machines without a GPU or display (no
+Headless rendering: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when it is first imported;
+:func:`spot.runtime.configure` (called by the ``spot`` command) sets ``MUJOCO_GL=egl`` if the
+variable is unset and mujoco is not imported yet. EGL works with Mesa's software driver on machines without a GPU or display (no
 ``/dev/dri`` needed); ``osmesa`` needs libOSMesa and ``glfw`` a display. If mujoco was already
 imported with ``glfw`` and there is no display, set ``MUJOCO_GL=egl`` before starting Python.
 
@@ -34,7 +34,6 @@ import json
 import os
 import pickle
 import shutil
-import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -47,9 +46,6 @@ from matplotlib.figure import Figure
 
 from spot import SpotError, tables
 from spot.tables import resolve_tracking_uri
-
-if "mujoco" not in sys.modules:
-    os.environ.setdefault("MUJOCO_GL", "egl")
 
 FIG2_ARTIFACT = "extrapolation_error.json"
 FIG4_ARTIFACT = "subgoal_projection.png"
@@ -295,8 +291,8 @@ def _mujoco() -> Any:
     context = getattr(mujoco, "GLContext", None)
     backend = context.__module__.rsplit(".", 1)[-1] if context is not None else "disabled"
     if backend == "disabled" or (backend == "glfw" and not os.environ.get("DISPLAY")):
-        raise SpotError(f"MuJoCo's GL backend is {backend!r} with no display; start Python with "
-                        "MUJOCO_GL=egl (or osmesa) set, before anything imports mujoco")
+        raise SpotError(f"MuJoCo's GL backend is {backend!r} with no display; call "
+                        "spot.runtime.configure() (or set MUJOCO_GL=egl or osmesa) before anything imports mujoco")
     return mujoco
 
 

@@ -8,7 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import spot  # noqa: F401  (XLA flags before jax)
+from spot import runtime
+
+
+def pytest_configure(config):
+    """spot's process settings (XLA flag, MUJOCO_GL) before any test module imports jax or mujoco."""
+    runtime.configure()
 
 
 @pytest.fixture(scope="session")
