@@ -2,8 +2,8 @@
 
 Resolution order (later wins): dataclass defaults (the paper's values) < method preset
 (``method=spot`` etc.) < budget preset (``budget=small`` etc.) < suite preset (what the reference
-implementations change for Meta-World / robomimic, chosen by ``data.name``) < YAML file <
-``a.b=value`` overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
+implementations change for Meta-World / robomimic, chosen by ``data.name``) < variant preset
+(``variant=paper|authors``, docs/fidelity.md) < YAML file < ``a.b=value`` overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
 
 Every field carries ``help`` text and, where it applies, ``choices`` or a numeric ``range``;
 :func:`resolve` validates everything and raises :class:`spot.SpotError` with the dotted key,
@@ -104,6 +104,11 @@ class SubgoalConfig:
     group: str = F("top", "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom K%", choices=("top", "top_next", "bottom_next", "bottom"))
     reward_filter: bool = F(True, "also require r_t >= segment mean (eq. 5); off = ablation")
     filter_groups: str = F("top", "groups the reward filter applies to: top = the top group only, the other Table 2 groups by attention alone (the authors' code, which produced Table 2); all = every group (eq. 5 read literally)", choices=("top", "all"))
+    weight: str = F("column_mean", "per-step attention weight w_t from the preference attention A (softmax over keys): column_mean = w_j = mean_t A_tj (the weight PT's logit puts on r_j, eq. 3); diagonal = w_t = A_tt (the authors' code)", choices=("column_mean", "diagonal"))
+    filter_on: str = F("r_hat", "per-step value the reward filter compares with its segment mean: r_hat = PT's per-step reward (eq. 5); z = the attention-weighted z_t = sum_j A_tj r_j (the authors' code)", choices=("r_hat", "z"))
+    last_step: bool = F(False, "the last step of every preferred segment is always a subgoal (the authors' code)")
+    triplets: str = F("next_subgoal", "CVAE triplets: next_subgoal = every step paired with the first subgoal at or after it; interval = subgoal.interval_draws uniform draws from each interval [g_(i-1), g_i) (g_0 = segment start) paired with g_i, so a subgoal step maps to the next subgoal (the authors' code, one draw per interval per reward-model step)", choices=("next_subgoal", "interval"))
+    interval_draws: int = F(10, "draws per interval for subgoal.triplets=interval (the CVAE trains on this fixed set; the authors redraw one per interval at every reward-model step)", range=(1, None))
 
 
 @dataclass(frozen=True)
@@ -209,12 +214,14 @@ _STAGES: dict[str, type] = {
 
 METHODS = ("oracle", "mr", "pt", "ipl", "hpl", "spot")
 BUDGETS = ("paper", "small", "tiny")
+VARIANTS = ("spot", "paper", "authors")
 
 
 @dataclass(frozen=True)
 class ExperimentConfig:
     method: str = F("spot", "method preset", choices=METHODS)
     budget: str = F("small", "budget preset: paper (the paper's sizes, for GPUs/clusters), small (2 CPU cores, minutes), tiny (tests)", choices=BUDGETS)
+    variant: str = F("spot", "fidelity preset (docs/fidelity.md): spot = this package's defaults; paper = what the paper's text says, the reference code where it is silent; authors = what the authors' code (SGPbrl) does. Sets only named keys (VARIANT_PRESETS), each of which can be overridden on its own", choices=VARIANTS)
     seed: int = F(0, "run seed (root PRNG key)", range=(0, None))
     data: DataConfig = field(default_factory=DataConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
@@ -272,6 +279,26 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "hpl.latent_classes": 4, "hpl.decoder_hidden": (16, 16), "hpl.decoder_embd": 8,
         "hpl.prior_hidden": (16, 16), "hpl.reward_hidden": (16, 16), "hpl.vae_steps": 20, "hpl.vae_batch": 4,
         "hpl.reward_steps": 20, "hpl.extra_batch": 16, "hpl.prior_samples": 3, "hpl.chunk": 10,
+    },
+}
+
+
+# Fidelity presets (docs/fidelity.md has the sources of every entry): applied after the suite
+# preset, before the YAML file. Only choices, never sizes, so they combine with every budget.
+VARIANT_PRESETS: dict[str, dict[str, Any]] = {
+    "spot": {},
+    "paper": {
+        "subgoal.filter_groups": "all",  # eq. 5 states the reward criterion for the subgoal set
+        "relabel.mode": "sliding", "relabel.window": 25,  # paper silent: PT repo (seq_len flag 25)
+        "iql.order": "sequential",  # paper silent: ikostrikov IQL (vendored by the PT repo)
+    },
+    "authors": {  # SGPbrl b6d94e2 (scripts, learner, critic) and a5b03df (JaxPref/PrefTransformer.py)
+        "pt.n_layer": 3, "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
+        "subgoal.weight": "diagonal", "subgoal.filter_on": "z", "subgoal.last_step": True,
+        "subgoal.triplets": "interval", "subgoal.filter_groups": "top",
+        "relabel.mode": "sliding", "relabel.window": 25,  # train_offline.py seq_len 25
+        "shaping.potential_sign": "pos", "shaping.potential_terminal": False,  # critic.py potential_based
+        "iql.order": "sequential",  # learner.py: critic target uses the just-updated value network
     },
 }
 
@@ -558,8 +585,10 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat.update(BUDGET_PRESETS[budget])
     data_name = str(user.get("data.name", flat["data.name"]))
     flat.update(suite_preset(data_name, method, budget))
+    variant = _coerce("variant", user.get("variant", ExperimentConfig.variant))
+    flat.update(VARIANT_PRESETS[variant])
     flat.update(user)
-    flat["method"], flat["budget"] = method, budget
+    flat["method"], flat["budget"], flat["variant"] = method, budget, variant
     return check(_build({k: _coerce(k, v) for k, v in flat.items()}))
 
 

@@ -313,19 +313,23 @@ def needs_subgoals(cfg: ExperimentConfig) -> bool:
 
 def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
     """Eq. 5-6: attention subgoals on the preferred training segments -> (s, a, g) triplets."""
-    from spot.reward import train as reward_train
+    import jax
+
+    from spot.reward import pt
     from spot.subgoal import extract
 
     model = rewards.source
-    f = reward_train.model_fn("pt", model.params, pt_cfg=ctx.cfg.pt)
+    attention = jax.jit(pt.attention, static_argnums=1)
     batch = labelled.train_batch
     sides = []
     for side in ("1", "2"):
         mask = np.ones(batch[f"obs_{side}"].shape[:2], np.float32)
-        r_hat, w = f(batch[f"obs_{side}"], batch[f"act_{side}"], batch[f"timesteps_{side}"], mask)
-        sides.append(extract.Segments(batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat),
-                                      np.asarray(w)))
-    triplets, states, info = extract.extract(sides[0], sides[1], batch["label"], ctx.cfg.subgoal)
+        r_hat, attn = attention(model.params, ctx.cfg.pt, batch[f"obs_{side}"], batch[f"act_{side}"],
+                                batch[f"timesteps_{side}"], mask)
+        sides.append(extract.segments(batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat),
+                                      np.asarray(attn), ctx.cfg.subgoal))
+    triplets, states, info = extract.extract(sides[0], sides[1], batch["label"], ctx.cfg.subgoal,
+                                             rng=np.random.default_rng(ctx.cfg.seed))
     ctx.log(info)
     return triplets, states
 

@@ -318,3 +318,109 @@ def test_plot_projection(tmp_path):
     png = diagnostics.plot_projection(rng.standard_normal((300, 5)), rng.standard_normal((50, 5)),
                                       tmp_path / "proj" / "pca.png")
     assert png.exists() and png.read_bytes()[:4] == b"\x89PNG"
+
+
+# --------------------------------------------------------------------------- fidelity keys (docs/fidelity.md)
+# One segment of T = 3, preference attention A (rows: queries t, columns: keys j) and r_hat:
+A3 = np.array([[0.2, 0.7, 0.1],
+               [0.1, 0.5, 0.4],
+               [0.2, 0.2, 0.6]])
+R3 = np.array([1.0, 2.0, 4.0])
+# Hand-computed: column means w = (.5, 1.4, 1.1) / 3; diagonal w = (.2, .5, .6);
+# z_t = sum_j A_tj r_j = (.2 + 1.4 + .4, .1 + 1. + 1.6, .2 + .4 + 2.4) = (2.0, 2.7, 3.0).
+# With K = 34: q(.66) at position 1.32; column means sorted (.1667, .3667, .4667) -> q = .39867,
+# so only step 1 passes; diagonal sorted (.2, .5, .6) -> q = .532, only step 2 passes.
+# Reward filter: mean r_hat = 7/3 (step 1: 2 < 2.33 fails, step 2: 4 passes);
+# mean z = 7.7/3 = 2.5667 (step 1: 2.7 passes).
+
+
+def test_step_scores_by_hand():
+    w, r = extract.step_scores(R3[None], A3[None], "column_mean", "r_hat")
+    np.testing.assert_allclose(w[0], [0.5 / 3, 1.4 / 3, 1.1 / 3])
+    np.testing.assert_allclose(r[0], R3)
+    w, r = extract.step_scores(R3[None], A3[None], "diagonal", "z")
+    np.testing.assert_allclose(w[0], [0.2, 0.5, 0.6])
+    np.testing.assert_allclose(r[0], [2.0, 2.7, 3.0])
+    with pytest.raises(SpotError, match="weight"):
+        extract.step_scores(R3[None], A3[None], "row_mean")
+    with pytest.raises(SpotError, match=r"\[Q, T, T\]"):
+        extract.step_scores(R3[None], A3)
+
+
+@pytest.mark.parametrize("weight,filter_on,expected", [
+    ("column_mean", "r_hat", [False, False, False]),  # step 1 has the top weight, r_hat below mean
+    ("column_mean", "z", [False, True, False]),       # ... but z above mean
+    ("diagonal", "r_hat", [False, False, True]),      # the diagonal ranks step 2 first
+    ("diagonal", "z", [False, False, True]),
+])
+def test_weight_and_filter_on_select_different_subgoals(weight, filter_on, expected):
+    w, r = extract.step_scores(R3[None], A3[None], weight, filter_on)
+    mask = extract.subgoal_mask(w, r, 34.0)
+    np.testing.assert_array_equal(mask[0], expected)
+    # last_step adds step 2 whatever the filters say
+    last = extract.subgoal_mask(w, r, 34.0, last_step=True)
+    np.testing.assert_array_equal(last[0], np.array(expected) | [False, False, True])
+
+
+def test_pt_attention_matches_forward():
+    """pt.attention's column mean is PT's w, and mean_t z_t is its logit (unpadded segments)."""
+    from spot.config import PTConfig
+    from spot.reward import pt
+
+    cfg = PTConfig(embd_dim=16, n_layer=1, n_head=2, pref_attn_dim=8, max_timestep=20)
+    rng = np.random.default_rng(0)
+    obs, act = rng.standard_normal((3, 6, 4)), rng.standard_normal((3, 6, 2))
+    ts, mask = np.tile(np.arange(1, 7), (3, 1)), np.ones((3, 6))
+    params = pt.init_params(jax.random.PRNGKey(0), cfg, 4, 2)
+    r_hat, w, logit = pt.forward(params, cfg, obs, act, ts, mask)
+    r_hat2, attn = pt.attention(params, cfg, obs, act, ts, mask)
+    np.testing.assert_allclose(np.asarray(attn).sum(-1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(r_hat2, r_hat, rtol=1e-5)
+    w_col, z = extract.step_scores(np.asarray(r_hat2), np.asarray(attn), "column_mean", "z")
+    np.testing.assert_allclose(w_col, w, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(z.mean(axis=1), logit, rtol=1e-4, atol=1e-6)
+
+
+def test_interval_triplets_by_hand():
+    # T = 8, obs[t] = t; subgoals at 3 and 6 (+ 7 with the last step).
+    t = 8
+    obs = np.arange(t, dtype=float)[None, :, None]
+    act = 10.0 + obs
+    mask = np.zeros((1, t), bool)
+    mask[0, [3, 6]] = True
+    rng = np.random.default_rng(1)
+    (s, a, g), info = extract.make_triplets(obs, act, mask, "interval", draws=40, rng=rng)
+    s, a, g = s[:, 0], a[:, 0], g[:, 0]
+    # intervals [0, 3) -> 3 and [3, 6) -> 6; steps 6, 7 come after the last subgoal: dropped.
+    assert info["subgoal/num_triplets"] == 80 and len(s) == 80
+    np.testing.assert_array_equal(g, [3.0] * 40 + [6.0] * 40)
+    np.testing.assert_array_equal(a, s + 10.0)
+    assert set(s[:40]) == {0.0, 1.0, 2.0} and set(s[40:]) == {3.0, 4.0, 5.0}  # subgoal 3 -> next subgoal 6
+    mask[0, 7] = True  # last step
+    (s, _, g), _ = extract.make_triplets(obs, act, mask, "interval", draws=5)
+    np.testing.assert_array_equal(g[:, 0], [3.0] * 5 + [6.0] * 5 + [7.0] * 5)
+    np.testing.assert_array_equal(s[10:, 0], [6.0] * 5)  # the interval [6, 7) holds step 6 only
+    # a subgoal at step 0 opens no empty interval: [0, 2) -> 2 only
+    m0 = np.zeros((1, 4), bool)
+    m0[0, [0, 2]] = True
+    (s, _, g), info = extract.make_triplets(obs[:, :4], act[:, :4], m0, "interval", draws=3)
+    np.testing.assert_array_equal(g[:, 0], [2.0] * 3)
+    assert set(s[:, 0]) <= {0.0, 1.0}
+    # the default mode on the same mask: every step to the first subgoal at or after it
+    (s, _, g), _ = extract.make_triplets(obs[:, :4], act[:, :4], m0)
+    np.testing.assert_array_equal(s[:, 0], [0.0, 1.0, 2.0])
+    np.testing.assert_array_equal(g[:, 0], [0.0, 2.0, 2.0])
+
+
+def test_extract_with_authors_keys():
+    # Preferred segment 2 of T = 3 (A3, R3): diagonal weight, z filter, K = 34 -> step 2; the last
+    # step is step 2 as well; intervals [0, 2) -> step 2.
+    seg = extract.segments(np.arange(3.0)[None, :, None], np.zeros((1, 3, 1)), R3[None], A3[None],
+                           SubgoalConfig(weight="diagonal", filter_on="z"))
+    other = extract.Segments(np.zeros((1, 3, 1)), np.zeros((1, 3, 1)), np.zeros((1, 3)), np.ones((1, 3)) / 3)
+    cfg = SubgoalConfig(top_k=34.0, weight="diagonal", filter_on="z", last_step=True,
+                        triplets="interval", interval_draws=4)
+    (s, _, g), states, info = extract.extract(other, seg, np.array([1.0]), cfg, rng=np.random.default_rng(0))
+    np.testing.assert_array_equal(states[:, 0], [2.0])
+    np.testing.assert_array_equal(g[:, 0], [2.0] * 4)
+    assert set(s[:, 0]) <= {0.0, 1.0} and info["subgoal/num_subgoals"] == 1.0

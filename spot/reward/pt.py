@@ -93,18 +93,25 @@ class PreferenceTransformer(nn.Module):
 
         Returns: ``r_hat [B, T]``, ``w [B, T]``, ``logit [B]``, all float32.
         """
-        x = self._state_hidden(obs, act, timesteps, mask, deterministic, last_only=False)
-        head = self.pref_head(x)
-        p = self.pref_attn_dim
-        q, k, r_hat = head[..., :p], head[..., p:2 * p], head[..., 2 * p]
+        r_hat, attn = self.attention(obs, act, timesteps, mask, deterministic)
         valid = mask > 0
-        logits = jnp.einsum("btp,bjp->btj", q, k)  # unscaled, as in the PT repo
-        attn = jax.nn.softmax(jnp.where(valid[:, None, :], logits, MASKED_LOGIT), axis=-1)  # [B, T, T]
         row_weight = valid.astype(jnp.float32)
         row_weight = row_weight / jnp.maximum(row_weight.sum(axis=1, keepdims=True), 1.0)
         w = jnp.einsum("bt,btj->bj", row_weight, attn)  # column mean over real query rows
         logit = jnp.sum(w * r_hat, axis=1)  # == mean_t z_t, z_t = sum_j A_tj r_hat_j
         return r_hat, w, logit
+
+    def attention(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
+                  deterministic: bool = True) -> tuple[jax.Array, jax.Array]:
+        """``r_hat [B, T]`` and the preference attention ``A [B, T, T]`` (``A[b, t, j] = A_tj``,
+        softmax over keys j, padded keys masked)."""
+        x = self._state_hidden(obs, act, timesteps, mask, deterministic, last_only=False)
+        head = self.pref_head(x)
+        p = self.pref_attn_dim
+        q, k, r_hat = head[..., :p], head[..., p:2 * p], head[..., 2 * p]
+        logits = jnp.einsum("btp,bjp->btj", q, k)  # unscaled, as in the PT repo
+        attn = jax.nn.softmax(jnp.where((mask > 0)[:, None, :], logits, MASKED_LOGIT), axis=-1)
+        return r_hat, attn
 
     def last_step_reward(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
                          mask: jax.Array) -> jax.Array:
@@ -147,6 +154,13 @@ def forward(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, times
         params, obs, act, timesteps, mask, deterministic=deterministic,
         rngs=None if deterministic else {"dropout": dropout_key},
     )
+
+
+def attention(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
+              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(r_hat [B, T], A [B, T, T])``: per-step rewards and the preference attention
+    (deterministic); SPOT's subgoal weights are read from ``A`` (``spot.subgoal.extract.step_scores``)."""
+    return make_model(cfg).apply(params, obs, act, timesteps, mask, method=PreferenceTransformer.attention)
 
 
 def last_step_reward(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array,

@@ -1,8 +1,19 @@
 """Attention-based subgoal extraction and CVAE training triplets (SPOT paper, §4.1.1-4.1.3).
 
 For every labelled query the Preference Transformer gives, per step ``t`` of each segment, a
-reward ``r̂_t`` and an importance weight ``w_t`` (the column mean of the preference-attention
-matrix, eq. 4; it sums to 1 over the segment). Subgoals are taken from *preferred* segments only:
+reward ``r̂_t`` and its preference-attention matrix ``A`` (``A_tj = softmax_j(q_t·k_j)``).
+:func:`step_scores` turns them into the two per-step numbers the filter reads
+(``subgoal.weight``, ``subgoal.filter_on``):
+
+* the importance weight ``w_t`` (eq. 4): ``column_mean``, ``w_j = mean_t A_tj`` (the weight PT's
+  segment logit ``mean_t z_t = Σ_j w_j r̂_j`` puts on step j, eq. 3; sums to 1), or ``diagonal``,
+  ``w_t = A_tt`` (the attention step t pays to itself; the authors' code, SGPbrl
+  ``JaxPref/PrefTransformer.py``);
+* the value the reward filter compares with its segment mean: ``r_hat`` (``r̂_t``, eq. 5) or ``z``,
+  the attention-weighted ``z_t = Σ_j A_tj r̂_j`` (the authors' code filters on PT's
+  ``weighted_sum`` output).
+
+Subgoals are taken from *preferred* segments only:
 
 * :func:`preferred_segments` picks the preferred segment of each query: ``y = 1`` -> segment 2,
   ``y = 0`` -> segment 1. A tie (``y = 0.5``) prefers neither segment, so ties are skipped by
@@ -27,11 +38,24 @@ matrix, eq. 4; it sums to 1 over the segment). Subgoals are taken from *preferre
   applies it to every group).
   With ``T = 100`` and ``K = 10`` each group holds exactly 10 steps when the weights are
   distinct. Equal weights all pass the same threshold (a uniform ``w`` selects every step for
-  ``top`` and ``bottom``).
-* :func:`make_triplets` builds the CVAE data of §4.1.3: every step ``t`` of a preferred segment
-  is paired with the *next* subgoal at or after ``t`` in the same segment, ``g_t = s_τ`` with
-  ``τ = min{τ ≥ t | mask_τ}`` ("s_t, a_t between g_{t-1} and g_t"). A subgoal step is its own
-  target (``τ = t``). Steps after the last subgoal of a segment have no target and are dropped.
+  ``top`` and ``bottom``). ``subgoal.last_step`` adds the last step of every preferred segment to
+  the subgoals whatever the filters say (the authors' code appends index ``T - 1``).
+* :func:`make_triplets` builds the CVAE data of §4.1.3 ("s_t, a_t between g_{t-1} and g_t"):
+
+  - ``next_subgoal`` (default): every step ``t`` of a preferred segment is paired with the
+    *next* subgoal at or after ``t`` in the same segment, ``g_t = s_τ`` with
+    ``τ = min{τ ≥ t | mask_τ}``. A subgoal step is its own target (``τ = t``).
+  - ``interval`` (the authors' code): with subgoal steps ``g_1 < ... < g_n`` and ``g_0 = 0`` (the
+    segment start), each non-empty interval ``[g_(i-1), g_i)`` contributes ``draws`` steps drawn
+    uniformly (with replacement), each paired with ``s_(g_i)``; so a subgoal step maps to the
+    *next* subgoal, and every interval weighs the same whatever its length. The authors draw one
+    step per interval at every reward-model step (the CVAE trains online); spot's CVAE trains on
+    a fixed set, hence ``draws``. Their subgoal index list is padded with index 0 by
+    ``jnp.where(..., size=K%·T)`` whenever fewer steps pass the filters (nearly always with the
+    reward filter), which is why their first interval starts at step 0; the padding also yields
+    empty intervals that their code turns into spurious triplets, which are not reproduced.
+
+  In both modes steps after the last subgoal of a segment have no target and are dropped.
 
 Everything here is host-side numpy: it runs once per reward model and its outputs have
 data-dependent sizes.
@@ -49,6 +73,9 @@ from spot.config import SubgoalConfig
 GROUPS = ("top", "top_next", "bottom_next", "bottom")
 FILTER_GROUPS = ("top", "all")
 TIES = ("skip", "both")
+WEIGHTS = ("column_mean", "diagonal")
+FILTER_ON = ("r_hat", "z")
+TRIPLETS = ("next_subgoal", "interval")
 
 
 class Segments(NamedTuple):
@@ -57,8 +84,9 @@ class Segments(NamedTuple):
     Attributes:
       obs: ``[Q, T, obs_dim]`` states.
       act: ``[Q, T, act_dim]`` actions.
-      reward: ``[Q, T]`` PT per-step reward ``r̂_t``.
-      weight: ``[Q, T]`` PT importance weight ``w_t`` (column mean of the preference attention).
+      reward: ``[Q, T]`` the per-step value the reward filter reads (``r̂_t``, or ``z_t`` with
+        ``subgoal.filter_on=z``; :func:`step_scores`).
+      weight: ``[Q, T]`` importance weight ``w_t`` (:func:`step_scores`).
     """
 
     obs: np.ndarray
@@ -73,6 +101,39 @@ class Triplets(NamedTuple):
     s: np.ndarray
     a: np.ndarray
     g: np.ndarray
+
+
+def step_scores(r_hat: np.ndarray, attn: np.ndarray, weight: str = "column_mean",
+                filter_on: str = "r_hat") -> tuple[np.ndarray, np.ndarray]:
+    """Per-step importance weight and reward-filter value from PT's preference attention.
+
+    Args:
+      r_hat: ``[Q, T]`` PT per-step rewards.
+      attn: ``[Q, T, T]`` preference attention, ``attn[q, t, j] = A_tj`` (rows sum to 1 over keys j).
+      weight: ``column_mean`` (``w_j = mean_t A_tj``) or ``diagonal`` (``w_t = A_tt``).
+      filter_on: ``r_hat`` (``r̂_t``) or ``z`` (``z_t = Σ_j A_tj r̂_j``).
+
+    Returns:
+      ``(w [Q, T], r [Q, T])`` float64.
+    """
+    if weight not in WEIGHTS:
+        raise SpotError(f"subgoal weight {weight!r}; expected one of {WEIGHTS}")
+    if filter_on not in FILTER_ON:
+        raise SpotError(f"subgoal filter_on {filter_on!r}; expected one of {FILTER_ON}")
+    r_hat = np.asarray(r_hat, dtype=np.float64)
+    attn = np.asarray(attn, dtype=np.float64)
+    if r_hat.ndim != 2 or attn.shape != r_hat.shape + r_hat.shape[-1:]:
+        raise SpotError(f"rewards {r_hat.shape} and attention {attn.shape} must be [Q, T] and [Q, T, T]")
+    w = attn.mean(axis=1) if weight == "column_mean" else np.diagonal(attn, axis1=1, axis2=2).copy()
+    r = r_hat if filter_on == "r_hat" else np.einsum("qtj,qj->qt", attn, r_hat)
+    return w, r
+
+
+def segments(obs: np.ndarray, act: np.ndarray, r_hat: np.ndarray, attn: np.ndarray,
+             cfg: SubgoalConfig) -> Segments:
+    """One side of the queries as :class:`Segments`, scored by ``cfg.weight`` and ``cfg.filter_on``."""
+    w, r = step_scores(r_hat, attn, cfg.weight, cfg.filter_on)
+    return Segments(np.asarray(obs), np.asarray(act), r, w)
 
 
 def preferred_segments(y: np.ndarray, ties: str = "skip") -> tuple[np.ndarray, np.ndarray]:
@@ -121,7 +182,8 @@ def _expand(pick: np.ndarray, ndim: int) -> np.ndarray:
 
 
 def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
-                 reward_filter: bool = True, filter_groups: str = "top") -> np.ndarray:
+                 reward_filter: bool = True, filter_groups: str = "top",
+                 last_step: bool = False) -> np.ndarray:
     """Dual-criteria subgoal filter, eq. 5-6 (see the module docstring for the groups).
 
     Args:
@@ -133,6 +195,7 @@ def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
       filter_groups: ``top``: the reward filter applies to the ``top`` group only, the other
         groups use attention alone (the authors' code, which produced Table 2's numbers);
         ``all``: to every group (eq. 5 read literally for each group).
+      last_step: the last step of every segment is a subgoal whatever the filters say.
 
     Returns:
       ``[Q, T]`` bool, True at subgoal steps.
@@ -160,44 +223,74 @@ def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
         mask = w <= q(k)
     if reward_filter and (group == "top" or filter_groups == "all"):
         mask &= r >= r.mean(axis=1, keepdims=True)
+    if last_step:
+        mask[:, -1] = True
     return mask
 
 
-def make_triplets(obs: np.ndarray, act: np.ndarray, mask: np.ndarray) -> tuple[Triplets, dict[str, float]]:
-    """Pair each step with the next subgoal at or after it in its segment (§4.1.3).
+def make_triplets(obs: np.ndarray, act: np.ndarray, mask: np.ndarray, mode: str = "next_subgoal",
+                  draws: int = 1, rng: np.random.Generator | None = None
+                  ) -> tuple[Triplets, dict[str, float]]:
+    """CVAE triplets ``(s_t, a_t, g_t)`` from the subgoal steps of each segment (§4.1.3).
 
     Args:
       obs: ``[P, T, obs_dim]`` states of the preferred segments.
       act: ``[P, T, act_dim]`` actions.
       mask: ``[P, T]`` subgoal steps (from :func:`subgoal_mask`).
+      mode: ``next_subgoal``: every step paired with the first subgoal at or after it;
+        ``interval``: ``draws`` uniform draws from each interval ``[g_(i-1), g_i)`` (``g_0 = 0``)
+        paired with ``g_i`` (module docstring).
+      draws: draws per interval (``interval`` only).
+      rng: random generator of the draws (``interval`` only; default seed 0).
 
     Returns:
       ``(Triplets, info)``; ``info`` holds ``subgoal/num_segments``, ``subgoal/num_subgoals``,
       ``subgoal/num_triplets`` and ``subgoal/segments_without_subgoal``.
     """
+    if mode not in TRIPLETS:
+        raise SpotError(f"subgoal triplets {mode!r}; expected one of {TRIPLETS}")
+    if draws < 1:
+        raise SpotError(f"subgoal interval_draws={draws}; expected >= 1")
     mask = np.asarray(mask, dtype=bool)
     p, t = mask.shape
     if obs.shape[:2] != (p, t) or act.shape[:2] != (p, t):
         raise SpotError(f"obs {obs.shape}, act {act.shape} and mask {mask.shape} must share [P, T]")
-    # next_idx[i, t] = first subgoal index >= t in row i, or T if there is none.
-    idx = np.where(mask, np.arange(t)[None, :], t)
-    next_idx = np.minimum.accumulate(idx[:, ::-1], axis=1)[:, ::-1]
-    valid = next_idx < t
-    rows = np.broadcast_to(np.arange(p)[:, None], (p, t))
-    goal = obs[rows[valid], next_idx[valid]]
-    triplets = Triplets(s=obs[valid], a=act[valid], g=goal)
+    if mode == "next_subgoal":
+        # next_idx[i, t] = first subgoal index >= t in row i, or T if there is none.
+        idx = np.where(mask, np.arange(t)[None, :], t)
+        next_idx = np.minimum.accumulate(idx[:, ::-1], axis=1)[:, ::-1]
+        valid = next_idx < t
+        rows = np.broadcast_to(np.arange(p)[:, None], (p, t))
+        row, step, goal = rows[valid], np.nonzero(valid)[1], next_idx[valid]
+    else:
+        rng = np.random.default_rng(0) if rng is None else rng
+        rows_l, steps_l, goals_l = [], [], []
+        for i in range(p):
+            start = 0
+            for g in np.flatnonzero(mask[i]):
+                if g > start:  # the interval [start, g) is not empty
+                    rows_l.append(np.full(draws, i))
+                    steps_l.append(rng.integers(start, g, size=draws))
+                    goals_l.append(np.full(draws, g))
+                start = g
+        empty = np.zeros(0, np.int64)
+        row, step, goal = (np.concatenate(x) if x else empty for x in (rows_l, steps_l, goals_l))
+    triplets = Triplets(s=obs[row, step], a=act[row, step], g=obs[row, goal])
     info = {
         "subgoal/num_segments": float(p),
         "subgoal/num_subgoals": float(mask.sum()),
-        "subgoal/num_triplets": float(valid.sum()),
+        "subgoal/num_triplets": float(row.size),
         "subgoal/segments_without_subgoal": float((~mask.any(axis=1)).sum()),
     }
     return triplets, info
 
 
 def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
-            ties: str = "skip") -> tuple[Triplets, np.ndarray, dict[str, float]]:
+            ties: str = "skip", rng: np.random.Generator | None = None
+            ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
     """Preferred segments -> subgoal mask -> CVAE triplets, with counts for logging.
+
+    ``rng`` draws the ``interval`` triplets (``subgoal.triplets``); unused otherwise.
 
     Returns:
       ``(triplets, subgoals [N_g, obs_dim], info)``; ``subgoals`` are the extracted subgoal
@@ -207,8 +300,9 @@ def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
       SpotError: if no triplet is left (every label a tie, or no step passes the filter).
     """
     pref = take_preferred(seg_1, seg_2, y, ties)
-    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups)
-    triplets, info = make_triplets(pref.obs, pref.act, mask)
+    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups,
+                        cfg.last_step)
+    triplets, info = make_triplets(pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng)
     if triplets.s.shape[0] == 0:
         raise SpotError(
             f"no subgoal triplets from {len(y)} queries ({pref.obs.shape[0]} preferred segments, "
