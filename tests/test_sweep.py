@@ -35,8 +35,9 @@ def _write(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
 # --------------------------------------------------------------------------- (a) validation
 @pytest.mark.parametrize("text, match", [
     ("bsae: {method: pt}\n", r"'bsae': unknown key; did you mean 'base'"),
-    ("base: {methd: pt}\n", r"'base.methd': unknown config key; did you mean 'method'"),
-    ("grid: {shaping.wieght: [0.1]}\n", r"'grid.shaping.wieght': unknown config key"),
+    ("base: {methd: pt}\n", r"'base': unknown config key 'methd'; did you mean 'method'"),
+    ("grid: {shaping.wieght: [0.1]}\n", r"'grid': unknown config key 'shaping.wieght'; did you mean 'shaping.weight'"),
+    ("smoke: {base: [1]}\n", r"'smoke.base': expected a mapping of config keys, got list"),
     ("grid: {shaping.weight: 0.1}\n", r"'grid.shaping.weight': expected a non-empty list"),
     ("table: 5\n", r"'table': expected one of 1, 2, 3, 4, 7, 8, got 5"),
     ("grid: {shaping.weight: [0.1, 0.1]}\n", r"'grid.shaping.weight': repeats a value"),

@@ -1,0 +1,354 @@
+"""The driver of a launch (``spot sweep FILE``): store, Ray, parent run, Tune, summary.
+
+:func:`run_sweep` validates the file, builds the datasets the runs need, serves a SQLite store
+through a loopback ``mlflow server`` (:mod:`spot.mlflow_server`) unless given a server's URI,
+starts Ray, creates the experiment and the parent run, runs one Tune experiment over
+:func:`spot.sweep.trial._trainable`, closes the runs it left RUNNING, and logs and prints the
+summary. ``--resume`` restores the Ray experiment recorded in ``<storage>/<experiment>.json``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import secrets
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spot import SpotError
+from spot import config as config_lib
+from spot.sweep.spec import Sweep, load, run_key, tag_value
+from spot.sweep.summary import Row, format_summary, paper_table, summarize
+from spot.sweep.trial import RunFn, SweepContext, _trainable
+
+DEFAULT_STORAGE = Path("spot_runs") / "ray"
+
+
+def prebuild_datasets(sweep: Sweep) -> list[Path]:
+    """Build every registry dataset the sweep's runs need, here on the driver, before trials start.
+
+    A build uses all the driver's cores, where inside a trial it would be pinned to the trial's
+    CPUs while the other trials wait on its lock. Files given as paths are left alone. On a
+    cluster whose nodes do not share ``$SPOT_DATA_DIR`` the trials still build what they miss.
+    """
+    from spot.data import registry
+
+    wanted = []
+    for trial, seed in sweep.runs():
+        cfg = config_lib.resolve(trial.overrides, {"seed": seed})
+        key = (cfg.data.name, cfg.data.size, cfg.data.build_seed)
+        if cfg.data.source != "file" and not Path(cfg.data.name).exists() and key not in wanted:
+            wanted.append(key)
+    paths = []
+    for name, size, seed in wanted:
+        print(f"dataset {name} (size {size}, seed {seed}): building if not cached", flush=True)
+        paths.append(registry.build(name, size, seed))
+    return paths
+
+
+# --------------------------------------------------------------------------- store and Ray
+@dataclass(frozen=True)
+class _Store:
+    uri: str
+    how_to_open: str
+    wait_ready: Callable[[], None]
+
+
+@contextlib.contextmanager
+def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
+    """The tracking store of a launch; a SQLite store is served by a loopback server.
+
+    The server starts here but is only waited for by ``wait_ready()``, so that Ray can start
+    meanwhile.
+    """
+    from spot import mlflow_server, tracking
+
+    uri = tracking.given_uri(uri)
+    if uri and mlflow_server.is_local_store(uri) and not uri.startswith("sqlite:"):
+        raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
+                        "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
+    if uri and not uri.startswith("sqlite:"):
+        yield _Store(uri, f"MLflow: {uri}", lambda: None)
+        return
+    db = tracking.sqlite_path(uri) if uri else root / "mlflow.db"
+    db.parent.mkdir(parents=True, exist_ok=True)
+    backend = mlflow_server.sqlite_uri(db)
+    artifacts = db.resolve().parent / "artifacts"
+    server = mlflow_server.MlflowServer(backend, artifacts, log_path=db.resolve().parent / "mlflow-server.log")
+    print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
+    server.start(wait=False)
+    try:
+        yield _Store(server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
+                     server.wait_ready)
+    finally:
+        server.stop()
+
+
+def _init_ray(address: str | None) -> bool:
+    """Start local Ray (all CPUs, no dashboard) or connect to ``address``; False if already up."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    env_vars = {"RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
+                "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true"}  # no "View run" lines in the progress view
+    env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
+    if address:
+        ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
+    else:
+        os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # loopback-only local cluster, no token
+        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, runtime_env={"env_vars": env_vars},
+                 logging_level=logging.WARNING)
+    return True
+
+
+def _check_gpus(sweep: Sweep) -> None:
+    """Stop before any run is opened if trials ask for a GPU the Ray cluster does not have
+    (Tune would otherwise wait for it forever)."""
+    import ray
+
+    if sweep.resources["gpu"] > 0 and float(ray.cluster_resources().get("GPU", 0.0)) == 0:
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.gpu = {sweep.resources['gpu']:g} per trial, but the Ray "
+            "cluster has no GPU; set resources: {gpu: 0} (--smoke uses no GPU unless its block asks), or "
+            "give --address of a cluster with GPUs")
+
+
+# --------------------------------------------------------------------------- Tune
+def _trial_dirname(trial: Any) -> str:
+    return str(trial.trial_id)
+
+
+def _tuner(sweep: Sweep, trainable: Any, exp_dir: Path, *, resume: bool, retry_errored: bool,
+           max_concurrent: int | None) -> Any:
+    """A new Tune experiment over the sweep's trials, or the restored one with ``resume``."""
+    from ray import tune
+
+    param_space = {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
+    if resume and tune.Tuner.can_restore(str(exp_dir)):
+        return tune.Tuner.restore(str(exp_dir), trainable=trainable, param_space=param_space,
+                                  resume_unfinished=True, resume_errored=False, restart_errored=retry_errored)
+    reporter = tune.CLIReporter(
+        parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
+        metric_columns={"iql_step": "step", "score": "score", "score_final": "final", "seed": "seed"},
+        max_report_frequency=30, sort_by_metric=False)
+    return tune.Tuner(
+        trainable, param_space=param_space,
+        tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, reuse_actors=False,
+                                    trial_dirname_creator=_trial_dirname),
+        run_config=tune.RunConfig(name=exp_dir.name, storage_path=str(exp_dir.parent),
+                                  progress_reporter=reporter, verbose=1,
+                                  failure_config=tune.FailureConfig(max_failures=0, fail_fast=False)))
+
+
+def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
+    """``{run_key: error}`` for each seed of the errored trials, and whether some trial is unfinished."""
+    from ray import tune
+
+    # ExperimentAnalysis, not the ResultGrid: a Result of a restored trial that never reported lacks
+    # its config. Its warnings about trials that never started ("no metrics") are noise here.
+    quiet = logging.getLogger("ray.tune.analysis.experiment_analysis")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        trials = tune.ExperimentAnalysis(str(exp_dir)).trials
+    finally:
+        quiet.setLevel(level)
+    errors: dict[str, str] = {}
+    for trial in trials:
+        error = (trial.get_pickled_error() or trial.get_error()) if trial.status == "ERROR" else None
+        if error is not None:
+            lines = [ln for ln in str(error).splitlines() if ln.strip()]
+            for seed in trial.config["trial"]["seeds"]:
+                errors[run_key(trial.config["trial"]["overrides"], seed)] = lines[-1] if lines else repr(error)
+    return errors, any(t.status not in ("TERMINATED", "ERROR") for t in trials)
+
+
+def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_errored: bool,
+         max_concurrent: int | None, run_fn: RunFn | None) -> tuple[dict[str, str], bool]:
+    """Run (or restore) the Tune experiment.
+
+    Returns ``{run_key: error}`` for each seed of errored trials, and whether the launch was
+    interrupted (Ctrl-C: Tune stops and returns with trials left unfinished).
+    """
+    from ray import tune
+
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # use the CLIReporter of _tuner
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
+    trainable = tune.with_resources(tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
+                                    {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]})
+    _tuner(sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored,
+           max_concurrent=max_concurrent).fit()
+    return _trial_errors(exp_dir)
+
+
+# --------------------------------------------------------------------------- the launch's records
+def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) -> dict[str, Any]:
+    """The launch record: a new sweep id, or the one being resumed (checked to expand the same)."""
+    if not resume:
+        return {"sweep_id": f"{sweep.experiment}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}",
+                "spec_hash": sweep.spec_hash(), "file": str(Path(path).resolve())}
+    if not state_file.is_file():
+        raise SpotError(f"nothing to resume: no launch of sweep '{sweep.experiment}' under {state_file.parent}; "
+                        "start it without --resume")
+    state = json.loads(state_file.read_text())
+    if state["spec_hash"] != sweep.spec_hash():
+        raise SpotError(f"sweep file '{path}' expands to other trials than the launch {state['sweep_id']} "
+                        "being resumed; Ray cannot change a sweep's trials: start a new launch without --resume")
+    return state
+
+
+def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, Any], *, resume: bool) -> str:
+    """Create the launch's parent run (recorded in ``state``), or reopen it on resume."""
+    from spot import tracking
+
+    if resume:
+        parent_id = state["parent_run_id"]
+        n = tracking.close_orphans(client, experiment_id, {"sweep_id": state["sweep_id"]},
+                                   "process ended during an interrupted launch", keep=(parent_id,))
+        print(f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED",
+              flush=True)
+        client.update_run(parent_id, status="RUNNING")
+        client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
+        return parent_id
+    parent = client.create_run(experiment_id, run_name=f"sweep {state['sweep_id']}", tags={
+        "sweep_id": state["sweep_id"], "sweep_name": sweep.name, "spot.role": "sweep", "smoke": str(sweep.smoke),
+        "sweep_file": str(sweep.path.resolve()), "git_commit": tracking.git_commit()})
+    parent_id = parent.info.run_id
+    client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")
+    client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
+    client.log_batch(parent_id, params=_parent_params(sweep))
+    state["parent_run_id"] = parent_id
+    return parent_id
+
+
+def _parent_params(sweep: Sweep) -> list[Any]:
+    from mlflow.entities import Param
+
+    params = {"sweep.trials": len(sweep.trials()), "sweep.runs": len(sweep.runs()),
+              "sweep.seeds": list(sweep.seeds), "sweep.seed_mode": sweep.seed_mode,
+              "sweep.cpu": sweep.resources["cpu"], "sweep.gpu": sweep.resources["gpu"],
+              **{f"grid.{k}": v for k, v in sweep.grid.items()}, **{f"zip.{k}": v for k, v in sweep.zip.items()},
+              **{f"base.{k}": v for k, v in sweep.base.items()}}
+    return [Param(k, tag_value(v)[:6000]) for k, v in params.items()]
+
+
+def _close_parent(client: Any, ctx: SweepContext, rows: list[Row], table: str, *, interrupted: bool) -> None:
+    """Log the summary to the parent run and end it: FINISHED if every run finished, KILLED if
+    interrupted, else FAILED."""
+    from mlflow.entities import Metric
+
+    n_done = sum(r.status == "FINISHED" for r in rows)
+    now = int(time.time() * 1000)
+    client.log_batch(ctx.parent_run_id, metrics=[Metric(k, v, now, 0) for k, v in (
+        ("sweep/runs_total", len(rows)), ("sweep/runs_finished", n_done), ("sweep/runs_failed", len(rows) - n_done))])
+    client.log_text(ctx.parent_run_id, table + "\n", "summary.txt")
+    client.set_terminated(ctx.parent_run_id,
+                          "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED")
+
+
+# --------------------------------------------------------------------------- the launch
+def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool,
+                retry_errored: bool, address: str | None, max_concurrent: int | None,
+                run_fn: RunFn | None, resume_command: str) -> tuple[Any, SweepContext, dict[str, str], bool]:
+    """Ray, the parent run and the Tune experiment; returns ``(client, ctx, ray errors, interrupted)``.
+
+    However it ends, the runs its trials left RUNNING are closed (KILLED) before it returns or raises.
+    """
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+
+    sweep_id = state["sweep_id"]
+    started_ray = _init_ray(address)
+    client = ctx = None
+    crashed = True
+    try:
+        _check_gpus(sweep)
+        store.wait_ready()
+        client = MlflowClient(store.uri)
+        exp_id = tracking.experiment_id(sweep.experiment, store.uri)
+        parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
+        ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
+        if not resume:
+            state_file.parent.mkdir(parents=True, exist_ok=True)
+            state_file.write_text(json.dumps(state, indent=2))
+        print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+              f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}", flush=True)
+        errors, interrupted = _fit(sweep, ctx, state_file.parent / sweep_id, resume=resume,
+                                   retry_errored=retry_errored, max_concurrent=max_concurrent, run_fn=run_fn)
+        crashed = False
+    finally:
+        if started_ray:
+            import ray
+
+            ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
+        if crashed and ctx is not None:
+            tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id}, "launch interrupted",
+                                   keep=(ctx.parent_run_id,))
+            client.set_terminated(ctx.parent_run_id, "KILLED")
+    tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id},
+                           "launch interrupted" if interrupted else "trial process ended without closing its run",
+                           keep=(ctx.parent_run_id,))
+    return client, ctx, errors, interrupted
+
+
+def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, retry_errored: bool = False,
+              address: str | None = None, max_concurrent: int | None = None,
+              tracking_uri: str | None = None, storage: str | Path = DEFAULT_STORAGE,
+              workdir: str | Path | None = None, run_fn: RunFn | None = None) -> list[Row]:
+    """Run a sweep file end to end (``spot sweep``); return the summary rows.
+
+    Args:
+      path: sweep YAML file.
+      smoke: apply the file's ``smoke:`` block (experiment ``<name>-smoke``).
+      resume: continue the last launch of this sweep (same sweep id, same parent run).
+      retry_errored: with ``resume``, run errored trials again (their FAILED runs stay).
+      address: Ray cluster address; default: a local Ray with all CPUs.
+      max_concurrent: trials at once (default: the file's ``max_concurrent``, else as resources allow).
+      tracking_uri: MLflow URI; default ``$MLFLOW_TRACKING_URI``, else a loopback server on
+        ``<workdir>/spot_runs/mlflow.db``. A ``sqlite:`` URI is served the same way.
+      storage: Ray Tune storage folder (the launch's experiment is ``<storage>/<sweep id>``).
+      workdir: where ``spot_runs/`` goes (default: the current directory).
+      run_fn: the per-seed run function (default :func:`spot.pipeline.run`).
+    """
+    from spot import tracking
+
+    if retry_errored and not resume:
+        raise SpotError("--retry-errored goes with --resume")
+    sweep = load(path, smoke=smoke)
+    root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
+    state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
+    state = _state(sweep, path, state_file, resume=resume)
+    if resume and max_concurrent is not None:
+        print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
+    command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"
+    print(f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
+          f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
+          flush=True)
+    if address and not tracking.given_uri(tracking_uri):
+        print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
+              "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
+    if run_fn is None:
+        prebuild_datasets(sweep)
+    with _tracking_store(tracking_uri, root) as store:
+        client, ctx, errors, interrupted = _run_launch(
+            sweep, store, state, state_file, resume=resume, retry_errored=retry_errored, address=address,
+            max_concurrent=max_concurrent or sweep.max_concurrent, run_fn=run_fn, resume_command=command)
+        rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
+        table = format_summary(rows, sweep.axis_keys)
+        _close_parent(client, ctx, rows, table, interrupted=interrupted)
+        n_done = sum(r.status == "FINISHED" for r in rows)
+        paper = paper_table(sweep, store.uri, ctx.sweep_id) if sweep.table and n_done else ""
+    missing = "" if n_done == len(rows) else (f"\nto run what is missing: {command} "
+                                              "(add --retry-errored to run failed trials again)")
+    print(f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
+          f"filter: tags.sweep_id = '{ctx.sweep_id}'\n{store.how_to_open}{missing}", flush=True)
+    if paper:
+        print(f"\n{paper}", flush=True)
+    return rows

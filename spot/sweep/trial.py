@@ -1,0 +1,202 @@
+"""One trial, inside its Ray worker process: CPU slots and XLA settings, then each seed's run.
+
+:func:`_trainable` is the Ray Tune function trainable. It claims the trial's CPUs
+(:func:`cpu_slots`), sets XLA/JAX for the trial's share of the node (:func:`configure_process`,
+before anything imports jax) and calls :func:`run_trial`, which looks each seed up in MLflow (a
+FINISHED run with the sweep id and trial key is reported instead of running again), runs the
+others with :func:`spot.pipeline.run` and records a FAILED run for a seed that failed before the
+pipeline opened its own. Nothing here imports jax at module level.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import sys
+import tempfile
+import uuid
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spot import config as config_lib
+from spot.sweep.spec import config_key, run_key, tag_value
+
+RunFn = Callable[..., dict[str, Any]]
+Report = Callable[[dict[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class SweepContext:
+    """What every trial of one launch needs besides its own overrides (small; passed through Ray)."""
+
+    sweep_id: str
+    sweep_name: str
+    experiment_name: str
+    experiment_id: str
+    parent_run_id: str
+    tracking_uri: str
+    axis_keys: tuple[str, ...]
+
+
+# --------------------------------------------------------------------------- process setup
+def _claim(folder: Path, cpus: list[int], n: int) -> list[tuple[int, Any]]:
+    """Lock files of up to ``n`` free CPU slots among ``cpus`` (the open files hold the locks)."""
+    held: list[tuple[int, Any]] = []
+    for cpu in cpus:
+        if len(held) == n:
+            break
+        f = open(folder / f"cpu{cpu}", "a")  # held (locked) for the trial's lifetime
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            continue
+        held.append((cpu, f))
+    return held
+
+
+@contextlib.contextmanager
+def cpu_slots(n: int) -> Iterator[list[int]]:
+    """Claim ``n`` CPUs of this node for the trial and pin the whole process to them.
+
+    Slots are ``flock``s on files in ``$TMPDIR/spot-cpu-slots`` (released at the end of the block
+    or when the process dies, however it dies), so concurrent trials on one node get disjoint
+    CPUs. XLA sizes its CPU thread pools from the affinity mask, which makes this the thread-count
+    setting that works (an ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by
+    jaxlib 0.10). If ``n`` slots are not free (fractional CPUs, a trial as large as the node),
+    nothing is claimed or pinned. Yields the pinned CPUs (empty if none).
+    """
+    allowed = sorted(os.sched_getaffinity(0))
+    folder = Path(tempfile.gettempdir()) / "spot-cpu-slots"
+    folder.mkdir(exist_ok=True)
+    held: list[tuple[int, Any]] = []
+    try:
+        held = _claim(folder, allowed, n)
+        if len(held) < n or n >= len(allowed):
+            for _, f in held:
+                f.close()
+            held = []
+        cpus = [c for c, _ in held]
+        if cpus:
+            for tid in os.listdir("/proc/self/task"):
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(int(tid), cpus)
+        yield cpus
+    finally:
+        for _, f in held:
+            f.close()
+
+
+def configure_process(cpus: int, gpus: float) -> None:
+    """XLA and JAX settings for a trial's share of the node; must run before jax is imported.
+
+    One CPU: ``--xla_cpu_multi_thread_eigen=false`` (jax #4290). A fractional GPU: memory fraction
+    ``0.9 * gpu`` (JAX preallocates 75% otherwise, so two trials on one GPU would run out).
+    ``JAX_COMPILATION_CACHE_DIR`` defaults to a node-local cache shared by the node's trials.
+    """
+    if "jax" in sys.modules:
+        warnings.warn("jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
+                      "fraction of this trial do not apply", RuntimeWarning, stacklevel=2)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if cpus <= 1 and "xla_cpu_multi_thread_eigen" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_multi_thread_eigen=false".strip()
+    if 0 < gpus < 1:
+        fraction = f"{0.9 * gpus:.3f}"
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", fraction)
+        os.environ.setdefault("XLA_CLIENT_MEM_FRACTION", fraction)
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path.home() / ".cache" / "spot" / "jax"))
+
+
+# --------------------------------------------------------------------------- the runs of a trial
+def _finished(run: Any, seed: int) -> dict[str, Any]:
+    m = run.data.metrics
+    return {"seed": seed, "run_id": run.info.run_id, "skipped": 1,
+            "score_final": m.get("eval/score_final"), "score_best": m.get("eval/score_best")}
+
+
+def _run_seed(client: Any, overrides: dict[str, Any], seed: int, ctx: SweepContext, tags: dict[str, str],
+              report: Report, run_fn: RunFn) -> dict[str, Any]:
+    """Run one seed with ``run_fn``; a failure is recorded as a FAILED run and raised."""
+    from spot import tracking
+
+    cfg = config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name})
+
+    def on_eval(m: dict[str, float]) -> None:
+        report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
+
+    try:
+        out = run_fn(cfg, progress=False, parent_run_id=ctx.parent_run_id, extra_tags=tags, on_eval=on_eval)
+    except Exception as e:
+        tracking.record_failure(client, ctx.experiment_id, cfg, tags, e, parent_run_id=ctx.parent_run_id)
+        raise
+    return {"seed": seed, "run_id": out["run_id"], "skipped": 0, "score_final": out["eval/score_final"],
+            "score_best": out["eval/score_best"], "run_time_s": out.get("time/total_s")}
+
+
+def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx: SweepContext, *,
+              trial_id: str, report: Report, run_fn: RunFn | None = None) -> list[dict[str, Any]]:
+    """Run (or find already finished) each seed of one trial; report scores; raise if any seed failed.
+
+    Args:
+      overrides: the trial's flat config overrides (base + axis values), without the seed.
+      seeds: the seeds to run, one after another (``seed_mode: vmap`` gives several).
+      ctx: the launch's sweep context (MLflow experiment, parent run, tracking URI).
+      trial_id: Ray's trial id, logged as the ``trial_id`` tag.
+      report: called with intermediate (``score``) and final (``score_final``) metrics.
+      run_fn: :func:`spot.pipeline.run` unless given (tests pass another).
+
+    Returns:
+      One final-metrics dict per seed.
+    """
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+
+    if run_fn is None:
+        from spot import pipeline
+
+        run_fn = pipeline.run
+    os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
+    client = MlflowClient(ctx.tracking_uri)
+    axis_tags = {f"axis.{k}": tag_value(overrides[k]) for k in ctx.axis_keys}
+    finals: list[dict[str, Any]] = []
+    failures: list[tuple[int, BaseException]] = []
+    for seed in seeds:
+        key = run_key(overrides, seed)
+        done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
+        tags = {"sweep_id": ctx.sweep_id, "sweep_name": ctx.sweep_name, "trial_id": trial_id,
+                "trial_key": key, "config_key": config_key(overrides), "attempt": uuid.uuid4().hex, **axis_tags}
+        try:
+            final = _finished(done, seed) if done is not None else _run_seed(
+                client, overrides, seed, ctx, tags, report, run_fn)
+        except Exception as e:  # noqa: BLE001 - recorded, reported by Ray after the other seeds ran
+            failures.append((seed, e))
+            continue
+        report(final)
+        finals.append(final)
+    if len(failures) == 1 and len(seeds) == 1:
+        raise failures[0][1]
+    if failures:
+        raise RuntimeError("; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failures))
+    return finals
+
+
+def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:
+    """The Ray Tune function trainable: one trial = ``config['trial']`` (:meth:`Trial.to_config`).
+
+    The per-trial process settings are made here, first: Tune starts every trial in a fresh actor
+    process (``reuse_actors=False``) and nothing before this line imports jax.
+    """
+    from ray import tune
+
+    context = tune.get_context()
+    need = context.get_trial_resources().required_resources
+    cpus = max(1, int(need.get("CPU", 1)))
+    with cpu_slots(cpus):
+        configure_process(cpus, float(need.get("GPU", 0.0)))
+        run_trial(config["trial"]["overrides"], config["trial"]["seeds"], ctx, trial_id=context.get_trial_id(),
+                  report=tune.report, run_fn=run_fn)
