@@ -5,6 +5,11 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#   kernelspec:
+#     display_name: Python 3 (ipykernel)
+#     language: python
+#     name: python3
 # ---
 
 # %% [markdown]
@@ -12,43 +17,71 @@
 #
 # Fig. 2 (extrapolation error vs similarity to the predicted subgoal), Fig. 4 (PCA of observations
 # and subgoals) and Fig. 3 (a Hopper state rendered beside its predicted subgoal), all through
-# `spot.figures` (the same code as `spot figures`).
+# `spot.figures` (the same code as `spot figures`). Each figure is shown inline and written to
+# `out_dir` as a PNG.
 #
-# Run it as a script (`python analysis/figures.py`) or as a notebook after
-# `jupytext --to notebook analysis/figures.py`. Parameters come from the environment:
+# * Notebook: `jupytext --to notebook analysis/figures.py` and open it in Jupyter, or execute it
+#   with papermill (parameters in the cell tagged `parameters` below):
+#   `jupytext --to notebook analysis/figures.py -o /tmp/figures.ipynb &&
+#   papermill /tmp/figures.ipynb /tmp/figures-run.ipynb -p fig2_dataset hopper-medium-replay`
+# * Script: `python analysis/figures.py` writes the PNGs and prints the Fig. 2 numbers.
 #
-# * `SPOT_TRACKING_URI`: the MLflow store (default as in `spot tables`).
-# * `SPOT_FIG2_EXPERIMENTS` (default `table1`, `-smoke` added with `SPOT_SMOKE=1`), `SPOT_SWEEP_ID`,
-#   `SPOT_FIG2_DATASET`, `SPOT_FIG2_SOURCE`: the PT/SPOT runs of Fig. 2 (one dataset, one source).
-# * `SPOT_FIG4_RUN`: the run whose projection to copy (default: the first SPOT run that has one).
-# * `SPOT_CVAE`, `SPOT_CVAE_DATASET`, `SPOT_CVAE_SIZE`, `SPOT_FIG3_INDEX` (comma-separated):
-#   Fig. 3 needs a CVAE (a stage-cache entry, `~/.cache/spot/stages/cvae-*.pkl`) and the dataset it
-#   was trained for; without `SPOT_CVAE` the cell only says so.
-# * `SPOT_ANALYSIS_OUT` (default `analysis/out`).
-#
-# Rendering is headless (MuJoCo with `MUJOCO_GL=egl`, set by `spot.figures` when unset).
+# Which runs: `fig2_experiments` if given; otherwise, as `spot tables --table 1` picks Table 1's
+# runs (Fig. 2 is drawn from Table 1's PT and SPOT runs), the `table1` experiment, else
+# `table1-smoke`, else every experiment in the store. `smoke=True` reads `table1-smoke` only.
+# Rendering is headless (MuJoCo with `MUJOCO_GL=egl`, set by `spot.runtime.configure()` when unset).
 
 # %%
 import os
 from pathlib import Path
 
-from spot import SpotError, figures, tables
+from spot import SpotError, figures, runtime, tables, tracking
 
-TRACKING_URI = os.environ.get("SPOT_TRACKING_URI", "")
-SUFFIX = "-smoke" if os.environ.get("SPOT_SMOKE") == "1" else ""
-FIG2_EXPERIMENTS = os.environ.get("SPOT_FIG2_EXPERIMENTS", "table1" + SUFFIX).split(",")
-SWEEP_ID = os.environ.get("SPOT_SWEEP_ID") or None
-FIG2_DATASET = os.environ.get("SPOT_FIG2_DATASET") or None
-FIG2_SOURCE = os.environ.get("SPOT_FIG2_SOURCE") or None
-FIG4_RUN = os.environ.get("SPOT_FIG4_RUN") or None
-CVAE = os.environ.get("SPOT_CVAE") or None
-CVAE_DATASET = os.environ.get("SPOT_CVAE_DATASET", "hopper-medium-expert")
-CVAE_SIZE = os.environ.get("SPOT_CVAE_SIZE", "small")
-FIG3_INDEX = [int(i) for i in os.environ.get("SPOT_FIG3_INDEX", "100,200").split(",")]
-OUT = Path(os.environ.get("SPOT_ANALYSIS_OUT", "analysis/out"))
+runtime.configure()  # XLA flags and headless MuJoCo, before jax or mujoco start
+
+try:  # inline output in Jupyter/papermill, text when run as a script
+    from IPython import get_ipython
+    from IPython.display import Image, Markdown, display
+
+    INLINE = get_ipython() is not None
+except ImportError:
+    INLINE = False
+
+# %% tags=["parameters"]
+# Defaults come from the environment (SPOT_*), so the script form takes them too; papermill's
+# `-p NAME VALUE` overrides them.
+tracking_uri: str = os.environ.get("SPOT_TRACKING_URI", "")  # MLflow store; "": $MLFLOW_TRACKING_URI, else ./spot_runs or ./mlruns
+fig2_experiments: str = os.environ.get("SPOT_FIG2_EXPERIMENTS", "")  # comma-separated; "": as spot tables --table 1
+smoke: bool = os.environ.get("SPOT_SMOKE", "") in ("1", "true")  # read table1-smoke
+sweep_id: str = os.environ.get("SPOT_SWEEP_ID", "")  # only the runs of this sweep (tag sweep_id)
+fig2_dataset: str = os.environ.get("SPOT_FIG2_DATASET", "")  # the paper's dataset name, if the runs span several
+fig2_source: str = os.environ.get("SPOT_FIG2_SOURCE", "")  # recipe or file, if the runs span both
+ddof: int = int(os.environ.get("SPOT_DDOF", "1"))  # std over runs: 1 sample, 0 population
+fig4_run: str = os.environ.get("SPOT_FIG4_RUN", "")  # run whose projection to show; "": the first SPOT run with one
+cvae: str = os.environ.get("SPOT_CVAE", "")  # Fig. 3: a CVAE stage-cache entry (~/.cache/spot/stages/cvae-*.pkl)
+cvae_dataset: str = os.environ.get("SPOT_CVAE_DATASET", "hopper-medium-expert")  # the dataset that CVAE was trained on
+cvae_size: str = os.environ.get("SPOT_CVAE_SIZE", "small")  # tiny, small or paper
+fig3_index: str = os.environ.get("SPOT_FIG3_INDEX", "100,200")  # dataset transitions to render, comma-separated
+out_dir: str = os.environ.get("SPOT_ANALYSIS_OUT", "analysis/out")  # where the PNGs are written
+
+# %%
+def show_png(path: Path) -> None:
+    if INLINE:
+        display(Image(filename=str(path)))
+    print(f"wrote {path}")
+
+
+URI = tracking.resolve_uri(tracking_uri or None, read=True)  # the store to read; it must exist
+OUT = Path(out_dir)
 OUT.mkdir(parents=True, exist_ok=True)
-
-runs = tables.load_runs(TRACKING_URI, FIG2_EXPERIMENTS, SWEEP_ID)
+if fig2_experiments:
+    experiments = [n.strip() for n in fig2_experiments.split(",") if n.strip()]
+elif smoke:
+    experiments = [tables.SWEEP_EXPERIMENTS[1] + "-smoke"]
+else:
+    experiments = tables.default_experiments(1, URI)
+runs = tables.load_runs(URI, experiments, sweep_id or None)
+print(f"{len(runs)} runs from {', '.join(experiments) if experiments else 'every experiment'}")
 
 # %% [markdown]
 # ## Fig. 2: extrapolation error vs cos(s, ĝ)
@@ -56,26 +89,37 @@ runs = tables.load_runs(TRACKING_URI, FIG2_EXPERIMENTS, SWEEP_ID)
 # `diag/extrap_bin_*` metrics); the curves are the mean over runs per bin, the bands ± std.
 
 # %%
-bins = figures.extrapolation_bins(runs, TRACKING_URI, dataset=FIG2_DATASET, source=FIG2_SOURCE)
-fig2 = figures.plot_fig2(bins, OUT / "fig2.png")
-summary = figures.summarize_extrapolation(bins)
-print(summary.round(3).to_string(index=False))
-print(f"wrote {fig2}")
+try:
+    bins = figures.extrapolation_bins(runs, URI, dataset=fig2_dataset or None,
+                                      source=fig2_source or None)
+except SpotError as e:
+    print(f"Fig. 2 not drawn: {e}")
+else:
+    summary = figures.summarize_extrapolation(bins, ddof=ddof)
+    if INLINE:
+        display(Markdown("**Fig. 2: mean extrapolation error per method, group and bin**"), summary.round(3))
+    else:
+        print(summary.round(3).to_string(index=False))
+    show_png(figures.plot_fig2(bins, OUT / "fig2.png", ddof=ddof))
 
 # %% [markdown]
 # ## Fig. 4: observations and subgoals, PCA
-# Every SPOT run logs `subgoal_projection.png`; this copies one.
+# Every SPOT run logs `subgoal_projection.png`; this shows one.
 
 # %%
-candidates = [FIG4_RUN] if FIG4_RUN else list(runs.loc[(runs["method"] == "spot") & (runs["status"] == "FINISHED"), "run_id"])
-fig4 = None
+finished_spot = (runs["method"] == "spot") & (runs["status"] == "FINISHED")
+candidates = [fig4_run] if fig4_run else list(runs.loc[finished_spot, "run_id"])
+fig4, missing = None, []
 for run_id in candidates:
     try:
-        fig4 = figures.fetch_artifact(run_id, figures.FIG4_ARTIFACT, OUT / "fig4.png", TRACKING_URI)
+        fig4 = figures.fetch_artifact(run_id, figures.FIG4_ARTIFACT, OUT / "fig4.png", URI)
         break
     except SpotError as e:
-        print(e)
-print(f"wrote {fig4}" if fig4 else "no run with a subgoal projection")
+        missing.append(str(e))
+if fig4:
+    show_png(fig4)
+else:
+    print("Fig. 4 not drawn: no finished SPOT run with a subgoal projection", *missing[-3:], sep="\n")
 
 # %% [markdown]
 # ## Fig. 3: a state and its predicted subgoal
@@ -83,12 +127,13 @@ print(f"wrote {fig4}" if fig4 else "no run with a subgoal projection")
 # side with MuJoCo.
 
 # %%
-if CVAE:
+if cvae:
     from spot.data import registry
 
-    params = figures.load_cvae(CVAE)
-    ds, _ = registry.load(CVAE_DATASET, CVAE_SIZE, progress=False)
-    obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, FIG3_INDEX)
-    print(f"wrote {figures.render_state_and_subgoal(CVAE_DATASET, obs, goal, OUT / 'fig3.png')}")
+    params = figures.load_cvae(cvae)
+    ds, _ = registry.load(cvae_dataset, cvae_size, progress=False)
+    index = [int(i) for i in fig3_index.split(",")]
+    obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, index)
+    show_png(figures.render_state_and_subgoal(cvae_dataset, obs, goal, OUT / "fig3.png"))
 else:
-    print("Fig. 3 skipped: set SPOT_CVAE to a CVAE stage-cache entry (and SPOT_CVAE_DATASET)")
+    print("Fig. 3 not drawn: set cvae to a CVAE stage-cache entry (and cvae_dataset to its dataset)")
