@@ -55,6 +55,55 @@ def _data_info(args: argparse.Namespace) -> None:
     print(json.dumps({"summary": ds.summary(), "card": card}, indent=2, default=str))
 
 
+def _data_fetch(args: argparse.Namespace) -> None:
+    from spot.data import fetch
+
+    if args.list:
+        sources = fetch.load_registry(args.registry)
+        print(f"{'name':36s} {'files':>5s} {'bytes':>12s}  {'checksum from':22s} description")
+        for s in sources.values():
+            sizes = [f.size for f in s.files]
+            total = f"{sum(sizes):,}" if None not in sizes else "?"
+            trust = ",".join(sorted({f.trust for f in s.files}))
+            print(f"{s.name:36s} {len(s.files):5d} {total:>12s}  {trust:22s} {s.description}")
+        print(f"{'minari:<dataset id>':36s} {'':5s} {'':>12s}  {'tofu':22s} a Minari dataset through "
+              "minari.download_dataset (extra 'minari')")
+        print("\nchecksum from: lfs-oid = a mirror's published Git LFS id; git-commit = the file in a "
+              "pinned git commit; third-party = recorded by an independent project; tofu = trust on "
+              f"first use (recorded in the lock file, default ./{fetch.DEFAULT_LOCK})")
+        print(f"destination: {args.dest or fetch.default_dest()}   registry: "
+              f"{fetch.registry_path(args.registry) or 'spot/data/sources.json (package)'}")
+        return
+    if not args.name:
+        raise SpotError("spot data fetch needs a NAME (or --list)")
+    if args.name.startswith(fetch.MINARI_PREFIX):
+        folder, digest, status = fetch.fetch_minari(args.name[len(fetch.MINARI_PREFIX):], lock=args.lock)
+        lock = args.lock or fetch.default_lock()
+        what = ("TOFU: Minari publishes no checksums; recorded the folder digest in"
+                if status == "recorded" else "matches the folder digest in")
+        print(f"fetched {args.name} -> {folder}\n  {what} {lock}: {digest}")
+        return
+    result = fetch.fetch(args.name, args.dest, mirrors=args.mirror, registry=args.registry,
+                         lock=args.lock, progress=not args.quiet)
+    src = result.source
+    print(f"fetched {src.name} -> {(args.dest and Path(args.dest)) or fetch.default_dest()}")
+    for f in result.files:
+        print(f"  {f.status:10s} {f.path}  {f.size:,} B  sha256 {f.sha256}")
+        if f.status == "recorded":
+            print(f"             TOFU: no published checksum; this first download's sum is now in "
+                  f"{result.lock}: commit it, later downloads must match")
+        else:
+            print(f"             verified against: {fetch._trust_words(f.trust)}")
+    if src.kind in ("d4rl", "robomimic"):
+        print(f"use it: data.name={result.files[0].path}")
+        if src.labels:
+            print(f"human labels: spot data fetch {src.labels}, then labels.source=human "
+                  "labels.path=<its folder>")
+    elif src.kind == "pt-labels":
+        print(f"use it: labels.source=human labels.path={result.files[0].path.parent} "
+              f"(with the data of {src.labels_for})")
+
+
 # --------------------------------------------------------------------------- labels
 def _labels_make(args: argparse.Namespace) -> None:
     from spot.data import labels, registry
@@ -219,6 +268,24 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
     d.add_argument("--seed", type=int, default=0)
     d.set_defaults(fn=_data_info)
+    d = data.add_parser(
+        "fetch", help="download the paper's real data files (D4RL, robomimic, PT labels), verified",
+        description="Download a registered source's files to DEST with resume and mirror fallback; "
+                    "each file's size and sha256 are verified before it is put in place. "
+                    "Example: spot data fetch d4rl/hopper-medium-replay-v2",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    d.add_argument("name", nargs="?", help="registry name (see --list) or minari:<dataset id>")
+    d.add_argument("--list", action="store_true", help="list the registered sources and exit")
+    d.add_argument("--dest", help="destination folder (default: $SPOT_DATA_DIR/real)")
+    d.add_argument("--mirror", action="append", default=[], metavar="URL",
+                   help="base URL tried first, as URL/<file path> (repeatable)")
+    d.add_argument("--registry", metavar="FILE",
+                   help="another sources registry in the same JSON format, e.g. a private mirror "
+                        "or a test server (default: $SPOT_FETCH_REGISTRY, else the package's)")
+    d.add_argument("--lock", metavar="FILE",
+                   help="trust-on-first-use lock file (default: $SPOT_DATA_LOCK, else ./spot-data.lock.json)")
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.set_defaults(fn=_data_fetch)
 
     lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(dest="sub", required=True, metavar="SUB")
     d = lab.add_parser("make", help="scripted-teacher queries on a dataset -> .npz")

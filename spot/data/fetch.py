@@ -51,6 +51,7 @@ SIDECAR_SUFFIX = ".verified.json"
 PART_SUFFIX = ".part"
 MINARI_PREFIX = "minari:"
 _CHUNK = 1 << 20
+_NET_CHUNK = 1 << 16  # bytes per network read: what a dropped connection can lose before a resume
 
 
 # --------------------------------------------------------------------------- registry
@@ -330,7 +331,7 @@ def _fetch_file(source: Source, sf: SourceFile, dest: Path, lock_path: Path,
             if not isinstance(sha, str) or len(sha) != 64:
                 raise SpotError(f"lock file '{lock_path}': '{key}' has no valid sha256")
     final.parent.mkdir(parents=True, exist_ok=True)
-    with _flock(final.with_name(final.name + ".lock")):
+    with _flock(dest / ".locks" / (sf.path.replace("/", "__") + ".lock")):
         if final.is_file() and (sha is not None):
             have_size = final.stat().st_size
             if (size is None or have_size == size) and sha256_file(final) == sha:
@@ -439,7 +440,7 @@ def _download(url: str, part: Path, size: int | None, progress: bool, retries: i
                            unit_divisor=1024, desc=part.name[: -len(PART_SUFFIX)],
                            disable=not progress, leave=False)
                 with bar, open(part, mode) as fh:
-                    for chunk in r.iter_content(_CHUNK):
+                    for chunk in r.iter_content(_NET_CHUNK):
                         fh.write(chunk)
                         bar.update(len(chunk))
             break

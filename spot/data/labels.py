@@ -322,6 +322,9 @@ def read_pt_labels(folder: str | Path, num_queries: int | None = None) -> Prefer
     folder = Path(folder)
     if not folder.is_dir():
         raise SpotError(f"label folder '{folder}' does not exist")
+    from spot.data.fetch import verify_fetched
+
+    verify_fetched(folder)  # files from `spot data fetch`: recheck their size and sha256
     path_1, m_1 = _find(folder, r"indices_num\d+(?:_q(\d+))?")
     path_2, m_2 = _find(folder, r"indices_2_num\d+(?:_q(\d+))?")
     path_y, _ = _find(folder, "label_human")

@@ -159,6 +159,9 @@ def load_raw(name: str, size: str = "small", seed: int = 0, *, source: str = "au
     if source == "file" or (source == "auto" and as_path.exists()):
         if not as_path.exists():
             raise SpotError(f"dataset file '{name}' does not exist")
+        from spot.data.fetch import verify_fetched
+
+        verify_fetched(as_path)  # a file from `spot data fetch`: recheck its size and sha256
         raw = formats.load_dataset_file(as_path)
         card = {"name": as_path.stem, "source": "file", "path": str(as_path.resolve()),
                 **raw.metadata.get("spot_card", {})}
