@@ -200,11 +200,50 @@ def _sweep(args: argparse.Namespace) -> int:
 def _tables(args: argparse.Namespace) -> None:
     from spot import tables
 
-    experiments = args.experiment or tables.default_experiments(args.table, args.tracking_uri)
-    runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
+    if args.results:
+        from spot import results
+
+        runs = results.read(args.results)
+        if args.experiment:
+            runs = runs[runs["experiment"].isin(args.experiment)]
+    else:
+        experiments = args.experiment or tables.default_experiments(args.table, args.tracking_uri)
+        runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
     table = tables.build_table(runs, args.table, args.metric, ddof=args.ddof, allow_mixed=args.allow_mixed)
     text = tables.format_table(table, args.format)
     if args.out:
+        Path(args.out).write_text(text)
+        print(f"wrote {args.out}")
+    else:
+        print(text, end="")
+
+
+def _results_export(args: argparse.Namespace) -> None:
+    from spot import results, tables
+
+    runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
+    if runs.empty:
+        raise SpotError(f"no runs in experiments {args.experiment} of {args.tracking_uri or 'the default store'}")
+    path = results.export(runs, args.out)
+    print(f"wrote {path} ({len(runs)} runs)")
+
+
+def _report(args: argparse.Namespace) -> None:
+    from spot import report, results, tables
+
+    if args.results:
+        runs = results.read(args.results)
+    else:
+        runs = results.to_frame(tables.load_runs(args.tracking_uri, None, args.sweep_id))
+    use = {}
+    for item in args.use or []:
+        claim, sep, name = item.partition("=")
+        if not sep or claim not in report.EXPERIMENTS:
+            raise SpotError(f"--use {item!r}: expected CLAIM=EXPERIMENT with CLAIM one of {sorted(report.EXPERIMENTS)}")
+        use[claim] = (name,)
+    text = report.format_rows(report.build(runs, use))
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")
     else:
@@ -356,7 +395,26 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
     d.add_argument("--allow-mixed", action="store_true", help="average cells whose runs differ in more than the seed")
     d.add_argument("--out", help="write the table to this file instead of printing it")
+    d.add_argument("--results", nargs="+", help="read runs from results CSVs (files or folders) instead of MLflow")
     d.set_defaults(fn=_tables)
+
+    res = sub.add_parser("results", help="export finished runs from MLflow to a small CSV").add_subparsers(
+        dest="sub", required=True, metavar="SUB")
+    d = res.add_parser("export", help="one row per run: identity, config hash, data digest, params, metrics")
+    d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--out", required=True, help="the CSV to write, e.g. results/lab_table1.csv")
+    d.set_defaults(fn=_results_export)
+
+    d = sub.add_parser("report", help="the paper's claims: effect, 95%% CI, n and verdict per claim")
+    d.add_argument("--results", nargs="+", help="results CSVs (files or folders); default: read MLflow")
+    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--use", action="append", metavar="CLAIM=EXPERIMENT",
+                   help="read a claim's runs from this experiment (claims 1-6, C for the controls)")
+    d.add_argument("--out", help="write the report (Markdown) to this file instead of printing it")
+    d.set_defaults(fn=_report)
 
     figs = sub.add_parser("figures", help="the paper's figures 2, 3 and 4 from runs").add_subparsers(
         dest="figure", required=True, metavar="FIGURE")
@@ -380,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     for d in (figs.choices["fig2"], figs.choices["fig4"]):
         d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
     for d in (figs.choices["fig3"], figs.choices["fig4"]):
-        d.add_argument("--cvae", help="a CVAE stage-cache entry (cvae-<hash>.pkl, a trusted pickle)")
+        d.add_argument("--cvae", help="a CVAE stage-cache entry ($SPOT_CACHE_DIR/cvae-<hash>.npz)")
         d.add_argument("--dataset", help="with --cvae: registered dataset name or file")
         d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
         d.add_argument("--data-seed", type=int, default=0, help="dataset build seed")

@@ -1,0 +1,283 @@
+"""The paper's claims, measured: one effect with its 95 % CI, n and a verdict per claim (`spot report`).
+
+Input is a results frame (:mod:`spot.results`: a committed CSV, or runs read from MLflow). Each
+claim compares two arms of runs from one experiment (a sweep's MLflow experiment), dataset by
+dataset; datasets where either arm has no finished run are left out of that claim and named, so
+two arms are never averaged over different datasets. Within a dataset and config, a re-run of a
+seed replaces the earlier run; FAILED, KILLED and unfinished runs never count and are reported.
+
+Effects (``x`` is the arm the paper says is better):
+
+* a **mean difference**: over datasets, ``mean(x) - mean(y)`` (each dataset weighs the same);
+  verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*;
+* the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it.
+
+CIs are 95 % stratified-bootstrap percentile intervals (:mod:`spot.stats`). Both the last
+evaluation (``eval/score_final``) and the best (``eval/score_best``) are reported, in separate
+tables, because the paper does not say which it reports; verdicts are read from the last.
+
+The claims (paper section; which runs):
+
+1. SPOT ≥ PT and MR on average (§5.1, Table 1): ``method`` spot vs pt, spot vs mr.
+2. Top-10 % attention subgoals beat bottom-10 % (Table 2): ``subgoal.group`` top vs bottom.
+3. Cosine shaping with λ = 1 is best among Table 3's variants: cosine at λ = 1 vs the
+   best-scoring other (kind, λ) cell, named in the row (the runner-up is picked on the point
+   estimates, so its CI is slightly optimistic for the runner-up).
+4. SPOT keeps its score with fewer queries (Table 4): SPOT's change from the most to the fewest
+   queries minus PT's (> 0: SPOT loses less).
+5. MSE + cosine beats MSE for the CVAE (Table 7): ``cvae.loss`` mse_cos vs mse.
+6. SPOT lowers out-of-distribution extrapolation error (Fig. 2): PT's
+   ``diag/extrapolation_error_ood`` minus SPOT's (> 0: SPOT lower), from the Table 1 runs.
+
+Controls no table has (does the gain come from attention subgoals, or from a survival bonus?):
+SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random``), and SPOT vs a
+**constant bonus** of the same mean as SPOT's cosine term (``shaping.kind=constant``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from spot import SpotError, stats
+
+METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"}
+OOD_METRIC = "metrics.diag/extrapolation_error_ood"
+# Where each claim's runs are: the first experiment in the list that has runs is used.
+EXPERIMENTS = {
+    "1": ("lab_table1", "table1"), "2": ("lab_table2", "table2_topk"), "3": ("lab_table3", "table3_shaping"),
+    "4": ("lab_table4", "table4_queries"), "5": ("lab_table7", "table7_cvae_loss"), "6": ("lab_table1", "table1"),
+    "C": ("lab_controls",),
+}
+
+Filter = Callable[[pd.DataFrame], pd.Series]
+
+
+def _param(key: str, value: str) -> Filter:
+    def select(df: pd.DataFrame) -> pd.Series:
+        col = f"params.{key}"
+        return df[col].astype(str) == value if col in df else pd.Series(False, index=df.index)
+    return select
+
+
+def _method(name: str) -> Filter:
+    return lambda df: df["method"] == name
+
+
+def _both(a: Filter, b: Filter) -> Filter:
+    return lambda df: a(df) & b(df)
+
+
+def _not(a: Filter) -> Filter:
+    return lambda df: ~a(df)
+
+
+@dataclass
+class Row:
+    """One line of the report."""
+
+    claim: str
+    text: str
+    comparison: str
+    experiment: str
+    stat: str  # last | best | ood
+    effect: stats.Estimate | None = None
+    poi: stats.Estimate | None = None
+    n_x: int = 0
+    n_y: int = 0
+    datasets: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def verdict(self) -> str:
+        return "no runs" if self.effect is None else stats.verdict(self.effect)
+
+
+# --------------------------------------------------------------------------- selecting runs
+def finished(df: pd.DataFrame) -> pd.DataFrame:
+    """FINISHED runs, one per (config, seed): a re-run replaces the earlier run."""
+    out = df[df["status"] == "FINISHED"]
+    if "start_time" in out:
+        out = out.sort_values("start_time", kind="stable")
+    return out.drop_duplicates(["config_hash", "seed"], keep="last")
+
+
+def _experiment(df: pd.DataFrame, names: Sequence[str]) -> tuple[str, pd.DataFrame]:
+    for name in names:
+        sub = df[df["experiment"] == name]
+        if len(sub):
+            return name, sub
+    return names[0], df.iloc[0:0]
+
+
+def _by_dataset(df: pd.DataFrame, metric: str) -> dict[str, np.ndarray]:
+    if metric not in df:
+        return {}
+    out = {}
+    for name, g in df.groupby("paper_dataset" if "paper_dataset" in df else "dataset", sort=True):
+        v = pd.to_numeric(g[metric], errors="coerce").to_numpy(np.float64)
+        v = v[np.isfinite(v)]
+        if len(v):
+            out[str(name)] = v
+    return out
+
+
+def _failures(df: pd.DataFrame, select: Filter, label: str) -> list[str]:
+    bad = df[select(df) & (df["status"] != "FINISHED")]
+    if bad.empty:
+        return []
+    counts = bad.groupby("status").size().to_dict()
+    return [f"{label}: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + " (not counted)"]
+
+
+def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
+    """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
+    done = finished(df)
+    xs, ys = _by_dataset(done[x(done)], metric), _by_dataset(done[y(done)], metric)
+    shared = sorted(set(xs) & set(ys))
+    row.notes += _failures(df, x, labels[0]) + _failures(df, y, labels[1])
+    for name in sorted(set(xs) ^ set(ys)):
+        row.notes.append(f"{name} left out: only {labels[0] if name in xs else labels[1]} has finished runs")
+    if not shared:
+        return row
+    sx, sy = [xs[d] for d in shared], [ys[d] for d in shared]
+    row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
+    row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement)
+    row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
+    return row
+
+
+# --------------------------------------------------------------------------- the claims
+def _claim3(df: pd.DataFrame, metric: str, row: Row) -> Row:
+    if "params.shaping.kind" not in df or "params.shaping.weight" not in df:
+        return row
+    shaped = df[df["params.shaping.kind"].isin(["cosine", "neg_distance", "potential"])]
+    best = _both(_param("shaping.kind", "cosine"), lambda d: pd.to_numeric(d["params.shaping.weight"]) == 1.0)
+    done = finished(shaped)
+    others = done[~best(done)] if len(done) else done
+    if others.empty:
+        return compare(shaped, best, _not(best), metric, row, ("cosine λ=1", "others"))
+    means = others.groupby(["params.shaping.kind", "params.shaping.weight"])[metric].mean()
+    kind, weight = means.idxmax()
+    row.comparison = f"cosine λ=1 vs runner-up {kind} λ={weight}"
+    runner = _both(_param("shaping.kind", kind), _param("shaping.weight", str(weight)))
+    return compare(shaped, best, runner, metric, row, ("cosine λ=1", f"{kind} λ={weight}"))
+
+
+def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
+    done = finished(df)
+    if done.empty or "params.labels.num_queries" not in done:
+        return row
+    q = pd.to_numeric(done["params.labels.num_queries"])
+    strata: list[list[np.ndarray]] = [[], [], [], []]  # spot few, spot most, pt few, pt most
+    for name, g in done.groupby("paper_dataset"):
+        qs = q[g.index]
+        few, most = qs.min(), qs.max()
+        cells = [g[(g["method"] == m) & (qs == n)][metric].dropna().to_numpy(np.float64)
+                 for m in ("spot", "pt") for n in (few, most)]
+        if few == most or any(len(c) == 0 for c in cells):
+            row.notes.append(f"{name} left out: needs spot and pt runs at two query counts")
+            continue
+        for s, c in zip(strata, cells, strict=True):
+            s.append(c)
+        row.datasets.append(f"{name} ({few} vs {most} queries)")
+    if not strata[0]:
+        return row
+    m = len(strata[0])
+
+    def diff_in_diff(*xs: np.ndarray, axis: int = -1) -> np.ndarray:
+        mean = [np.mean(x, axis=axis) for x in xs]
+        return np.mean([(mean[i] - mean[m + i]) - (mean[2 * m + i] - mean[3 * m + i]) for i in range(m)], axis=0)
+
+    flat = [a for s in strata for a in s]
+    row.effect = stats.estimate(flat, diff_in_diff)
+    row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
+    return row
+
+
+CLAIMS: tuple[tuple[str, str, str, Callable[[pd.DataFrame, str, Row], Row]], ...] = (
+    ("1", "SPOT ≥ PT on average (Table 1)", "spot vs pt",
+     lambda df, m, r: compare(df, _method("spot"), _method("pt"), m, r, ("spot", "pt"))),
+    ("1", "SPOT ≥ MR on average (Table 1)", "spot vs mr",
+     lambda df, m, r: compare(df, _method("spot"), _method("mr"), m, r, ("spot", "mr"))),
+    ("2", "top-10 % subgoals beat bottom-10 % (Table 2)", "group top vs bottom",
+     lambda df, m, r: compare(df, _param("subgoal.group", "top"), _param("subgoal.group", "bottom"), m, r,
+                              ("top", "bottom"))),
+    ("3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _claim3),
+    ("4", "SPOT keeps its score with fewer queries, PT does not (Table 4)",
+     "(spot few − most) − (pt few − most)", _claim4),
+    ("5", "MSE + cosine beats MSE for the CVAE (Table 7)", "mse_cos vs mse",
+     lambda df, m, r: compare(df, _param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), m, r,
+                              ("mse_cos", "mse"))),
+    ("C", "control: attention subgoals beat random-state subgoals", "spot vs random subgoals",
+     lambda df, m, r: compare(df, _both(_method("spot"), _not(_param("subgoal.source", "random"))),
+                              _param("subgoal.source", "random"), m, r, ("spot", "random subgoals"))),
+    ("C", "control: SPOT beats a constant bonus of the same mean", "spot vs constant bonus",
+     lambda df, m, r: compare(df, _param("shaping.kind", "cosine"), _param("shaping.kind", "constant"), m, r,
+                              ("spot", "constant bonus"))),
+)
+
+
+def build(df: pd.DataFrame, experiments: Mapping[str, Sequence[str]] | None = None) -> list[Row]:
+    """Every claim's rows for the last and the best score, and claim 6 for the OOD error."""
+    exps = {**EXPERIMENTS, **(experiments or {})}
+    rows = []
+    for stat, metric in METRICS.items():
+        for claim, text, comparison, fn in CLAIMS:
+            name, sub = _experiment(df, exps[claim])
+            rows.append(fn(sub, metric, Row(claim, text, comparison, name, stat)))
+    name, sub = _experiment(df, exps["6"])
+    row = Row("6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", name, "ood")
+    rows.append(compare(sub, _method("pt"), _method("spot"), OOD_METRIC, row, ("pt", "spot")))
+    return rows
+
+
+def aggregate(df: pd.DataFrame, metric: str = METRICS["last"], reference: str = "spot") -> pd.DataFrame:
+    """Per method over the datasets every method has: IQM [CI] and P(reference > method) [CI]."""
+    done = finished(df)
+    per = {m: _by_dataset(g, metric) for m, g in done.groupby("method")}
+    if not per:
+        raise SpotError("no finished runs to aggregate")
+    shared = sorted(set.intersection(*(set(v) for v in per.values())))
+    out = []
+    for m, by in sorted(per.items()):
+        strata = [by[d] for d in shared]
+        iqm = stats.estimate(strata, stats.iqm) if shared else None
+        poi = None
+        if reference in per and m != reference and shared:
+            poi = stats.estimate([*(per[reference][d] for d in shared), *strata], stats.probability_of_improvement)
+        out.append({"method": m, "datasets": len(shared), "runs": sum(map(len, strata)),
+                    "iqm": iqm.text() if iqm else "", f"P({reference} > method)": poi.text(2) if poi else ""})
+    return pd.DataFrame(out)
+
+
+# --------------------------------------------------------------------------- output
+def _n(row: Row) -> str:
+    return f"{row.n_x} vs {row.n_y} runs, {len(row.datasets)} datasets" if row.effect else "–"
+
+
+def format_rows(rows: Sequence[Row]) -> str:
+    """The report as Markdown: one table per statistic, then the notes."""
+    titles = {"last": "Last evaluation (`eval/score_final`): verdicts",
+              "best": "Best evaluation (`eval/score_best`), for comparison",
+              "ood": "Fig. 2: out-of-distribution extrapolation error (last)"}
+    parts = []
+    for stat, title in titles.items():
+        sel = [r for r in rows if r.stat == stat]
+        if not sel:
+            continue
+        parts += [f"### {title}", "", "| # | claim | comparison | experiment | effect [95% CI] | "
+                  "P(x > y) [95% CI] | n | verdict |", "|---|---|---|---|---|---|---|---|"]
+        for r in sel:
+            eff = r.effect.text(3 if stat == "ood" else 1) if r.effect else "–"
+            poi = r.poi.text(2) if r.poi else "–"
+            parts.append(f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {_n(r)} | "
+                         f"{r.verdict} |")
+        parts.append("")
+    notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})
+    if notes:
+        parts += ["Notes:", *[f"- {n}" for n in notes]]
+    return "\n".join(parts).rstrip() + "\n"

@@ -1,0 +1,117 @@
+"""Results files, tables and claim verdicts rebuilt from a committed fixture, without MLflow."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spot import SpotError, report, results, stats, tables
+from conftest import run_cli
+
+FIXTURE = Path(__file__).parent / "data" / "results_fixture.csv"
+
+
+@pytest.fixture(scope="module")
+def runs():
+    return results.read(FIXTURE)
+
+
+def test_fixture_rebuilds_table1(runs):
+    t = tables.build_table(runs, 1)
+    # hopper SPOT: 61, 64, 66 -> mean 63.67; walker PT: 58, 61, 60 (the FAILED seed 3 is not counted)
+    assert t.loc[("hopper-medium-replay", "recipe"), ("spot", "mean")] == pytest.approx(191 / 3)
+    assert t.loc[("walker2d-medium-replay", "recipe"), ("pt", "n")] == 3
+
+
+def _row(rows, claim, comparison, stat="last"):
+    return next(r for r in rows if r.claim == claim and r.comparison.startswith(comparison) and r.stat == stat)
+
+
+def test_claim1_effect_and_ci_against_an_independent_bootstrap(runs):
+    rows = report.build(runs)
+    r = _row(rows, "1", "spot vs pt")
+    # hopper: mean(61, 64, 66) - mean(50, 52, 57) = 63.667 - 53 = 10.667
+    # walker: mean(65, 69, 64) - mean(58, 61, 60) = 66 - 59.667 = 6.333   -> mean 8.5
+    assert r.effect.value == pytest.approx(8.5)
+    x = [np.array([61.0, 64, 66]), np.array([65.0, 69, 64])]
+    y = [np.array([50.0, 52, 57]), np.array([58.0, 61, 60])]
+    rng = np.random.default_rng(7)
+    boot = [np.mean([rng.choice(x[i], 3).mean() - rng.choice(y[i], 3).mean() for i in range(2)])
+            for _ in range(20000)]
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    assert abs(r.effect.low - lo) < 0.3 and abs(r.effect.high - hi) < 0.3
+    assert r.verdict == stats.SUPPORTED and r.n_x == 6 and r.n_y == 6
+    assert r.poi.value == 1.0  # every SPOT seed beats every PT seed on both datasets
+    assert any("1 FAILED" in n for n in r.notes)
+
+
+def test_claim_verdicts_mr_inconclusive_ood_supported_missing_tables_say_no_runs(runs):
+    rows = report.build(runs)
+    mr = _row(rows, "1", "spot vs mr")
+    assert mr.effect.value == pytest.approx(((191 / 3 - 59) + (66 - 197 / 3)) / 2)
+    assert mr.verdict == stats.INCONCLUSIVE
+    ood = _row(rows, "6", "pt", stat="ood")
+    assert ood.effect.value == pytest.approx(0.25) and ood.verdict == stats.SUPPORTED
+    assert _row(rows, "2", "group").verdict == "no runs"
+    text = report.format_rows(rows)
+    assert "| 1 | SPOT ≥ PT on average (Table 1) | spot vs pt | lab_table1 | 8.5 [" in text
+
+
+def test_aggregate_iqm_by_hand(runs):
+    agg = report.aggregate(runs).set_index("method")
+    # SPOT pooled: 61 64 64 65 66 69 -> trim one from each end -> mean(64, 64, 65, 66) = 64.75
+    assert agg.loc["spot", "iqm"].startswith("64.8 [")
+    assert agg.loc["pt", "P(spot > method)"].startswith("1.00")
+
+
+def test_claim4_difference_in_differences():
+    import pandas as pd
+
+    rows = []
+    for m, few, most in (("spot", [70.0, 72], [71.0, 73]), ("pt", [50.0, 52], [60.0, 62])):
+        for q, vals in ((30, few), (100, most)):
+            for s, v in enumerate(vals):
+                rows.append({"run_id": f"{m}{q}{s}", "experiment": "lab_table4", "status": "FINISHED",
+                             "method": m, "dataset": "h", "paper_dataset": "h", "seed": s,
+                             "config_hash": f"{m}{q}", "params.labels.num_queries": str(q),
+                             "metrics.eval/score_final": v, "metrics.eval/score_best": v})
+    r = _row(report.build(pd.DataFrame(rows)), "4", "(spot")
+    # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9
+    assert r.effect.value == pytest.approx(9.0)
+
+
+def test_bad_results_files_are_clear_errors(tmp_path):
+    with pytest.raises(SpotError, match="does not exist"):
+        results.read(tmp_path / "nope.csv")
+    bad = tmp_path / "bad.csv"
+    bad.write_text("a,b\n1,2\n")
+    with pytest.raises(SpotError, match=r"bad.csv: missing columns"):
+        results.read(bad)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SpotError, match="no results CSV"):
+        results.read(tmp_path / "empty")
+
+
+def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    exp = client.create_experiment("lab_table1")
+    for seed, score in enumerate((10.0, 20.0)):
+        run = client.create_run(exp, tags={"method": "pt", "dataset": "hopper-medium-replay", "seed": str(seed),
+                                           "dataset_source": "recipe", "git_commit": "abc", "data_digest": "d1"})
+        client.log_param(run.info.run_id, "seed", str(seed))
+        client.log_param(run.info.run_id, "iql.steps", "1000")
+        client.log_metric(run.info.run_id, "eval/score_final", score)
+        client.log_metric(run.info.run_id, "iql/value_loss", 1.0)  # not a results metric
+        client.set_terminated(run.info.run_id)
+    out = tmp_path / "r.csv"
+    p = run_cli("results", "export", "--experiment", "lab_table1", "--tracking-uri", uri, "--out", str(out))
+    assert p.returncode == 0, p.stderr
+    df = results.read(out)
+    assert sorted(df["metrics.eval/score_final"]) == [10.0, 20.0]
+    assert "metrics.iql/value_loss" not in df
+    assert df["config_hash"].nunique() == 1 and set(df["data_digest"]) == {"d1"}
+    p = run_cli("tables", "--table", "1", "--results", str(out))
+    assert p.returncode == 0 and "15.00 ± 7.07** (2)" in p.stdout, p.stdout + p.stderr
