@@ -366,7 +366,7 @@ def _fetch_file(source: Source, sf: SourceFile, dest: Path, lock_path: Path,
             return FileResult(final, got_sha, got_size, sf.trust, url, status)
         raise SpotError(
             f"could not fetch '{sf.path}' of '{source.name}' from any of {len(urls)} URL(s); "
-            "nothing unverified was kept:\n  " + "\n  ".join(failures)
+            "nothing unverified was kept: " + "; ".join(failures)
         )
 
 
