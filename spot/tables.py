@@ -31,7 +31,6 @@ list of excluded runs.
 
 from __future__ import annotations
 
-import os
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -43,12 +42,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from spot import SpotError
+from spot import SpotError, tracking
+from spot.config import METHODS
 
 TABLES = (1, 2, 3, 4, 7, 8)
 FIELDS = ("mean", "std", "n", "paper", "paper_std", "diff", "best")
 FORMATS = ("md", "latex", "csv")
-METHOD_ORDER = ("oracle", "mr", "pt", "ipl", "hpl", "spot")
+METHOD_ORDER = METHODS  # the config's method order: columns of Table 1, curves of Fig. 2
 METHOD_LABELS = {"oracle": "Oracle", "mr": "MR", "pt": "PT", "ipl": "IPL", "hpl": "HPL", "spot": "SPOT"}
 SOURCE_ORDER = ("recipe", "file")
 SOURCE_NOTES = {
@@ -146,61 +146,12 @@ def paper_cells(table: int) -> pd.DataFrame:
 
 
 # --------------------------------------------------------------------------- runs
-DEFAULT_STORES = (Path("spot_runs") / "mlflow.db", Path("mlruns") / "mlflow.db")
-
-
-def resolve_tracking_uri(uri: str | None = None) -> str:
-    """``uri``, else ``$MLFLOW_TRACKING_URI``, else the one local store in the working folder.
-
-    The local stores are ``./spot_runs/mlflow.db`` (``spot sweep``) and ``./mlruns/mlflow.db``
-    (``spot run``); with both present the choice is left to the user. A SQLite store must exist.
-    """
-    uri = uri or os.environ.get("MLFLOW_TRACKING_URI", "")
-    if not uri:
-        found = [p.resolve() for p in DEFAULT_STORES if p.exists()]
-        if not found:
-            raise SpotError(f"no MLflow store here ({' or '.join(map(str, DEFAULT_STORES))}); "
-                            "pass --tracking-uri (or set MLFLOW_TRACKING_URI)")
-        if len(found) > 1:
-            raise SpotError(f"two MLflow stores here ({', '.join(map(str, found))}); pick one with "
-                            f"--tracking-uri sqlite:///{found[0]}")
-        return f"sqlite:///{found[0]}"
-    if uri.startswith("sqlite:///") and not Path(uri[len("sqlite:///"):]).exists():
-        raise SpotError(f"no MLflow store at {uri[len('sqlite:///'):]} (tracking URI {uri})")
-    return uri
-
-
-def _all_experiments(client: Any) -> dict[str, str]:
-    out, token = {}, None
-    while True:
-        page = client.search_experiments(max_results=1000, page_token=token)
-        out.update({e.experiment_id: e.name for e in page})
-        token = page.token
-        if not token:
-            return out
-
-
-def _experiments(client: Any, names: Sequence[str] | None) -> dict[str, str]:
-    if not names:
-        return _all_experiments(client)
-    out = {}
-    for name in names:
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            known = sorted(_all_experiments(client).values())
-            raise SpotError(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
-        out[exp.experiment_id] = exp.name
-    return out
-
-
 def default_experiments(table: int, tracking_uri: str | None = None) -> list[str] | None:
     """The experiment of ``table``'s sweep if the store has it (else its ``-smoke`` launch); None = all."""
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(tracking_uri=resolve_tracking_uri(tracking_uri))
+    client = tracking.reader(tracking_uri)
     name = SWEEP_EXPERIMENTS[_spec(table).number]
     for candidate in (name, f"{name}-smoke"):
-        if client.get_experiment_by_name(candidate) is not None:
+        if tracking.has_experiment(client, candidate):
             return [candidate]
     return None
 
@@ -215,34 +166,10 @@ def load_runs(tracking_uri: str | None = None, experiment_names: Sequence[str] |
     ``dataset`` (our name), ``paper_dataset`` (the paper's row name), ``dataset_source`` and
     ``seed``. All statuses are kept; :func:`build_table` uses the FINISHED ones and lists the rest.
     """
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(tracking_uri=resolve_tracking_uri(tracking_uri))
-    experiments = _experiments(client, experiment_names)
-    filter_string = f"tags.sweep_id = '{sweep_id}'" if sweep_id else ""
-    rows: list[dict[str, Any]] = []
-    ids = list(experiments)
-    for start in range(0, len(ids), 50):  # the search API takes a bounded list of experiments
-        token = None
-        while True:
-            page = client.search_runs(ids[start:start + 50], filter_string=filter_string, max_results=1000,
-                                      page_token=token)
-            for run in page:
-                info, data = run.info, run.data
-                row: dict[str, Any] = {
-                    "run_id": info.run_id, "run_name": info.run_name, "experiment_id": info.experiment_id,
-                    "experiment": experiments[info.experiment_id], "status": info.status,
-                    "start_time": pd.to_datetime(info.start_time, unit="ms"),
-                    "end_time": pd.to_datetime(info.end_time, unit="ms") if info.end_time else pd.NaT,
-                    "artifact_uri": info.artifact_uri,
-                }
-                row.update({f"params.{k}": v for k, v in data.params.items()})
-                row.update({f"metrics.{k}": v for k, v in data.metrics.items()})
-                row.update({f"tags.{k}": v for k, v in data.tags.items()})
-                rows.append(row)
-            token = page.token
-            if not token:
-                break
+    client = tracking.reader(tracking_uri)
+    experiments = tracking.experiments(client, experiment_names)
+    filter_string = tracking.tag_filter({"sweep_id": sweep_id}) if sweep_id else ""
+    rows = [_run_row(run, experiments) for run in tracking.search_runs(client, list(experiments), filter_string)]
     df = pd.DataFrame(rows)
     if df.empty:
         return pd.DataFrame(columns=list(_RUN_COLUMNS))
@@ -259,6 +186,21 @@ def load_runs(tracking_uri: str | None = None, experiment_names: Sequence[str] |
     df["seed"] = pd.to_numeric(df["tags.seed"].fillna(df["params.seed"]), errors="coerce").astype("Int64")
     first = [c for c in _RUN_COLUMNS if c in df]
     return df[first + sorted(c for c in df if c not in first)].reset_index(drop=True)
+
+
+def _run_row(run: Any, experiments: dict[str, str]) -> dict[str, Any]:
+    info, data = run.info, run.data
+    row: dict[str, Any] = {
+        "run_id": info.run_id, "run_name": info.run_name, "experiment_id": info.experiment_id,
+        "experiment": experiments[info.experiment_id], "status": info.status,
+        "start_time": pd.to_datetime(info.start_time, unit="ms"),
+        "end_time": pd.to_datetime(info.end_time, unit="ms") if info.end_time else pd.NaT,
+        "artifact_uri": info.artifact_uri,
+    }
+    row.update({f"params.{k}": v for k, v in data.params.items()})
+    row.update({f"metrics.{k}": v for k, v in data.metrics.items()})
+    row.update({f"tags.{k}": v for k, v in data.tags.items()})
+    return row
 
 
 def failed_runs(runs: pd.DataFrame) -> pd.DataFrame:
@@ -437,6 +379,97 @@ def _average_rows(cells: pd.DataFrame, spec: _Spec) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _finished(runs: pd.DataFrame, spec: _Spec, table: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(finished runs the table takes, runs not FINISHED)``; SpotError if nothing is left."""
+    if runs.empty:
+        raise SpotError(f"no runs to build table {table} from (check --experiment / --sweep-id / --tracking-uri)")
+    excluded = failed_runs(runs)
+    finished = runs[runs["status"] == "FINISHED"]
+    if spec.select is not None and not finished.empty:
+        finished = finished[spec.select(finished, table)]
+    if finished.empty:
+        raise SpotError(f"no FINISHED runs for table {table}"
+                        + (f" ({len(excluded)} runs did not finish)" if len(excluded) else ""))
+    return finished, excluded
+
+
+def _values(finished: pd.DataFrame, spec: _Spec, table: int, metric: str, allow_mixed: bool,
+            notes: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``(one value per run and cell column, the runs used)``: runs without the metric left out,
+    a later run of the same cell and seed replacing an earlier one, mixed cells refused or noted."""
+    keys = pd.DataFrame(spec.keys(finished, table), index=finished.index)
+    base = pd.concat([finished[["run_id", "seed", "start_time", "dataset_source"]].rename(
+        columns={"dataset_source": "source"}), keys], axis=1)
+    cell = [*spec.rows, "source"] + ([spec.col] if spec.kind == "score" else [])
+    long = _run_values(finished, spec, metric).merge(base, on="run_id", how="left")
+    missing = long["value"].isna()
+    if missing.any():
+        what = metric if spec.kind == "score" else "time/total_s"
+        notes.append(f"{long.loc[missing, 'run_id'].nunique()} finished runs did not log {what} and are left out")
+        long = long[~missing]
+    if long.empty:
+        raise SpotError(f"no finished run for table {table} logged {metric if spec.kind == 'score' else 'time metrics'}")
+    long = long.sort_values("start_time")
+    dup = long.duplicated([*spec.rows, "source", spec.col, "seed"], keep="last")
+    if dup.any():
+        notes.append(f"run(s) replaced by a later run of the same cell and seed: {long.loc[dup, 'run_id'].nunique()}")
+        long = long[~dup]
+    used = finished[finished["run_id"].isin(long["run_id"])]
+    mixed = mixed_params(used, base.loc[used.index, cell])
+    if mixed:
+        if not allow_mixed:
+            raise SpotError(f"table {table}: runs in one cell differ in more than the seed, so they are not "
+                            f"averaged: {'; '.join(mixed[:5])}{' ...' if len(mixed) > 5 else ''}. Pick runs with "
+                            "--experiment / --sweep-id, or pass --allow-mixed to average them anyway")
+        notes += [f"mixed params averaged ({m})" for m in mixed]
+    return long, used
+
+
+def _with_paper(cells: pd.DataFrame, spec: _Spec, table: int, paper_only_cells: bool) -> pd.DataFrame:
+    """``cells`` with the paper's mean and std, plus (``paper_only_cells``) the paper's cells we
+    did not run in the rows we ran."""
+    paper = paper_cells(table)
+    join = [*spec.rows, spec.col]
+    cells = cells.merge(paper, on=join, how="left")
+    if paper_only_cells:
+        anchor = "dataset" if "dataset" in spec.rows else spec.col
+        ran = cells[[anchor, "source"]].drop_duplicates()
+        extra = paper.merge(ran, on=anchor).merge(cells[[*join, "source"]], on=[*join, "source"],
+                                                  how="left", indicator=True)
+        extra = extra[extra["_merge"] == "left_only"].drop(columns="_merge")
+        cells = pd.concat([cells, extra.assign(n=0)], ignore_index=True)
+    return cells
+
+
+def _wide(cells: pd.DataFrame, spec: _Spec) -> pd.DataFrame:
+    """Long cells -> the table frame: rows (row keys, source) x columns (column key, field)."""
+    wide = cells.set_index([*spec.rows, "source", spec.col])[list(FIELDS)].unstack(spec.col)
+    wide = wide.swaplevel(0, 1, axis=1)
+    col_values = sorted(dict.fromkeys(cells[spec.col]), key=lambda v: _sort_key(spec.col, v))
+    wide = wide.reindex(columns=pd.MultiIndex.from_product([col_values, FIELDS], names=[spec.col, "field"]))
+    row_order = list(dict.fromkeys(map(tuple, cells[[*spec.rows, "source"]].itertuples(index=False))))
+    wide = wide.reindex(pd.MultiIndex.from_tuples(row_order, names=[*spec.rows, "source"]))
+    for c in col_values:
+        wide[(c, "n")] = wide[(c, "n")].fillna(0).astype(int)
+        wide[(c, "best")] = wide[(c, "best")].astype("boolean").fillna(False).astype(bool)
+        for f in ("mean", "std", "paper", "paper_std", "diff"):
+            wide[(c, f)] = wide[(c, f)].astype(float)
+    return wide
+
+
+def _run_notes(used: pd.DataFrame, excluded: pd.DataFrame) -> list[str]:
+    """Where the counted runs came from, and which runs were not counted."""
+    sweeps = sorted(used["tags.sweep_id"].dropna().unique()) if "tags.sweep_id" in used else []
+    notes = [f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
+             + (f", sweep(s) {', '.join(sweeps)}" if sweeps else "")]
+    if len(excluded):
+        by_status = excluded["status"].value_counts()
+        notes.append(f"not counted: {len(excluded)} runs not FINISHED ("
+                     + ", ".join(f"{s}: {c}" for s, c in sorted(by_status.items())) + "): "
+                     + ", ".join(excluded["run_id"].str[:8]))
+    return notes
+
+
 def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final", *, ddof: int = 1,
                 allow_mixed: bool = False, paper_only_cells: bool = True) -> pd.DataFrame:
     """Table ``table`` of the paper from ``runs`` (a :func:`load_runs` frame).
@@ -457,59 +490,14 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
     spec = _spec(table)
     if ddof not in (0, 1):
         raise SpotError(f"ddof must be 0 (population std) or 1 (sample std), got {ddof}")
-    if runs.empty:
-        raise SpotError(f"no runs to build table {table} from (check --experiment / --sweep-id / --tracking-uri)")
     notes: list[str] = []
-    excluded = failed_runs(runs)
-    finished = runs[runs["status"] == "FINISHED"]
-    if spec.select is not None and not finished.empty:
-        finished = finished[spec.select(finished, table)]
-    if finished.empty:
-        raise SpotError(f"no FINISHED runs for table {table}"
-                        + (f" ({len(excluded)} runs did not finish)" if len(excluded) else ""))
-    keys = pd.DataFrame(spec.keys(finished, table), index=finished.index)
-    base = pd.concat([finished[["run_id", "seed", "start_time", "dataset_source"]].rename(
-        columns={"dataset_source": "source"}), keys], axis=1)
-    cell = [*spec.rows, "source"] + ([spec.col] if spec.kind == "score" else [])
-    values = _run_values(finished, spec, metric)
-    long = values.merge(base, on="run_id", how="left")
-    missing = long["value"].isna()
-    if missing.any():
-        what = metric if spec.kind == "score" else "time/total_s"
-        notes.append(f"{long.loc[missing, 'run_id'].nunique()} finished runs did not log {what} and are left out")
-        long = long[~missing]
-    if long.empty:
-        raise SpotError(f"no finished run for table {table} logged {metric if spec.kind == 'score' else 'time metrics'}")
-    full_cell = [*spec.rows, "source", spec.col]
-    long = long.sort_values("start_time")
-    dup = long.duplicated([*full_cell, "seed"], keep="last")
-    if dup.any():
-        notes.append(f"run(s) replaced by a later run of the same cell and seed: {long.loc[dup, 'run_id'].nunique()}")
-        long = long[~dup]
-    used = finished[finished["run_id"].isin(long["run_id"])]
-    mixed = mixed_params(used, base.loc[used.index, cell])
-    if mixed:
-        if not allow_mixed:
-            raise SpotError(f"table {table}: runs in one cell differ in more than the seed, so they are not "
-                            f"averaged: {'; '.join(mixed[:5])}{' ...' if len(mixed) > 5 else ''}. Pick runs with "
-                            "--experiment / --sweep-id, or pass --allow-mixed to average them anyway")
-        notes += [f"mixed params averaged ({m})" for m in mixed]
-
-    agg = long.groupby(full_cell, dropna=False)["value"]
+    finished, excluded = _finished(runs, spec, table)
+    long, used = _values(finished, spec, table, metric, allow_mixed, notes)
+    agg = long.groupby([*spec.rows, "source", spec.col], dropna=False)["value"]
     cells = pd.DataFrame({"mean": agg.mean(), "std": agg.std(ddof=ddof), "n": agg.count()}).reset_index()
-
     with_paper = spec.kind == "time" or metric.startswith("eval/score")
     if with_paper:
-        paper = paper_cells(table)
-        join = [*spec.rows, spec.col]
-        cells = cells.merge(paper, on=join, how="left")
-        if paper_only_cells:
-            anchor = "dataset" if "dataset" in spec.rows else spec.col
-            ran = cells[[anchor, "source"]].drop_duplicates()
-            extra = paper.merge(ran, on=anchor).merge(cells[[*join, "source"]], on=[*join, "source"],
-                                                      how="left", indicator=True)
-            extra = extra[extra["_merge"] == "left_only"].drop(columns="_merge")
-            cells = pd.concat([cells, extra.assign(n=0)], ignore_index=True)
+        cells = _with_paper(cells, spec, table, paper_only_cells)
     else:
         cells["paper"] = cells["paper_std"] = np.nan
         notes.append(f"paper values omitted: {metric} is not a score metric")
@@ -521,28 +509,8 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
     cells["best"] = _mark_best(cells, spec)
     cells["n"] = cells["n"].fillna(0).astype(int)
     cells = _sorted_frame(cells, [*spec.rows, "source", spec.col])
-
-    wide = cells.set_index([*spec.rows, "source", spec.col])[list(FIELDS)].unstack(spec.col)
-    wide = wide.swaplevel(0, 1, axis=1)
-    col_values = sorted(dict.fromkeys(cells[spec.col]), key=lambda v: _sort_key(spec.col, v))
-    wide = wide.reindex(columns=pd.MultiIndex.from_product([col_values, FIELDS], names=[spec.col, "field"]))
-    row_order = list(dict.fromkeys(map(tuple, cells[[*spec.rows, "source"]].itertuples(index=False))))
-    wide = wide.reindex(pd.MultiIndex.from_tuples(row_order, names=[*spec.rows, "source"]))
-    for c in col_values:
-        wide[(c, "n")] = wide[(c, "n")].fillna(0).astype(int)
-        wide[(c, "best")] = wide[(c, "best")].astype("boolean").fillna(False).astype(bool)
-        for f in ("mean", "std", "paper", "paper_std", "diff"):
-            wide[(c, f)] = wide[(c, f)].astype(float)
-
-    notes = _standard_notes(spec, cells, metric, ddof, with_paper, used) + notes
-    sweeps = sorted(used["tags.sweep_id"].dropna().unique()) if "tags.sweep_id" in used else []
-    notes.append(f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
-                 + (f", sweep(s) {', '.join(sweeps)}" if sweeps else ""))
-    if len(excluded):
-        by_status = excluded["status"].value_counts()
-        notes.append(f"not counted: {len(excluded)} runs not FINISHED ("
-                     + ", ".join(f"{s}: {c}" for s, c in sorted(by_status.items())) + "): "
-                     + ", ".join(excluded["run_id"].str[:8]))
+    wide = _wide(cells, spec)
+    notes = _standard_notes(spec, cells, metric, ddof, with_paper, used) + notes + _run_notes(used, excluded)
     wide.attrs = {"table": table, "title": spec.title, "metric": metric if spec.kind == "score" else "time/*",
                   "ddof": ddof, "kind": spec.kind, "rows": [*spec.rows, "source"], "col": spec.col,
                   "notes": notes, "excluded": excluded.to_dict("records")}

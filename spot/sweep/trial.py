@@ -1,11 +1,12 @@
 """One trial, inside its Ray worker process: CPU slots and XLA settings, then each seed's run.
 
 :func:`_trainable` is the Ray Tune function trainable. It claims the trial's CPUs
-(:func:`cpu_slots`), sets XLA/JAX for the trial's share of the node (:func:`configure_process`,
-before anything imports jax) and calls :func:`run_trial`, which looks each seed up in MLflow (a
-FINISHED run with the sweep id and trial key is reported instead of running again), runs the
-others with :func:`spot.pipeline.run` and records a FAILED run for a seed that failed before the
-pipeline opened its own. Nothing here imports jax at module level.
+(:func:`cpu_slots`), makes spot's process settings (:func:`spot.runtime.configure`) and sets
+XLA/JAX for the trial's share of the node (:func:`configure_process`), before anything imports
+jax, and calls :func:`run_trial`, which looks each seed up in MLflow (a FINISHED run with the
+sweep id and trial key is reported instead of running again), runs the others with
+:func:`spot.pipeline.run` and records a FAILED run for a seed that failed before the pipeline
+opened its own. Nothing here imports jax at module level.
 """
 
 from __future__ import annotations
@@ -193,10 +194,13 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
     """
     from ray import tune
 
+    from spot import runtime
+
     context = tune.get_context()
     need = context.get_trial_resources().required_resources
     cpus = max(1, int(need.get("CPU", 1)))
     with cpu_slots(cpus):
+        runtime.configure()  # spot's XLA flag and MUJOCO_GL
         configure_process(cpus, float(need.get("GPU", 0.0)))
         run_trial(config["trial"]["overrides"], config["trial"]["seeds"], ctx, trial_id=context.get_trial_id(),
                   report=tune.report, run_fn=run_fn)
