@@ -29,10 +29,8 @@ Figures are drawn on bare :class:`matplotlib.figure.Figure` objects (Agg), never
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import pickle
 import shutil
 import tempfile
 from collections.abc import Sequence
@@ -246,20 +244,17 @@ def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_ur
 
 
 def load_cvae(path: str | Path) -> Any:
-    """CVAE params from a stage-cache entry (``cvae-<hash>.pkl``) or a pickle of ``CVAEParams``.
-
-    Only load files you trust (they are pickles). A ``.sha256`` file beside it is checked.
-    """
+    """CVAE params from a stage-cache entry (``cvae-<hash>.npz``, data only: never unpickled)."""
+    from spot import cache
     from spot.subgoal import cvae as cvae_lib
 
     path = Path(path).expanduser()
     if not path.exists():
         raise SpotError(f"CVAE file {path} does not exist")
-    payload = path.read_bytes()
-    checksum = path.with_suffix(".sha256")
-    if checksum.exists() and hashlib.sha256(payload).hexdigest() != checksum.read_text().strip():
-        raise SpotError(f"{path} does not match its checksum {checksum}")
-    value = pickle.loads(payload)
+    try:
+        value = cache.read_entry(path)
+    except cache.EntryError as e:
+        raise SpotError(f"{path} is not a stage-cache entry ({e}); expected $SPOT_CACHE_DIR/cvae-<hash>.npz") from None
     params = value["params"] if isinstance(value, dict) and "params" in value else value
     if not isinstance(params, cvae_lib.CVAEParams):
         raise SpotError(f"{path} holds {type(params).__name__}, not CVAE params")

@@ -142,8 +142,9 @@ def untimed(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def dataset_deps(ds: Any) -> dict[str, Any]:
-    """What identifies the dataset in stage-cache keys."""
-    return {"obs": ds.observations, "act": ds.actions, "rew": ds.rewards, "term": ds.terminals}
+    """What identifies the dataset in stage-cache keys: the fingerprint of all its arrays
+    (:meth:`spot.data.dataset.Dataset.fingerprint`: episode ends, next observations and infos too)."""
+    return {"dataset": ds.fingerprint()}
 
 
 # --------------------------------------------------------------------------- labels
@@ -176,7 +177,7 @@ def labels_stage(ctx: Context) -> Labelled:
     eval_batch = labels.segment_batch(ds, eval_prefs) if len(eval_prefs) else None
     ctx.log({"labels/queries": len(prefs), "labels/ties": float(np.sum(prefs.labels == 0.5)),
              "labels/segment_length": prefs.segment_length})
-    deps = {"s1": prefs.starts_1, "s2": prefs.starts_2, "y": prefs.labels,
+    deps = {"s1": prefs.starts_1, "s2": prefs.starts_2, "y": prefs.labels, "length": prefs.segment_length,
             "split": (cfg.labels.eval_fraction, cfg.labels.seed)}
     return Labelled(prefs, train_prefs, train_batch, eval_batch, deps)
 
@@ -279,7 +280,7 @@ def model_rewards(ctx: Context, model: RewardModel) -> Rewards:
     from spot.reward import relabel
 
     cfg = ctx.cfg
-    rel, _ = ctx.cached("relabel", {"reward": model.cache_key, "relabel": cfg.relabel},
+    rel, _ = ctx.cached("relabel", {"reward": model.cache_key, "relabel": cfg.relabel, "data": dataset_deps(ctx.ds)},
                         lambda: relabel.relabel_rewards(model.kind, model.params, ctx.ds, cfg.relabel,
                                                         pt_cfg=cfg.pt, mr_cfg=cfg.mr,
                                                         progress=ctx.progress)._asdict())
@@ -293,7 +294,7 @@ def hpl_rewards(ctx: Context, model: RewardModel) -> Rewards:
     from spot.reward import hpl
 
     _, relabel_key = jax.random.split(ctx.keys["reward"])
-    rel, _ = ctx.cached("relabel", {"hpl": model.cache_key, "seed": ctx.cfg.seed},
+    rel, _ = ctx.cached("relabel", {"hpl": model.cache_key, "seed": ctx.cfg.seed, "data": dataset_deps(ctx.ds)},
                         lambda: {"rewards": hpl.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)})
     return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
 

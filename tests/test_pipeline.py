@@ -1,13 +1,12 @@
 """`spot run` end to end at the tiny budget: MLflow contents, stage cache reuse, determinism, failures."""
 
-import os
 from pathlib import Path
 
 import mlflow
 import numpy as np
 import pytest
 
-from spot import NonFiniteError, SpotError, cache, config, pipeline
+from spot import NonFiniteError, SpotError, config, pipeline
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=200", "eval.every=100", "eval.episodes=1",
         "labels.num_queries=30", "labels.segment_length=25"]
@@ -103,22 +102,6 @@ def test_config_that_does_not_fit_the_dataset(tmp_path, spot_dirs, tiny_drawer, 
         pipeline.run(_cfg(tmp_path, "method=pt", "labels.segment_length=5000"), progress=False)
     with pytest.raises(SpotError, match="needs reward.kind=pt"):
         pipeline.run(_cfg(tmp_path, "method=mr", "shaping.kind=cosine"), progress=False)
-
-
-def test_corrupt_cache_entry_is_rebuilt_not_used(tmp_path, monkeypatch):
-    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path))
-    calls = []
-    value, hit, key = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
-    assert not hit and calls == [1]
-    value, hit, _ = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
-    assert hit and calls == [1] and value["x"].tolist() == [0, 1, 2]
-    data = Path(os.environ["SPOT_CACHE_DIR"]) / f"{key}.pkl"
-    data.write_bytes(data.read_bytes()[:-5] + b"xxxxx")  # corrupt the payload
-    with pytest.warns(UserWarning, match="corrupt"):
-        value, hit, _ = cache.cached("cvae", {"a": 1}, lambda: calls.append(1) or {"x": np.arange(3)})
-    assert not hit and calls == [1, 1] and value["x"].tolist() == [0, 1, 2]
-    # a different dependency is a different key
-    assert cache.key("cvae", {"a": 2}) != key
 
 
 @pytest.mark.parametrize("method", ["ipl", "hpl"])

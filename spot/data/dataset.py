@@ -24,12 +24,14 @@ file stores ``next_observations`` we use them (the true next state); without the
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from spot import SpotError
+from spot.batches import Transitions
 
 RAW_KEYS = ("observations", "actions", "rewards", "terminals", "timeouts")
 DENSE_REWARD_KEY = "dense_reward"  # infos key of a per-step dense reward (robosuite recipe)
@@ -169,6 +171,35 @@ class Dataset:
 
     def replace(self, **changes: Any) -> Dataset:
         return dataclasses.replace(self, **changes)
+
+    def fingerprint(self) -> str:
+        """SHA-256 (hex) of every array of the view: observations, actions, rewards, next
+        observations, terminals, episode ids (the episode ends, terminals and timeouts alike),
+        raw row indices and each ``infos`` array, with their names, dtypes and shapes. What
+        identifies the data in stage-cache keys; the name and metadata are not part of it."""
+        h = hashlib.sha256()
+        arrays = [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)
+                  if isinstance(getattr(self, f.name), np.ndarray)]
+        arrays += [(f"infos/{k}", np.asarray(v)) for k, v in sorted(self.infos.items())]
+        for name, arr in arrays:
+            h.update(f"|{name}|{arr.dtype.str}|{arr.shape}|".encode())
+            h.update(np.ascontiguousarray(arr).tobytes())
+        return h.hexdigest()
+
+    def transitions(self, rewards: np.ndarray | None = None) -> Transitions:
+        """The transition view the policy trains on (:class:`spot.batches.Transitions`, numpy
+        float32): ``obs``, ``act``, ``rew`` (``rewards`` ``[N]`` if given, e.g. relabelled; else the
+        dataset's reward), ``next_obs`` and ``mask = 1 - terminal``."""
+        rew = self.rewards if rewards is None else np.asarray(rewards)
+        if rew.shape != (len(self),):
+            raise SpotError(f"rewards have shape {rew.shape}; expected ({len(self)},) like dataset '{self.name}'")
+        return Transitions(
+            obs=np.asarray(self.observations, np.float32),
+            act=np.asarray(self.actions, np.float32),
+            rew=np.asarray(rew, np.float32),
+            next_obs=np.asarray(self.next_observations, np.float32),
+            mask=1.0 - self.terminals.astype(np.float32),
+        )
 
     # ----------------------------------------------------------------- episodes
     def episode_bounds(self) -> tuple[np.ndarray, np.ndarray]:
