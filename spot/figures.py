@@ -36,14 +36,12 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlparse
 
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from spot import SpotError, tables
-from spot.tables import resolve_tracking_uri
+from spot import SpotError, tables, tracking
 
 FIG2_ARTIFACT = "extrapolation_error.json"
 FIG4_ARTIFACT = "subgoal_projection.png"
@@ -51,41 +49,10 @@ GROUPS = ("in_distribution", "ood")
 GROUP_METRICS = {"in_distribution": "diag/extrap_bin_in", "ood": "diag/extrap_bin_ood"}
 GROUP_LABELS = {"in_distribution": "in-distribution", "ood": "OOD"}
 FIG2_METHODS = ("pt", "spot")
-_LABELS = {"pt": "PT", "spot": "SPOT"}
+_LABELS = tables.METHOD_LABELS
 
 
 # --------------------------------------------------------------------------- Fig. 2
-def _local_artifact(artifact_uri: str, artifact_path: str, tracking_uri: str) -> Path | None:
-    """Where the artifact lies if its store is on this machine: ``file:`` artifact stores, and
-    ``mlflow-artifacts:`` ones beside a SQLite store (read without the server); None otherwise.
-
-    ``spot sweep`` serves ``<root>/mlflow.db`` with ``--artifacts-destination <root>/artifacts``, so
-    ``mlflow-artifacts:/<path>`` lives at ``<root>/artifacts/<path>``.
-    """
-    parsed = urlparse(artifact_uri)
-    if parsed.scheme in ("", "file"):
-        root = Path(parsed.path)
-    elif parsed.scheme == "mlflow-artifacts" and tracking_uri.startswith("sqlite:///"):
-        root = Path(tracking_uri[len("sqlite:///"):]).parent / "artifacts" / parsed.path.lstrip("/")
-    else:
-        return None
-    return root / artifact_path
-
-
-def _download(run_id: str, artifact_uri: str, artifact_path: str, uri: str, dst: str) -> Path | None:
-    import mlflow.artifacts
-    from mlflow.exceptions import MlflowException
-
-    local = _local_artifact(artifact_uri, artifact_path, uri)
-    if local is not None:
-        return local if local.is_file() else None
-    try:
-        return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact_path,
-                                                        dst_path=dst, tracking_uri=uri))
-    except (MlflowException, OSError):
-        return None
-
-
 def _bins_from_artifact(path: Path) -> list[dict[str, Any]]:
     d = json.loads(path.read_text())
     edges = np.asarray(d["edges"], float)
@@ -135,8 +102,6 @@ def extrapolation_bins(runs: pd.DataFrame, tracking_uri: str | None = None, *, d
       Rows ``run_id, method, seed, dataset, source, group, bin, centre, mean_error, count, origin``
       (``origin`` = ``artifact`` or ``metrics``; ``centre``/``count`` are NaN for ``metrics``).
     """
-    from mlflow.tracking import MlflowClient
-
     sel = runs[(runs["status"] == "FINISHED") & runs["method"].isin(list(methods))]
     if sel.empty:
         raise SpotError(f"no finished run of {', '.join(methods)} to draw Fig. 2 from")
@@ -147,12 +112,13 @@ def extrapolation_bins(runs: pd.DataFrame, tracking_uri: str | None = None, *, d
         raise SpotError(f"the {'/'.join(methods)} runs differ in more than the seed, so they are not pooled: "
                         f"{'; '.join(mixed[:5])}; pick runs with --experiment / --sweep-id")
     sel = sel.sort_values("start_time").drop_duplicates(["method", "seed"], keep="last")  # a re-run replaces
-    uri = resolve_tracking_uri(tracking_uri)
-    client = MlflowClient(tracking_uri=uri)
+    client = tracking.reader(tracking_uri)
+    uri = client.tracking_uri
     rows = []
     with tempfile.TemporaryDirectory(prefix="spot-fig2-") as tmp:
         for _, run in sel.iterrows():
-            path = _download(run["run_id"], run["artifact_uri"], FIG2_ARTIFACT, uri, str(Path(tmp) / run["run_id"]))
+            path = tracking.download_artifact(run["run_id"], run["artifact_uri"], FIG2_ARTIFACT, uri,
+                                              str(Path(tmp) / run["run_id"]))
             found = _bins_from_artifact(path) if path is not None else _bins_from_metrics(client, run["run_id"])
             origin = "artifact" if path is not None else "metrics"
             rows += [{"run_id": run["run_id"], "method": run["method"], "seed": run["seed"],
@@ -225,18 +191,13 @@ def plot_fig2(bins: pd.DataFrame, path: str | Path, *, ddof: int = 1, reference:
 # --------------------------------------------------------------------------- Fig. 4
 def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_uri: str | None = None) -> Path:
     """Copy one artifact of a run (e.g. ``subgoal_projection.png``) to ``out``."""
-    from mlflow.exceptions import MlflowException
-    from mlflow.tracking import MlflowClient
-
-    uri = resolve_tracking_uri(tracking_uri)
-    try:
-        artifact_uri = MlflowClient(tracking_uri=uri).get_run(run_id).info.artifact_uri
-    except MlflowException as e:
-        raise SpotError(f"no run {run_id} in {uri}") from e
+    client = tracking.reader(tracking_uri)
+    uri = client.tracking_uri
+    artifact_uri = tracking.artifact_uri(client, run_id)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="spot-artifact-") as tmp:
-        got = _download(run_id, artifact_uri, artifact_path, uri, tmp)
+        got = tracking.download_artifact(run_id, artifact_uri, artifact_path, uri, tmp)
         if got is None:
             raise SpotError(f"run {run_id} has no artifact {artifact_path!r} (tracking URI {uri})")
         shutil.copyfile(got, out)
