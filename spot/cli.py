@@ -311,8 +311,7 @@ def build_parser() -> argparse.ArgumentParser:
         "fetch", help="download the paper's real data files (D4RL, robomimic, PT labels), verified",
         description="Download a registered source's files to DEST with resume and mirror fallback; "
                     "each file's size and sha256 are verified before it is put in place. "
-                    "Example: spot data fetch d4rl/hopper-medium-replay-v2",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "Example: spot data fetch d4rl/hopper-medium-replay-v2")
     d.add_argument("name", nargs="?", help="registry name (see --list) or minari:<dataset id>")
     d.add_argument("--list", action="store_true", help="list the registered sources and exit")
     d.add_argument("--dest", help="destination folder (default: $SPOT_DATA_DIR/real)")
