@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from spot import config, tracking
+from spot import SpotError, config, tracking
 
 
 def test_memory_tracker_keeps_steps_and_drops_non_finite(tmp_path):
@@ -40,3 +40,72 @@ def test_mlflow_tracker_batches_and_marks_failures(tmp_path):
     assert failed.info.status == "FAILED" and failed.data.tags["failure_reason"] == "RuntimeError: boom"
 
 
+
+
+# --------------------------------------------------------------------------- store and queries
+def test_resolve_uri_for_writing_and_reading(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    assert tracking.resolve_uri("http://h:5") == "http://h:5"
+    assert tracking.resolve_uri() == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"  # spot run's store
+    assert (tmp_path / "mlruns").is_dir()
+    with pytest.raises(SpotError, match="no MLflow store here"):
+        tracking.resolve_uri(read=True)
+    (tmp_path / "mlruns" / "mlflow.db").touch()
+    assert tracking.resolve_uri(read=True) == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    (tmp_path / "spot_runs").mkdir()
+    (tmp_path / "spot_runs" / "mlflow.db").touch()
+    with pytest.raises(SpotError, match="two MLflow stores here"):
+        tracking.resolve_uri(read=True)
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'spot_runs' / 'mlflow.db'}")
+    assert tracking.resolve_uri(read=True).endswith("spot_runs/mlflow.db")
+    with pytest.raises(SpotError, match="no MLflow store at"):
+        tracking.resolve_uri(f"sqlite:///{tmp_path / 'nope.db'}", read=True)
+
+
+def test_quote_picks_the_quote_the_value_lacks():
+    assert tracking.quote("ab") == "'ab'" and tracking.quote("it's") == '"it\'s"' and tracking.quote('a"b') == "'a\"b'"
+    with pytest.raises(SpotError, match="both quote characters"):
+        tracking.quote("'\"")
+    assert (tracking.tag_filter({"sweep_id": "s", "axis.data.name": "x"}, "RUNNING")
+            == "tags.`sweep_id` = 's' and tags.`axis.data.name` = 'x' and attributes.status = 'RUNNING'")
+
+
+@pytest.fixture(scope="module")
+def client(tmp_path_factory):
+    return MlflowClient(f"sqlite:///{tmp_path_factory.mktemp('q') / 'm.db'}")
+
+
+def test_queries_page_find_finished_and_close_orphans(client, monkeypatch):
+    from spot.tracking import queries
+
+    e1, e2 = client.create_experiment("q1"), client.create_experiment("q2")
+    ids = {}
+    for i, (exp, status) in enumerate([(e1, "FINISHED"), (e1, "RUNNING"), (e1, "RUNNING"), (e2, "FAILED"),
+                                       (e2, "RUNNING")]):
+        run = client.create_run(exp, tags={"sweep_id": "it's", "n": str(i)})
+        if status != "RUNNING":
+            client.set_terminated(run.info.run_id, status)
+        ids[i] = run.info.run_id
+    monkeypatch.setattr(queries, "PAGE", 2)  # several pages
+    monkeypatch.setattr(queries, "SEARCH_EXPERIMENTS", 1)  # one request per experiment
+    found = list(tracking.search_runs(client, [e1, e2], tracking.tag_filter({"sweep_id": "it's"})))
+    assert sorted(r.data.tags["n"] for r in found) == ["0", "1", "2", "3", "4"]
+    assert tracking.finished_run(client, e1, {"sweep_id": "it's"}).info.run_id == ids[0]
+    assert tracking.finished_run(client, e2, {"sweep_id": "it's"}) is None
+    assert tracking.close_orphans(client, e1, {"sweep_id": "it's"}, "gone", keep=(ids[1],)) == 1
+    closed = client.get_run(ids[2])
+    assert closed.info.status == "KILLED" and closed.data.tags["failure_reason"] == "gone"
+    assert client.get_run(ids[1]).info.status == "RUNNING" and client.get_run(ids[4]).info.status == "RUNNING"
+
+
+def test_record_failure_once_per_attempt(client):
+    exp = client.create_experiment("f")
+    cfg = config.load(None, ["method=pt", "budget=tiny"])
+    tags = {"attempt": "a1", "sweep_id": "s"}
+    run_id = tracking.record_failure(client, exp, cfg, tags, ValueError("bad file"), parent_run_id="p")
+    run = client.get_run(run_id)
+    assert run.info.status == "FAILED" and run.data.tags["failure_reason"] == "ValueError: bad file"
+    assert run.data.tags["mlflow.parentRunId"] == "p" and run.data.tags["method"] == "pt"
+    assert config.from_flat(run.data.params) == cfg  # every param (over 100: several batches)
+    assert tracking.record_failure(client, exp, cfg, tags, ValueError("again")) is None  # the attempt has one
