@@ -31,6 +31,7 @@ class FileServer:
         self.files: dict[str, bytes] = {}
         self.drop_once: set[str] = set()
         self.no_range: set[str] = set()
+        self.short_unsized: set[str] = set()  # send no Content-Length and stop 1000 bytes short
         self.log: list[dict] = []
         server = self
 
@@ -63,7 +64,11 @@ class FileServer:
                     entry["status"] = 200
                     self.send_response(200)
                 body = data[start:]
-                self.send_header("Content-Length", str(len(body)))
+                if self.path in server.short_unsized:
+                    body = body[:-1000]
+                    self.close_connection = True
+                else:
+                    self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 if self.path in server.drop_once:
                     server.drop_once.discard(self.path)
@@ -268,6 +273,23 @@ def test_user_mirror_is_tried_first_with_the_file_path(tmp_path, server):
     result = do_fetch(tmp_path, reg, mirrors=[server.base + "/mirror/"])
     assert [e["path"] for e in server.log] == ["/mirror/d4rl/toy-v2.hdf5"]
     assert result.files[0].url == server.base + "/mirror/d4rl/toy-v2.hdf5"
+
+
+def test_tofu_resume_that_ends_short_of_the_announced_size_is_rejected(tmp_path, server):
+    """No pinned size or sum yet: a transfer that ends cleanly before the size the server's
+    Content-Range announced is still caught, and nothing is recorded in the lock."""
+    data = payload()
+    server.files["/toy.hdf5"] = data
+    server.short_unsized.add("/toy.hdf5")
+    part = tmp_path / "dest" / "d4rl" / "toy-v2.hdf5.part"
+    part.parent.mkdir(parents=True)
+    part.write_bytes(data[:1000])
+    reg = write_registry(tmp_path / "reg.json", [one_file([server.base + "/toy.hdf5"], trust="tofu")])
+    with pytest.raises(SpotError, match=f"got {len(data) - 1000} bytes; the server announced {len(data)}"):
+        do_fetch(tmp_path, reg)
+    assert server.log[0]["range"] == "bytes=1000-" and server.log[0]["status"] == 206
+    assert_nothing_left(tmp_path)
+    assert not (tmp_path / "spot-data.lock.json").exists()
 
 
 # --------------------------------------------------------------------------- trust on first use

@@ -409,6 +409,7 @@ def _download(url: str, part: Path, size: int | None, progress: bool, retries: i
     from tqdm.auto import tqdm
 
     attempt = 0
+    announced = size  # the size the file must have: pinned, else what the server announced
     while True:
         have = part.stat().st_size if part.exists() else 0
         if size is not None and have > size:
@@ -430,6 +431,7 @@ def _download(url: str, part: Path, size: int | None, progress: bool, retries: i
                 total = _announced_total(r, have)
                 if size is not None and total is not None and total != size:
                     raise _Mismatch(f"the server announces {total} bytes; expected {size}")
+                announced = announced if announced is not None else total
                 mode = "ab"
                 if r.status_code == 200 and have:
                     mode, have = "wb", 0  # the server ignored the Range header: start over
@@ -451,7 +453,10 @@ def _download(url: str, part: Path, size: int | None, progress: bool, retries: i
                 raise _Unreachable(f"connection failed {attempt} times ({type(err).__name__}: "
                                    f"{err}); the partial download is kept for a resume") from None
             time.sleep(backoff * 2 ** (attempt - 1))
-    return sha256_file(part), part.stat().st_size
+    got = part.stat().st_size
+    if announced is not None and got != announced:
+        raise _Mismatch(f"got {got} bytes; the server announced {announced}")
+    return sha256_file(part), got
 
 
 def _announced_total(r: Any, have: int) -> int | None:
