@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 from spot import SpotError
-from spot.recipes import locomotion
 from spot.policy import sac
+from spot.recipes import locomotion
 
 RAW_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
 
@@ -55,6 +55,14 @@ def test_bad_names_and_configs_raise():
         locomotion.build("hopper-medium", "huge", 0, "unused")
     with pytest.raises(SpotError, match="eval_every"):
         sac.SACConfig(total_steps=10_000, update_every=1000, eval_every=1500)
+
+
+def test_normalized_score_by_hand():
+    # midpoints of D4RL's (random, expert) references score 50
+    assert locomotion.normalized("hopper", (3234.3 - 20.272305) / 2) == pytest.approx(50.0)
+    assert locomotion.normalized("walker2d", (4592.3 + 1.629008) / 2) == pytest.approx(50.0)
+    np.testing.assert_allclose(locomotion.normalized("hopper", [-20.272305, 3234.3]), [0.0, 100.0])
+    assert locomotion.normalized("walker2d", 3000.0) == pytest.approx(100 * 2998.370992 / 4590.670992)
 
 
 def test_pick_medium_takes_first_snapshot_reaching_a_third():
@@ -104,12 +112,25 @@ def _check_layout(raw, card):
                 "behaviour", "sac", "sac_cache_hit", "build_time_s", "versions"):
         assert key in card, key
     assert card["env"] == "Hopper-v5" and card["size"] == "tiny" and card["transitions"] == n
-    assert set(card["return"]) == {"mean", "std", "min", "max"}
+    assert set(card["return"]) == {"mean", "std", "min", "max", "normalized_mean"}
+    assert card["return"]["normalized_mean"] == pytest.approx(
+        100 * (card["return"]["mean"] + 20.272305) / 3254.572305, abs=0.01)
     assert card["return"]["min"] <= card["return"]["mean"] <= card["return"]["max"]
     for key in ("medium_snapshot_step", "medium_eval_return", "expert_snapshot_step",
                 "expert_eval_return"):
         assert key in card["behaviour"], key
     assert {"gymnasium", "mujoco"} <= set(card["versions"])
+    b = card["behaviour"]
+    for part in ("medium", "expert"):  # D4RL: 100 (R + 20.272305) / (3234.3 + 20.272305)
+        assert b[f"{part}_normalized"] == pytest.approx(
+            100 * (b[f"{part}_eval_return"] + 20.272305) / 3254.572305, abs=0.01)
+    assert b["d4rl_reference"]["expert_return"] == 3234.3
+    assert b["d4rl_reference"]["random_return"] == -20.272305
+    assert b["target_return"] is None and b["target_reached"] is None  # tiny: fixed length
+    assert card["sac"]["steps"] == card["sac"]["step_cap"] == 3000
+    assert card["sac"]["train_time_s"] > 0 and card["sac"]["peak_rss_mb"] > 0
+    assert card["peak_rss_mb"] >= card["sac"]["peak_rss_mb"] or card["sac_cache_hit"]
+    assert card["build_time_s"] > 0
 
 
 @pytest.mark.slow
@@ -127,6 +148,7 @@ def test_medium_expert_is_medium_then_expert_and_reuses_sac(builds):
     _check_layout(raw, card)
     assert card["sac_cache_hit"] is True
     assert len(list((builds["cache_dir"] / "sac").glob("*.msgpack"))) == 1
+    assert not list((builds["cache_dir"] / "sac").glob("*.ckpt"))  # checkpoints go once stored
     per_part = locomotion.SIZES["tiny"].transitions
     assert len(raw) == 2 * per_part
     kinds = np.array(raw.metadata["episode_kind"])
