@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
 
 from spot import SpotError, sweep
 from spot.mlflow_server import MlflowServer, sqlite_uri
@@ -124,6 +125,17 @@ def test_repo_sweep_files_resolve(path):
     else:
         assert len(smoke.runs()) <= min(4, len(full.runs()))
     assert all(t.overrides["budget"] == "tiny" for t in smoke.trials())
+
+
+def test_each_table_reads_the_experiment_its_sweep_file_writes():
+    """tables.SWEEP_EXPERIMENTS (which experiment `spot tables --table N` reads by default) names
+    the sweep file whose `table:` is N (Table 8 is the stage times of Table 1's runs)."""
+    from spot import tables
+
+    assert set(tables.SWEEP_EXPERIMENTS) == set(tables.TABLES)
+    for number, name in tables.SWEEP_EXPERIMENTS.items():
+        data = yaml.safe_load((REPO / "sweeps" / f"{name}.yaml").read_text())
+        assert data["name"] == name and data["table"] == (1 if number == 8 else number)
 
 
 # --------------------------------------------------------------------------- (c) + (d) a real sweep
