@@ -105,17 +105,30 @@ def _data_fetch(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------- labels
-def _labels_make(args: argparse.Namespace) -> None:
-    from spot.data import labels, registry
+# `spot labels make` flags -> the config keys they set (None: not given, the resolved config decides).
+_LABEL_FLAGS = {"num_queries": "labels.num_queries", "segment_length": "labels.segment_length",
+                "teacher": "labels.teacher", "score": "labels.score", "discount": "labels.discount",
+                "tie_threshold": "labels.tie_threshold", "mistake_rate": "labels.mistake_rate",
+                "allow_cross_episode": "labels.allow_cross_episode", "label_seed": "labels.seed",
+                "size": "data.size", "seed": "data.build_seed"}
 
-    ds, _ = registry.load(args.dataset, args.size, args.seed)
-    prefs = labels.scripted_teacher(
-        ds, args.num_queries, args.segment_length, teacher=args.teacher, discount=args.discount,
-        tie_threshold=args.tie_threshold, mistake_rate=args.mistake_rate,
-        allow_cross_episode=args.allow_cross_episode, seed=args.label_seed, score=args.score,
-    )
+
+def _labels_make(args: argparse.Namespace) -> None:
+    """The queries `spot run` would make with the same config: the labels settings are resolved like
+    a run's (defaults < method < budget < suite preset < --config file < overrides and flags)."""
+    from spot import config, stages
+    from spot.data import registry
+
+    flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
+    cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])
+    ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source)
+    prefs = stages.make_preferences(cfg, ds)
     prefs.save_npz(args.out)
+    lc = cfg.labels
     print(f"wrote {len(prefs)} queries (segment length {prefs.segment_length}) to {args.out}")
+    print(f"settings (method={cfg.method}, budget={cfg.budget}): source={lc.source} teacher={lc.teacher} "
+          f"score={lc.score} discount={lc.discount} tie_threshold={lc.tie_threshold} "
+          f"mistake_rate={lc.mistake_rate} allow_cross_episode={lc.allow_cross_episode} seed={lc.seed}")
     _print_label_stats(prefs)
 
 
@@ -326,21 +339,26 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(fn=_data_fetch)
 
     lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(dest="sub", required=True, metavar="SUB")
-    d = lab.add_parser("make", help="scripted-teacher queries on a dataset -> .npz")
-    d.add_argument("dataset")
+    d = lab.add_parser("make", help="the preference queries `spot run` would make on a dataset -> .npz",
+                       description="Resolves the labels settings like `spot run` (method, budget and suite "
+                                   "presets, --config, KEY=VALUE overrides); the flags are shorthands for "
+                                   "labels.* keys and win over the overrides.")
+    d.add_argument("dataset", help="data.name: a registered name or a dataset file")
+    d.add_argument("overrides", nargs="*", help="a.b=value config overrides, e.g. method=ipl budget=paper")
     d.add_argument("--out", required=True, help="output .npz")
-    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-    d.add_argument("--seed", type=int, default=0, help="dataset build seed")
-    d.add_argument("--num-queries", type=int, default=500)
-    d.add_argument("--segment-length", type=int, default=100)
-    d.add_argument("--teacher", default="sum", choices=("sum", "discounted"))
-    d.add_argument("--score", default="reward", choices=("reward", "dense"),
-                   help="sum the dataset's reward or its dense reward infos/dense_reward (robosuite recipes)")
-    d.add_argument("--discount", type=float, default=0.99)
-    d.add_argument("--tie-threshold", type=float, default=-1.0, help="negative: no ties")
-    d.add_argument("--mistake-rate", type=float, default=0.0)
-    d.add_argument("--allow-cross-episode", action="store_true")
-    d.add_argument("--label-seed", type=int, default=42)
+    d.add_argument("--config", dest="config_file", help="YAML run config (as for `spot run`)")
+    d.add_argument("--size", choices=("tiny", "small", "paper"), help="data.size (default: the budget's)")
+    d.add_argument("--seed", type=int, help="data.build_seed, the dataset build seed")
+    d.add_argument("--num-queries", type=int, help="labels.num_queries")
+    d.add_argument("--segment-length", type=int, help="labels.segment_length")
+    d.add_argument("--teacher", choices=("sum", "discounted"), help="labels.teacher")
+    d.add_argument("--score", choices=("reward", "dense"),
+                   help="labels.score: sum the dataset's reward or its dense reward infos/dense_reward (robosuite recipes)")
+    d.add_argument("--discount", type=float, help="labels.discount")
+    d.add_argument("--tie-threshold", type=float, help="labels.tie_threshold (negative: no ties)")
+    d.add_argument("--mistake-rate", type=float, help="labels.mistake_rate")
+    d.add_argument("--allow-cross-episode", action="store_true", default=None, help="labels.allow_cross_episode=true")
+    d.add_argument("--label-seed", type=int, help="labels.seed")
     d.set_defaults(fn=_labels_make)
     d = lab.add_parser("info", help="inspect a .npz query file or a PT human-label folder")
     d.add_argument("path")
@@ -451,7 +469,12 @@ def main(argv: list[str] | None = None) -> int:
 
     runtime.configure()  # XLA flag and MUJOCO_GL, before anything imports jax or mujoco
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    # KEY=VALUE overrides may come after options (`spot labels make NAME --size tiny labels.seed=1`).
+    if extra and hasattr(args, "overrides") and all("=" in e and not e.startswith("-") for e in extra):
+        args.overrides = [*args.overrides, *extra]
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     # `spot config show key=value` without a file: the first positional is an override.
     if getattr(args, "config", None) and "=" in args.config:
         args.overrides = [args.config, *args.overrides]

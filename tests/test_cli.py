@@ -42,6 +42,38 @@ def test_data_build_info_and_labels(tmp_path, spot_dirs, tiny_drawer):
     assert dense.returncode == 2 and "no dense reward 'infos/dense_reward'" in dense.stderr
 
 
+def test_labels_make_resolves_its_settings_like_run(tmp_path, spot_dirs, tiny_drawer):
+    """On drawer-open the Meta-World suite preset gives 25-step segments and the discounted teacher,
+    for `spot labels make` as for `spot run`; flags and overrides win over presets."""
+    from spot import config, stages
+    from spot.data import labels, registry
+
+    out = tmp_path / "q.npz"
+    made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "labels.num_queries=30", "--out", str(out))
+    assert made.returncode == 0, made.stderr
+    assert "teacher=discounted" in made.stdout and "budget=small" in made.stdout
+    got = labels.Preferences.load_npz(out)
+    cfg = config.load(None, ["data.name=drawer-open", "data.size=tiny", "labels.num_queries=30"])  # `spot run`'s
+    assert (cfg.labels.segment_length, cfg.labels.teacher) == (25, "discounted")
+    ds, _ = registry.load("drawer-open", "tiny", 0, progress=False)
+    expected = stages.make_preferences(cfg, ds)
+    assert got.segment_length == 25 and len(got) == 30
+    for name in ("starts_1", "starts_2", "labels"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+    by_hand = labels.scripted_teacher(ds, 30, 25, teacher="discounted", discount=0.99, seed=42)
+    np.testing.assert_array_equal(got.labels, by_hand.labels)
+    # a flag (shorthand for labels.teacher) and an override beat the suite preset
+    made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "labels.num_queries=30",
+                   "labels.segment_length=40", "--teacher", "sum", "--out", str(out))
+    assert made.returncode == 0, made.stderr
+    assert "teacher=sum" in made.stdout
+    got = labels.Preferences.load_npz(out)
+    assert got.segment_length == 40
+    np.testing.assert_array_equal(got.labels, labels.scripted_teacher(ds, 30, 40, teacher="sum", seed=42).labels)
+    bad = run_cli("labels", "make", "drawer-open", "--size", "tiny", "labels.num_querys=3", "--out", str(out))
+    assert bad.returncode == 2 and "did you mean 'labels.num_queries'" in bad.stderr
+
+
 def test_labels_info_on_real_pt_files():
     out = run_cli("labels", "info", str(PT_LABELS / "hopper-medium-replay-v2"))
     assert out.returncode == 0, out.stderr
