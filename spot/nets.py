@@ -14,8 +14,7 @@
   the MLP and the transformer use it.
 * :func:`create_train_state` is the one way spot builds a ``flax.training.train_state.TrainState``
   (STYLE.md rule 9); :func:`param_count` counts parameters; :func:`jit_init` initialises a module in
-  one cheaply compiled program; :func:`compile_cached` compiles a jitted training program ahead of
-  time (timing the compile) and reuses it within the process.
+  one cheaply compiled program.
 
 Mixed precision: :class:`TransformerBlock` takes a compute ``dtype`` for its matmuls; its
 parameters and residual stream stay float32 and its softmax runs in float32.
@@ -23,10 +22,8 @@ parameters and residual stream stay float32 and its softmax runs in float32.
 
 from __future__ import annotations
 
-import collections
 import math
-import time
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import flax.linen as nn
@@ -215,28 +212,3 @@ def create_train_state(module: nn.Module, params: Params, tx: optax.GradientTran
 def param_count(params: Params) -> int:
     """Number of scalars in a parameter pytree."""
     return int(sum(np.prod(p.shape) for p in jax.tree.leaves(params)))
-
-
-_COMPILED: collections.OrderedDict[Hashable, jax.stages.Compiled] = collections.OrderedDict()
-COMPILE_CACHE_SIZE = 16
-
-
-def compile_cached(name: Hashable, fn: Callable, *args: Any) -> tuple[jax.stages.Compiled, float]:
-    """Ahead-of-time compile the jitted ``fn`` for ``args``; returns ``(executable, compile_seconds)``.
-
-    Executables are kept per process (the last :data:`COMPILE_CACHE_SIZE`) under ``name`` plus the
-    arguments' tree structure, shapes and dtypes, so a second training run with the same config
-    and data shapes (another seed, a test) skips compilation and reports 0 s. ``name`` must
-    identify everything ``fn`` closes over, e.g. ``("reward/train_chunk", kind, cfg, batch_size)``.
-    """
-    leaves, tree = jax.tree.flatten(args)
-    signature = (name, tree, tuple((x.shape, x.dtype) for x in leaves))
-    if signature in _COMPILED:
-        _COMPILED.move_to_end(signature)
-        return _COMPILED[signature], 0.0
-    t0 = time.perf_counter()
-    compiled = fn.lower(*args).compile()
-    _COMPILED[signature] = compiled
-    if len(_COMPILED) > COMPILE_CACHE_SIZE:
-        _COMPILED.popitem(last=False)
-    return compiled, time.perf_counter() - t0
