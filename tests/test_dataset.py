@@ -37,6 +37,43 @@ def test_qlearning_view_drops_timeouts_and_last_row():
     np.testing.assert_array_equal(ds.episode_returns(), [3, 15, 15])
 
 
+def test_fingerprint_covers_episode_ends_and_next_observations():
+    base = _raw(10, timeouts=[3], terminals=[6]).qlearning()
+    fp = base.fingerprint()
+    assert len(fp) == 64 and _raw(10, timeouts=[3], terminals=[6]).qlearning().fingerprint() == fp
+    assert dataclasses.replace(_raw(10, timeouts=[3], terminals=[6]), name="other").qlearning().fingerprint() == fp
+    # only the terminal moves (row 6 -> 5): same rows, observations and rewards; other terminals and episodes
+    moved = _raw(10, timeouts=[3], terminals=[5]).qlearning()
+    np.testing.assert_array_equal(moved.observations, base.observations)
+    np.testing.assert_array_equal(moved.rewards, base.rewards)
+    assert moved.fingerprint() != fp
+    # only the episode ids change (a terminal flag kept, the boundary after row 8 added by hand)
+    ids = base.episode_ids.copy()
+    ids[-1] += 1
+    assert base.replace(episode_ids=ids).fingerprint() != fp
+    # only the next observations change (stored ones instead of observations[i + 1])
+    stored = _raw(10, timeouts=[3], terminals=[6], next_obs=True).qlearning()
+    np.testing.assert_array_equal(stored.observations, base.observations)
+    assert stored.fingerprint() != fp
+    # an infos array, and a dtype change with the same values, count too
+    assert base.replace(infos={"dense_reward": np.zeros(len(base), np.float32)}).fingerprint() != fp
+    assert base.replace(rewards=base.rewards.astype(np.float64)).fingerprint() != fp
+
+
+def test_transitions_view():
+    ds = _raw(10, timeouts=[3], terminals=[6]).qlearning()
+    t = ds.transitions()
+    assert all(np.asarray(x).dtype == np.float32 for x in t)
+    np.testing.assert_array_equal(t.obs[:, 0], [0, 1, 2, 4, 5, 6, 7, 8])
+    np.testing.assert_array_equal(t.next_obs[:, 0], [1, 2, 3, 5, 6, 7, 8, 9])
+    np.testing.assert_array_equal(t.rew, [0, 1, 2, 4, 5, 6, 7, 8])
+    np.testing.assert_array_equal(t.mask, [1, 1, 1, 1, 1, 0, 1, 1])  # 1 - terminal: row 6 terminates
+    relabelled = ds.transitions(np.full(8, 0.5))
+    np.testing.assert_array_equal(relabelled.rew, np.full(8, 0.5, np.float32))
+    with pytest.raises(SpotError, match=r"rewards have shape \(7,\); expected \(8,\)"):
+        ds.transitions(np.zeros(7))
+
+
 def test_stored_next_observations_are_used():
     ds = _raw(5, next_obs=True).qlearning()
     np.testing.assert_array_equal(ds.next_observations[:, 0], [100, 101, 102, 103])
