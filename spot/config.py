@@ -70,7 +70,11 @@ class PTConfig:
     max_timestep: int = F(1000, "size of the learned timestep embedding table - 1", range=(1, None))
     lr: float = F(1e-4, "AdamW learning rate (after warmup)", range=(0.0, 1.0))
     weight_decay: float = F(1e-4, "AdamW weight decay", range=(0.0, 1.0))
-    warmup_steps: int = F(500, "linear warmup steps", range=(0, None))
+    warmup_steps: int = F(500, "linear warmup steps (Table 5: 500)", range=(0, None))
+    warmup_fraction: float = F(0.0, "if > 0, the warmup lasts this fraction of reward.steps instead of pt.warmup_steps (PT repo: 0.1)", range=(0.0, 1.0))
+    schedule: str = F("warmup_constant", "learning-rate schedule: warmup_constant = linear 0 -> lr over the warmup, then lr (Table 5: lr 1e-4, warmup); warmup_cosine = lr -> pt.peak_factor*lr over the warmup, then cosine back to lr at reward.steps (PT repo: optax warmup_cosine_decay_schedule)", choices=("warmup_constant", "warmup_cosine"))
+    peak_factor: float = F(10.0, "peak learning rate / lr of the warmup_cosine schedule (PT repo: 10)", range=(1.0, None))
+    b2: float = F(0.99, "AdamW beta2 (Table 5: 0.99; PT repo: optax's default 0.999)", range=(0.0, 1.0))
     dtype: str = F("float32", "compute dtype of the transformer matmuls (bfloat16 = mixed precision; params stay float32)", choices=("float32", "bfloat16"))
 
 
@@ -294,6 +298,9 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
     },
     "authors": {  # SGPbrl b6d94e2 (scripts, learner, critic) and a5b03df (JaxPref/PrefTransformer.py)
         "pt.n_layer": 3, "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
+        # the PT repo's optimiser, kept by SGPbrl: warmup 10 % of the steps to 10x lr, cosine back to lr,
+        # optax.adamw's default b2 (new_preference_reward_main.py, PrefTransformer.py)
+        "pt.schedule": "warmup_cosine", "pt.peak_factor": 10.0, "pt.warmup_fraction": 0.1, "pt.b2": 0.999,
         "subgoal.weight": "diagonal", "subgoal.filter_on": "z", "subgoal.last_step": True,
         "subgoal.triplets": "interval", "subgoal.filter_groups": "top",
         "relabel.mode": "sliding", "relabel.window": 25,  # train_offline.py seq_len 25

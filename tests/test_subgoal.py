@@ -423,3 +423,36 @@ def test_extract_with_authors_keys():
     np.testing.assert_array_equal(states[:, 0], [2.0])
     np.testing.assert_array_equal(g[:, 0], [2.0] * 4)
     assert set(s[:, 0]) <= {0.0, 1.0} and info["subgoal/num_subgoals"] == 1.0
+
+
+def test_pt_learning_rate_schedules_by_hand():
+    """pt.schedule / pt.warmup_fraction / pt.peak_factor / pt.b2 (spot.reward.pt)."""
+    from spot.config import PTConfig
+    from spot.reward import pt
+
+    const = pt.learning_rate(PTConfig(lr=1e-4, warmup_steps=500))
+    np.testing.assert_allclose([const(0), const(250), const(1000)], [0.0, 5e-5, 1e-4], rtol=1e-6)
+    # PT repo: lr 1e-4 -> 1e-3 over 10 % of 100 steps, then cosine back to 1e-4:
+    # step 5: 1e-4 + 9e-4 * 5/10 = 5.5e-4; step 55: 1e-4 + 9e-4 * (1 + cos(pi/2)) / 2 = 5.5e-4.
+    cos = pt.learning_rate(PTConfig(lr=1e-4, schedule="warmup_cosine", warmup_fraction=0.1), 100)
+    np.testing.assert_allclose([cos(0), cos(5), cos(10), cos(55), cos(100)],
+                               [1e-4, 5.5e-4, 1e-3, 5.5e-4, 1e-4], rtol=1e-5)
+    with pytest.raises(ValueError, match="total number of steps"):
+        pt.learning_rate(PTConfig(schedule="warmup_cosine"))
+    # b2: two AdamW steps (lr 1, no decay) with gradients 1 then 0; the second update is
+    # m_hat / sqrt(v_hat) = (0.09 / 0.19) / sqrt(b2 / (1 + b2)): 0.671580 (b2 .99), 0.670058 (b2 .999).
+    for b2, expected in ((0.99, 0.671580), (0.999, 0.670058)):
+        tx = pt.PT(PTConfig(lr=1.0, weight_decay=0.0, warmup_steps=0, b2=b2)).optimizer(10)
+        params = jnp.zeros(())
+        state = tx.init(params)
+        _, state = tx.update(jnp.ones(()), state, params)
+        update, _ = tx.update(jnp.zeros(()), state, params)
+        np.testing.assert_allclose(-float(update), expected, rtol=1e-5)
+    # the optimizer runs the schedule over the steps it is given: with a constant gradient 1,
+    # m_hat = v_hat = 1, so each update is minus that step's learning rate (1e-4 ... 5.5e-4 at step 5)
+    tx = pt.PT(PTConfig(lr=1e-4, weight_decay=0.0, schedule="warmup_cosine", warmup_fraction=0.1)).optimizer(100)
+    state, updates = tx.init(jnp.zeros(())), []
+    for _ in range(6):
+        update, state = tx.update(jnp.ones(()), state, jnp.zeros(()))
+        updates.append(-float(update))
+    np.testing.assert_allclose(updates, [1e-4, 1.9e-4, 2.8e-4, 3.7e-4, 4.6e-4, 5.5e-4], rtol=1e-4)
