@@ -47,6 +47,11 @@ def test_compose_file_and_mlflow_version():
     command = compose["services"]["mlflow"]["command"]
     assert "postgresql://" in command and "--artifacts-destination s3://mlflow/" in command
     assert f'"mlflow=={PINS["mlflow"]}"' in (DOCKER / "mlflow" / "Dockerfile").read_text()
+    images = {name: s["image"] for name, s in compose["services"].items() if "image" in s}
+    assert set(images) == {"postgres", "minio", "create-bucket"}  # mlflow is built from mlflow/Dockerfile
+    for image in images.values():  # pinned: an explicit version tag, never latest or a bare major
+        tag = image.rpartition(":")[2]
+        assert ":" in image and tag != "latest" and re.fullmatch(r"\d+\.\d+|RELEASE\.\d{4}-\d\d-\d\dT[\d-]+Z", tag), image
 
 
 def test_ray_configs_parse_and_point_at_real_sweeps():
