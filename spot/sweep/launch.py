@@ -258,7 +258,8 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
                 run_fn: RunFn | None, resume_command: str) -> tuple[Any, SweepContext, dict[str, str], bool]:
     """Ray, the parent run and the Tune experiment; returns ``(client, ctx, ray errors, interrupted)``.
 
-    However it ends, the runs its trials left RUNNING are closed (KILLED) before it returns or raises.
+    Once the parent run exists, however the launch ends, the runs its trials left RUNNING are
+    closed (KILLED) before this returns or raises.
     """
     from mlflow.tracking import MlflowClient
 
