@@ -123,7 +123,8 @@ class CVAEConfig:
     batch_size: int = F(256, "triplets per step", range=(1, None))
     steps: int = F(100_000, "gradient steps (Table 6)", range=(1, None))
     beta: float = F(1.0, "KL weight beta (Table 6)", range=(0.0, None))
-    loss: str = F("mse_cos", "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7)", choices=("mse", "mse_cos"))
+    loss: str = F("mse_cos", "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7); authors = the authors' code: per-dimension MSE - [mean((cos+1)/2) + 0.1 var(cos)] + beta * KL averaged over latent dimensions", choices=("mse", "mse_cos", "authors"))
+    inputs: str = F("zscore", "states and subgoals fed to the CVAE: zscore = standardised with the dataset's observation mean and std; raw = as recorded (the authors' code)", choices=("zscore", "raw"))
 
 
 @dataclass(frozen=True)
@@ -305,6 +306,8 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
         "subgoal.triplets": "interval", "subgoal.filter_groups": "top",
         "relabel.mode": "sliding", "relabel.window": 25,  # train_offline.py seq_len 25
         "shaping.potential_sign": "pos", "shaping.potential_terminal": False,  # critic.py potential_based
+        "shaping.subgoal": "sample",  # subgoal_cvae_model.py: a prior sample (its noise from a fixed key)
+        "cvae.loss": "authors", "cvae.inputs": "raw",  # PrefTransformer.py vae_train_step, raw batches
         "iql.order": "sequential",  # learner.py: critic target uses the just-updated value network
     },
 }

@@ -28,6 +28,9 @@ ROWS = {
     25: {"subgoal.last_step": (False, False, True)},
     26: {"subgoal.triplets": ("next_subgoal", "next_subgoal", "interval"),
          "subgoal.interval_draws": (10, 10, 10)},
+    30: {"cvae.loss": ("mse_cos", "mse_cos", "authors")},  # eq. 7 + 8 / SGPbrl vae_train_step
+    31: {"cvae.inputs": ("zscore", "zscore", "raw")},
+    32: {"shaping.subgoal": ("mean", "mean", "sample")},  # SGPbrl: a prior sample (fixed-key noise)
     33: {"shaping.kind": ("cosine", "cosine", "cosine")},  # state-only cosine on s'
     34: {"shaping.weight": (1.0, 1.0, 1.0)},
     35: {"shaping.potential_sign": ("neg", "neg", "pos"),

@@ -456,3 +456,44 @@ def test_pt_learning_rate_schedules_by_hand():
         update, state = tx.update(jnp.ones(()), state, jnp.zeros(()))
         updates.append(-float(update))
     np.testing.assert_allclose(updates, [1e-4, 1.9e-4, 2.8e-4, 3.7e-4, 4.6e-4, 5.5e-4], rtol=1e-4)
+
+
+def test_cvae_authors_loss_by_hand():
+    """cvae.loss=authors: per-dimension MSE - [mean (cos+1)/2 + 0.1 var cos] + KL averaged over
+    latent dimensions, written here in the authors' log-variance form from the networks' outputs."""
+    cfg = CVAEConfig(latent_dim=3, hidden=(8,), loss="authors", inputs="raw")
+    rng = np.random.default_rng(0)
+    s, a, g = rng.standard_normal((5, 4)), rng.uniform(-1, 1, (5, 2)), rng.standard_normal((5, 4))
+    state = cvae.init(jax.random.PRNGKey(0), 4, 2, cfg, (np.zeros(4), np.ones(4)))
+    params, key = state.params, jax.random.PRNGKey(1)
+    loss, _ = cvae.loss_fn(params, extract.Triplets(*(jnp.asarray(x, jnp.float32) for x in (s, a, g))), key, cfg)
+
+    def net(method, *args):
+        return np.asarray(params.module.apply({"params": params.net}, *(jnp.asarray(x, jnp.float32) for x in args),
+                                              method=method), np.float64)
+
+    q_mean, q_log_std = (np.asarray(x, np.float64) for x in params.module.apply(
+        {"params": params.net}, jnp.asarray(g, jnp.float32), jnp.asarray(s, jnp.float32),
+        jnp.asarray(a, jnp.float32), method=cvae.CVAE.posterior))
+    p_mean, p_log_std = (np.asarray(x, np.float64) for x in params.module.apply(
+        {"params": params.net}, jnp.asarray(s, jnp.float32), jnp.asarray(a, jnp.float32), method=cvae.CVAE.prior))
+    z = q_mean + np.exp(q_log_std) * np.asarray(jax.random.normal(key, q_mean.shape), np.float64)
+    g_hat = net(cvae.CVAE.decode, z, s, a)
+    sim = (g_hat * g).sum(-1) / (np.linalg.norm(g_hat, axis=-1) * np.linalg.norm(g, axis=-1))
+    lv_q, lv_p = 2 * q_log_std, 2 * p_log_std
+    kl = 0.5 * np.mean(np.exp(lv_q - lv_p) + (q_mean - p_mean) ** 2 / np.exp(lv_p) - 1 + lv_p - lv_q)
+    expected = np.mean((g_hat - g) ** 2) - (np.mean((sim + 1) / 2) + 0.1 * np.var(sim)) + kl
+    np.testing.assert_allclose(float(loss), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_cvae_raw_inputs_use_identity_statistics():
+    cfg = CVAEConfig(latent_dim=2, hidden=(8,), steps=2, batch_size=4, inputs="raw")
+    rng = np.random.default_rng(0)
+    s, a, g = rng.standard_normal((8, 3)) * 5 + 7, rng.uniform(-1, 1, (8, 2)), rng.standard_normal((8, 3))
+    params, _ = cvae.train_cvae(jax.random.PRNGKey(0), s, a, g, cfg, (np.full(3, 7.0), np.full(3, 5.0)),
+                                progress=False, log_every=2)
+    np.testing.assert_array_equal(params.obs_mean, np.zeros(3))
+    np.testing.assert_array_equal(params.obs_std, np.ones(3))
+    params, _ = cvae.train_cvae(jax.random.PRNGKey(0), s, a, g, dataclasses.replace(cfg, inputs="zscore"),
+                                (np.full(3, 7.0), np.full(3, 5.0)), progress=False, log_every=2)
+    np.testing.assert_array_equal(params.obs_mean, np.full(3, 7.0))

@@ -34,6 +34,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
 from spot.config import PTConfig
 from spot.nets import LN_EPS, MASKED_LOGIT, Dropout, Params, TransformerBlock, jit_init
@@ -121,6 +122,25 @@ class PreferenceTransformer(nn.Module):
         """
         x = self._state_hidden(obs, act, timesteps, mask, deterministic=True, last_only=True)
         return self.pref_head(x)[:, 0, 2 * self.pref_attn_dim]
+
+
+def learning_rate(cfg: PTConfig, total_steps: int | None = None) -> float | optax.Schedule:
+    """PT's learning rate (``pt.schedule``): ``warmup_constant`` rises linearly from 0 to ``lr``
+    over the warmup, then stays (Table 5); ``warmup_cosine`` rises from ``lr`` to
+    ``pt.peak_factor * lr`` over the warmup, then falls along a cosine to ``lr`` at
+    ``total_steps`` (the PT repo's ``warmup_cosine_decay_schedule``). The warmup is
+    ``pt.warmup_steps``, or ``pt.warmup_fraction`` of ``total_steps`` when that is > 0 (PT repo: 10 %)."""
+    warmup = cfg.warmup_steps
+    if cfg.warmup_fraction > 0 or cfg.schedule == "warmup_cosine":
+        if total_steps is None:
+            raise ValueError("pt.schedule=warmup_cosine and pt.warmup_fraction need the total number of steps")
+        if cfg.warmup_fraction > 0:
+            warmup = int(cfg.warmup_fraction * total_steps)
+    if cfg.schedule == "warmup_cosine":
+        return optax.warmup_cosine_decay_schedule(
+            init_value=cfg.lr, peak_value=cfg.peak_factor * cfg.lr, warmup_steps=warmup,
+            decay_steps=max(total_steps, warmup + 1), end_value=cfg.lr)
+    return cfg.lr if warmup == 0 else optax.warmup_constant_schedule(0.0, cfg.lr, warmup)
 
 
 def make_model(cfg: PTConfig) -> PreferenceTransformer:

@@ -7,10 +7,12 @@ averaged over the batch. Accuracy counts non-tie pairs only.
 
 Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
 
-* PT: AdamW, ``b1 = 0.9, b2 = 0.99`` (Table 5; the PT repo keeps optax's 0.999), weight decay
-  ``PTConfig.weight_decay``, learning rate linear from 0 to ``PTConfig.lr`` over ``warmup_steps``,
-  then **constant** (Table 5 lists warmup only; the PT repo's own warmup-cosine schedule peaks at
-  10x lr, which Table 5 does not reproduce). Dropout on.
+* PT: AdamW, ``b1 = 0.9, b2 = pt.b2`` (Table 5: 0.99; the PT repo keeps optax's 0.999), weight
+  decay ``PTConfig.weight_decay``; by default (``pt.schedule=warmup_constant``) the learning rate
+  rises linearly from 0 to ``PTConfig.lr`` over ``warmup_steps``, then stays **constant** (Table 5
+  lists warmup only). ``pt.schedule=warmup_cosine`` is the PT repo's schedule: from ``lr`` up to
+  ``pt.peak_factor * lr`` (10x) over the warmup (PT repo: 10 % of the steps,
+  ``pt.warmup_fraction=0.1``), then a cosine back down to ``lr`` at the last step. Dropout on.
 * MR: Adam, ``MRConfig.lr``, constant.
 * Minibatches of ``min(batch_size, Q)`` pairs drawn without replacement on device at every step
   (PT repo: shuffled epochs, which with ``Q <= batch_size`` means the whole set every step).
@@ -182,21 +184,20 @@ def init_params(kind: str, key: jax.Array, obs_dim: int, act_dim: int, pt_cfg: P
 
 
 def init_state(kind: str, key: jax.Array, obs_dim: int, act_dim: int, pt_cfg: PTConfig | None = None,
-               mr_cfg: MRConfig | None = None) -> RewardState:
+               mr_cfg: MRConfig | None = None, total_steps: int | None = None) -> RewardState:
     """Fresh parameters (:func:`init_params`), optimizer state and step 0."""
     params = init_params(kind, key, obs_dim, act_dim, pt_cfg, mr_cfg)
-    opt_state = make_optimizer(kind, pt_cfg, mr_cfg).init(params)
+    opt_state = make_optimizer(kind, pt_cfg, mr_cfg, total_steps).init(params)
     return RewardState(params, opt_state, jnp.zeros((), jnp.int32))
 
 
-def make_optimizer(kind: str, pt_cfg: PTConfig | None = None,
-                   mr_cfg: MRConfig | None = None) -> optax.GradientTransformation:
-    """PT: AdamW(0.9, 0.99), linear warmup then constant lr; MR: Adam, constant lr."""
+def make_optimizer(kind: str, pt_cfg: PTConfig | None = None, mr_cfg: MRConfig | None = None,
+                   total_steps: int | None = None) -> optax.GradientTransformation:
+    """PT: AdamW(0.9, ``pt.b2``) with :func:`spot.reward.pt.learning_rate`; MR: Adam, constant lr."""
     cfg = _model_cfg(kind, pt_cfg, mr_cfg)
     if kind == "mr":
         return optax.adam(cfg.lr)
-    lr = cfg.lr if cfg.warmup_steps == 0 else optax.warmup_constant_schedule(0.0, cfg.lr, cfg.warmup_steps)
-    return optax.adamw(lr, b1=0.9, b2=0.99, weight_decay=cfg.weight_decay)
+    return optax.adamw(pt.learning_rate(cfg, total_steps), b1=0.9, b2=cfg.b2, weight_decay=cfg.weight_decay)
 
 
 # --------------------------------------------------------------------------- jitted programs
@@ -226,7 +227,7 @@ def make_train_chunk(kind: str, cfg: PTConfig | MRConfig, batch_size: int, chunk
     same mean loss and gradient as one pass (dropout masks aside), with a fraction of the
     activation memory, and ~15 % faster on CPU at PT's batch of 256 pairs (better cache use).
     """
-    tx = make_optimizer(kind, cfg if kind == "pt" else None, cfg if kind == "mr" else None)
+    tx = make_optimizer(kind, cfg if kind == "pt" else None, cfg if kind == "mr" else None, total_steps)
     n_micro = micro_batches(batch_size, micro_batch)
 
     def micro_loss(params: Params, mb: PrefPairs, dropout_key: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -342,7 +343,8 @@ def train_reward_model(kind: str, key: jax.Array, train_batch: Mapping[str, np.n
 
     init_key, train_key = jax.random.split(key)
     del key
-    state = init_state(kind, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], pt_cfg, mr_cfg)
+    state = init_state(kind, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], pt_cfg, mr_cfg,
+                       reward_cfg.steps)
     batch_size = min(reward_cfg.batch_size, _num_pairs(train))
     chunk_len = min(reward_cfg.eval_every, reward_cfg.steps)
     eval_data, eval_weight = jax.device_put(
@@ -449,7 +451,7 @@ def bench_train_steps(kind: str = "pt", batch: int = 256, length: int = 100, ste
     cfg = _model_cfg(kind, pt_cfg, mr_cfg)
     data_key, init_key, train_key = jax.random.split(jax.random.key(seed), 3)
     data = jax.device_put(pref_pairs(synthetic_pairs(data_key, batch, length, obs_dim, act_dim)))
-    state = init_state(kind, init_key, obs_dim, act_dim, pt_cfg, mr_cfg)
+    state = init_state(kind, init_key, obs_dim, act_dim, pt_cfg, mr_cfg, steps)
     chunk, compile_s = compile_cached(("reward/bench", kind, cfg, batch, steps, micro_batch),
                                       make_train_chunk(kind, cfg, batch, steps, steps, micro_batch),
                                       state, data, train_key)

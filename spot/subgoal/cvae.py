@@ -20,6 +20,11 @@ Loss per triplet (batch mean), ``z ~ q`` by reparameterisation, one sample:
 
 ``loss = recon + β · kl (+ cos)`` (eq. 9).
 
+``cfg.loss = "authors"`` is the loss of the authors' code (SGPbrl ``PrefTransformer.vae_train_step``):
+``mean_{b,d} (ĝ - g)² - [mean_b (cos_b + 1)/2 + 0.1 var_b(cos_b)] + β · KL / latent_dim`` (their
+KL is averaged over latent dimensions; the variance term is subtracted, as written there). It is
+meant with ``cfg.inputs = "raw"`` (their inputs are not standardised).
+
 Normalisation: ``s`` and ``g`` are z-scored with the dataset's observation mean and std (std
 floored at 1e-3), which live in :class:`CVAEParams` next to the network weights. Actions go in
 raw (they are bounded in ``[-1, 1]`` in every dataset we use). The decoder outputs a normalised
@@ -184,6 +189,10 @@ def loss_fn(params: CVAEParams, batch: Triplets, key: jax.Array,
     loss = recon + cfg.beta * kl
     if cfg.loss == "mse_cos":
         loss = loss + cos
+    elif cfg.loss == "authors":  # SGPbrl PrefTransformer.vae_train_step (see the module docstring)
+        sim = cosine_similarity(params.denormalize(g_hat_n), g)
+        loss = (((g_hat_n - g_n) ** 2).mean() - (0.5 * (sim + 1.0)).mean() - 0.1 * sim.var()
+                + cfg.beta * kl / q_mean.shape[-1])
     info = {"cvae/loss": loss, "cvae/recon": recon, "cvae/kl": kl, "cvae/cos": cos,
             "cvae/mse": sq_err.mean() / s.shape[-1]}
     return loss, info
@@ -269,7 +278,8 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
       key: root key of this stage; split into init / split / train / eval keys.
       s, a, g: ``[M, obs_dim]``, ``[M, act_dim]``, ``[M, obs_dim]`` triplets (:mod:`extract`).
       cfg: CVAE config.
-      obs_stats: ``(mean, std)`` of the dataset's observations (:func:`obs_stats`).
+      obs_stats: ``(mean, std)`` of the dataset's observations (:func:`obs_stats`); replaced by
+        ``(0, 1)`` when ``cfg.inputs = "raw"``.
       progress: show a progress bar on stderr.
       log_every: steps per jitted chunk (= log interval). The chunk length is
         ``ceil(steps / ceil(steps / log_every))`` so every chunk has the same length and compiles
@@ -287,6 +297,8 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
       NonFiniteError: a logged loss is NaN or inf.
     """
     s, a, g = (np.asarray(x, dtype=np.float32) for x in (s, a, g))
+    if cfg.inputs == "raw":  # identity standardisation
+        obs_stats = (np.zeros(s.shape[-1], np.float32), np.ones(s.shape[-1], np.float32))
     m = s.shape[0]
     if m == 0 or a.shape[0] != m or g.shape != s.shape:
         raise SpotError(f"triplets have shapes s {s.shape}, a {a.shape}, g {g.shape}; expected "
