@@ -11,18 +11,6 @@ With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with 
 ``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.mlflow_server`).
 """
 
-from spot.tracking.record import (
-    PACKAGES,
-    MemoryTracker,
-    MlflowTracker,
-    Tracker,
-    finite_metrics,
-    git_commit,
-    log_params,
-    package_versions,
-    run_tags,
-    start_run,
-)
 from spot.tracking.queries import (
     artifact_uri,
     close_orphans,
@@ -34,6 +22,18 @@ from spot.tracking.queries import (
     record_failure,
     search_runs,
     tag_filter,
+)
+from spot.tracking.record import (
+    PACKAGES,
+    MemoryTracker,
+    MlflowTracker,
+    Tracker,
+    finite_metrics,
+    git_commit,
+    log_params,
+    package_versions,
+    run_tags,
+    start_run,
 )
 from spot.tracking.store import (
     LOCAL_STORES,
