@@ -349,7 +349,7 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
     missing = "" if n_done == len(rows) else (f"\nto run what is missing: {command} "
                                               "(add --retry-errored to run failed trials again)")
     print(f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
-          f"filter: tags.sweep_id = '{ctx.sweep_id}'\n{store.how_to_open}{missing}", flush=True)
+          f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{missing}", flush=True)
     if paper:
         print(f"\n{paper}", flush=True)
     return rows
