@@ -1,10 +1,13 @@
 """Content-addressed stage cache, stored as data only.
 
 Each pipeline stage's output is stored under a key hashed from everything it depends on (the
-dataset's fingerprint, labels, its config section, the seed) and from the *source* of the code the
-stage runs (:func:`code_version`), so editing a stage or a module it uses retires its old entries
-without a hand-bumped number. A run that changes only the shaping weight therefore reuses the
-reward model and the CVAE of an earlier run.
+dataset's fingerprint, labels, its config section, the seed) and from the code the stage runs
+(:func:`code_version`: the bytecode, constants and defaults of the stage function, the helpers it
+calls and every spot module it uses, as loaded in this process), so editing a stage or a module it
+uses retires its old entries without a hand-bumped number; comments and line numbers do not count,
+and a file edited while a process runs does not change that process's keys (they name the code
+that computed the entry). A run that changes only the shaping weight therefore reuses the reward
+model and the CVAE of an earlier run.
 
 Entries hold data only and reading one never runs code from it. An entry is one ``.npz`` file (read
 with ``allow_pickle=False``): the output's numpy arrays plus a JSON description of the tree around
@@ -18,16 +21,18 @@ renamed into place. The cache dir is ``$SPOT_CACHE_DIR`` (default ``~/.cache/spo
 
 from __future__ import annotations
 
-import ast
 import dataclasses
+import dis
+import functools
 import hashlib
 import importlib
-import importlib.util
 import io
 import json
 import os
+import sys
+import types
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -49,169 +54,225 @@ def cache_dir() -> Path:
 
 
 # --------------------------------------------------------------------------- code versions
-def _module_path(name: str) -> Path | None:
-    """The ``.py`` file of module ``name`` of an installed package, found without importing it."""
-    top, *rest = name.split(".")
-    spec = importlib.util.find_spec(top)
-    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
-        return None
-    base = Path(spec.origin).parent if spec.submodule_search_locations else None
-    if not rest:
-        return Path(spec.origin)
-    if base is None:
-        return None
-    for path in (base.joinpath(*rest).with_suffix(".py"), base.joinpath(*rest, "__init__.py")):
-        if path.is_file():
-            return path
-    return None
+def _const_repr(c: Any) -> str:
+    """A process-independent repr of a code constant (frozensets sorted: their order follows string
+    hashes, which differ between processes)."""
+    if isinstance(c, (frozenset, set)):
+        return "{" + ",".join(sorted(_const_repr(x) for x in c)) + "}"
+    if isinstance(c, (tuple, list)):
+        return "(" + ",".join(_const_repr(x) for x in c) + ")"
+    if isinstance(c, dict):
+        return "{" + ",".join(sorted(f"{_const_repr(k)}:{_const_repr(v)}" for k, v in c.items())) + "}"
+    if isinstance(c, (int, float, complex, str, bytes, bool, type(None), type(Ellipsis))):
+        return repr(c)
+    target = _unwrap(c)  # a function, class or other object as a default value: by name, never by address
+    name = getattr(target, "__qualname__", None) or type(target).__qualname__
+    return f"<{getattr(target, '__module__', None) or type(target).__module__}.{name}>"
 
 
-class _Sources:
-    """The source text of a function and of everything it runs inside ``package``."""
+def _walk_code(co: types.CodeType) -> Iterator[types.CodeType]:
+    yield co
+    for c in co.co_consts:
+        if isinstance(c, types.CodeType):
+            yield from _walk_code(c)
+
+
+def _hash_code(co: types.CodeType, h: Any) -> None:
+    for c in _walk_code(co):
+        h.update(c.co_code)
+        h.update(repr(c.co_names).encode())
+        h.update(repr([_const_repr(k) for k in c.co_consts if not isinstance(k, types.CodeType)]).encode())
+
+
+def _imports_in(co: types.CodeType, package: str | None) -> set[str]:
+    """Modules named by the ``import`` statements inside a function (``IMPORT_NAME``/``IMPORT_FROM``)."""
+    out: set[str] = set()
+    for c in _walk_code(co):
+        current = None
+        instructions = list(dis.get_instructions(c))
+        for i, ins in enumerate(instructions):
+            if ins.opname == "IMPORT_NAME":
+                level = instructions[i - 2].argval if i >= 2 and instructions[i - 2].opname == "LOAD_CONST" else 0
+                current = ins.argval
+                if isinstance(level, int) and level > 0 and package:  # from .x import y
+                    base = package.rsplit(".", level - 1)[0] if level > 1 else package
+                    current = f"{base}.{current}" if current else base
+                out.add(current)
+            elif ins.opname == "IMPORT_FROM" and current is not None:
+                out.add(f"{current}.{ins.argval}")
+    return out
+
+
+def _plain(value: Any) -> bool:
+    """Data a definition may read as a constant: scalars, strings and containers of them."""
+    if isinstance(value, (int, float, str, bytes, bool, type(None))):
+        return True
+    if isinstance(value, (tuple, list, frozenset, set)):
+        return all(_plain(v) for v in value)
+    if isinstance(value, dict):
+        return all(_plain(k) and _plain(v) for k, v in value.items())
+    return False
+
+
+def _usable(value: Any) -> bool:
+    """A global a definition's code may run: a module, a function or a class."""
+    target = _unwrap(value)
+    return isinstance(target, (types.ModuleType, type)) or hasattr(target, "__code__")
+
+
+def _unwrap(obj: Any) -> Any:
+    while True:
+        if isinstance(obj, (staticmethod, classmethod)):
+            obj = obj.__func__
+        elif isinstance(obj, property):
+            obj = obj.fget
+        elif isinstance(obj, functools.partial):
+            obj = obj.func
+        elif hasattr(obj, "__wrapped__") and not isinstance(obj, type):
+            obj = obj.__wrapped__
+        else:
+            return obj
+
+
+class _Code:
+    """Digests of the code a stage runs, as loaded in this process: functions by their bytecode,
+    constants and defaults; modules by all the functions and classes they define."""
 
     def __init__(self, package: str) -> None:
         self.package = package
-        self.texts: dict[str, str] = {}
-        self._parsed: dict[Path, tuple[str, ast.Module]] = {}
-
-    def _parse(self, path: Path) -> tuple[str, ast.Module]:
-        if path not in self._parsed:
-            text = path.read_text()
-            self._parsed[path] = (text, ast.parse(text))
-        return self._parsed[path]
+        self.parts: dict[str, str] = {}
 
     def _in_package(self, name: str) -> bool:
         return (name == self.package or name.startswith(self.package + ".")) and name not in NOT_CODE
 
-    def _imported_modules(self, tree: ast.AST, module: str, is_pkg: bool) -> set[str]:
-        """Package modules named by every ``import`` in ``tree`` (module- or function-level)."""
-        out: set[str] = set()
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                out.update(a.name for a in node.names)
-            elif isinstance(node, ast.ImportFrom):
-                base = node.module or ""
-                if node.level:
-                    parts = module.split(".")
-                    parts = parts[: len(parts) - node.level + (1 if is_pkg else 0)]
-                    base = ".".join(parts + ([base] if base else []))
-                for a in node.names:
-                    sub = f"{base}.{a.name}"
-                    out.add(sub if _module_path(sub) is not None else base)
-        return {m for m in out if self._in_package(m)}
+    def _module_of_import(self, name: str) -> str | None:
+        """The package module an import names (``a.b.c`` where ``c`` may be an attribute)."""
+        for candidate in (name, name.rpartition(".")[0]):
+            if candidate and self._in_package(candidate):
+                try:
+                    importlib.import_module(candidate)
+                except ImportError:
+                    continue
+                return candidate
+        return None
+
+    def _function(self, fn: Any, h: Any, deps: list[Any]) -> None:
+        fn = _unwrap(fn)
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            return
+        _hash_code(code, h)
+        h.update(_const_repr((fn.__defaults__ or ()) + tuple(sorted((fn.__kwdefaults__ or {}).items()))).encode())
+        glb = getattr(fn, "__globals__", {})
+        for c in _walk_code(code):
+            for name in c.co_names:
+                if name in glb:
+                    value = glb[name]
+                    if _plain(value):
+                        h.update(f"{name}={_const_repr(value)}".encode())
+                    elif _usable(value):
+                        deps.append(value)
+        deps.extend(sorted(_imports_in(code, glb.get("__package__"))))
+
+    def _object(self, obj: Any, h: Any, deps: list[Any]) -> None:
+        """A function or a class (its methods, class attributes and dataclass fields)."""
+        obj = _unwrap(obj)
+        if isinstance(obj, type):
+            for name, value in sorted(vars(obj).items()):
+                value = _unwrap(value)
+                if hasattr(value, "__code__"):
+                    h.update(name.encode())
+                    self._function(value, h, deps)
+                elif _plain(value) and not name.startswith("__"):
+                    h.update(f"{name}={_const_repr(value)}".encode())
+            if dataclasses.is_dataclass(obj):
+                for f in dataclasses.fields(obj):
+                    default = f.default if _plain(f.default) else type(f.default).__name__
+                    h.update(f"field {f.name}={_const_repr(default)}".encode())
+        else:
+            self._function(obj, h, deps)
+
+    def _follow(self, deps: list[Any]) -> None:
+        for dep in deps:
+            if isinstance(dep, str):
+                module = self._module_of_import(dep)
+                if module is not None:
+                    self.add_module(module)
+            elif isinstance(dep, types.ModuleType):
+                if self._in_package(dep.__name__):
+                    self.add_module(dep.__name__)
+            else:
+                module = getattr(_unwrap(dep), "__module__", None)
+                if isinstance(module, str) and self._in_package(module):
+                    self.add_module(module)
 
     def add_module(self, name: str) -> None:
-        if name in self.texts or not self._in_package(name):
+        if name in self.parts or not self._in_package(name):
             return
-        path = _module_path(name)
-        if path is None:
+        self.parts[name] = ""  # placeholder: import cycles end here
+        module = importlib.import_module(name)
+        h, deps = hashlib.sha256(), []
+        for attr, value in sorted(vars(module).items()):
+            target = _unwrap(value)
+            if getattr(target, "__module__", None) == name and (isinstance(target, type) or hasattr(target, "__code__")):
+                h.update(attr.encode())
+                self._object(target, h, deps)
+            elif _plain(value) and not attr.startswith("__"):
+                h.update(f"{attr}={_const_repr(value)}".encode())
+            elif isinstance(value, types.ModuleType) and value.__name__.startswith(name + "."):
+                continue  # a submodule: the import system sets it on its package, the package does not use it
+            elif _usable(value):
+                deps.append(value)
+        self.parts[name] = h.hexdigest()
+        self._follow(deps)
+
+    def add_definition(self, module: str, name: str) -> None:
+        """A module-level function or class, the definitions of its module it uses, and the
+        package modules it uses (whole)."""
+        ref = f"{module}:{name}"
+        if ref in self.parts or module in self.parts:
             return
-        text, tree = self._parse(path)
-        self.texts[name] = text
-        for m in sorted(self._imported_modules(tree, name, path.name == "__init__.py")):
-            self.add_module(m)
-
-    def add_function(self, module: str, qualname: str) -> None:
-        ref = f"{module}:{qualname}"
-        if ref in self.texts or module in self.texts:
-            return
-        path = _module_path(module)
-        if path is None:
-            raise ValueError(f"cannot find the source of module {module!r}")
-        text, tree = self._parse(path)
-        node = _find_def(tree, qualname)
-        if node is None:
-            raise ValueError(f"cannot find {qualname!r} in {path}")
-        self.texts[ref] = "\n".join(text.splitlines()[node.lineno - 1: node.end_lineno])
-        is_pkg = path.name == "__init__.py"
-        for m in sorted(self._imported_modules(node, module, is_pkg)):
-            self.add_module(m)
-        top_defs = {n.name: n for n in tree.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))}
-        imported = _module_level_imports(tree, module, is_pkg)
-        for name in sorted(_names_run(node)):
-            if name in top_defs and name != qualname.split(".")[0]:
-                self.add_function(module, name)
-            elif name in imported:
-                target_module, target_name = imported[name]
-                if target_name is None or _module_path(f"{target_module}.{target_name}") is not None:
-                    self.add_module(target_module if target_name is None else f"{target_module}.{target_name}")
-                elif self._in_package(target_module):
-                    self.add_module(target_module)
+        self.parts[ref] = ""
+        mod = importlib.import_module(module)
+        obj = getattr(mod, name, None)
+        if obj is None:
+            raise ValueError(f"cannot find {name!r} in module {module!r}")
+        h, deps = hashlib.sha256(), []
+        self._object(obj, h, deps)
+        self.parts[ref] = h.hexdigest()
+        for dep in deps:
+            target = _unwrap(dep) if not isinstance(dep, str) else dep
+            own = getattr(target, "__module__", None) == module and getattr(target, "__name__", None) in vars(mod)
+            if own and (isinstance(target, type) or hasattr(target, "__code__")):
+                self.add_definition(module, target.__name__)
+            else:
+                self._follow([dep])
 
 
-def _names_run(node: ast.AST) -> set[str]:
-    """Names a definition's body refers to; annotations (types, not code that runs) are left out."""
-    body = node.body if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) else [node]
-    out: set[str] = set()
-    for stmt in body:
-        for n in ast.walk(stmt):
-            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                for a in (*n.args.posonlyargs, *n.args.args, *n.args.kwonlyargs, n.args.vararg, n.args.kwarg):
-                    if a is not None:
-                        a.annotation = None
-                n.returns = None
-            elif isinstance(n, ast.AnnAssign) and n.value is None:
-                n.annotation = ast.Constant(None)
-    for stmt in body:
-        out.update(n.id for n in ast.walk(stmt) if isinstance(n, ast.Name))
-    return out
-
-
-def _find_def(tree: ast.AST, qualname: str) -> ast.AST | None:
-    body = tree.body  # type: ignore[attr-defined]
-    node = None
-    for part in qualname.split("."):
-        node = next((n for n in body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef))
-                     and n.name == part), None)
-        if node is None:
-            return None
-        body = node.body
-    return node
-
-
-def _module_level_imports(tree: ast.Module, module: str, is_pkg: bool) -> dict[str, tuple[str, str | None]]:
-    """``local name -> (module, imported name or None)`` of the module's top-level imports."""
-    out: dict[str, tuple[str, str | None]] = {}
-    for node in tree.body:
-        if isinstance(node, ast.Import):
-            for a in node.names:
-                out[a.asname or a.name.split(".")[0]] = (a.name if a.asname else a.name.split(".")[0], None)
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = module.split(".")
-                parts = parts[: len(parts) - node.level + (1 if is_pkg else 0)]
-                base = ".".join(parts + ([base] if base else []))
-            for a in node.names:
-                out[a.asname or a.name] = (base, a.name)
-    return out
-
-
-def code_sources(fn: Callable[..., Any], package: str = PACKAGE) -> dict[str, str]:
-    """``name -> source`` of what a stage runs: the module-level function or class that defines
-    ``fn`` (the enclosing stage function of a closure or lambda), the module-level functions and
-    classes of its module that this calls by name, and every module
-    of ``package`` those import, transitively (module- and function-level imports). Read from the
-    files on disk, so an edit counts without a reload."""
-    while hasattr(fn, "func"):  # functools.partial
+def code_parts(fn: Callable[..., Any], package: str = PACKAGE) -> dict[str, str]:
+    """``name -> digest`` of the code a stage runs, as loaded in this process: the module-level
+    function or class that defines ``fn`` (the enclosing stage function of a closure or lambda;
+    the class of a callable instance), the functions and classes of its module that this uses, and
+    every module of ``package`` those use or import, transitively (module-level and function-level
+    imports; a module's digest covers every function and class it defines and its plain constants).
+    Bytecode, constants and defaults count; line numbers and comments do not."""
+    while isinstance(fn, functools.partial):
         fn = fn.func
     if not hasattr(fn, "__qualname__"):  # a callable instance: its class
         fn = type(fn)
     module, qualname = getattr(fn, "__module__", None), getattr(fn, "__qualname__", None)
     if not module or not qualname:
-        raise ValueError(f"cannot find the source of {fn!r}; pass code= to cache.cached")
-    outer = qualname.split(".<locals>.")[0].split(".")[0]  # the module-level def or class around fn
-    sources = _Sources(package)
-    sources.add_function(module, outer)
-    return dict(sorted(sources.texts.items()))
+        raise ValueError(f"cannot find the code of {fn!r}; pass code= to cache.cached")
+    code = _Code(package)
+    code.add_definition(module, qualname.split(".<locals>.")[0].split(".")[0])
+    return dict(sorted(code.parts.items()))
 
 
 def code_version(fn: Callable[..., Any], package: str = PACKAGE) -> str:
-    """SHA-256 (hex, 16 chars) of :func:`code_sources`; changes when any of that source changes."""
-    h = hashlib.sha256()
-    for name, text in code_sources(fn, package).items():
-        h.update(f"{len(name)}:{name}{len(text)}:".encode())
-        h.update(text.encode())
+    """SHA-256 (hex, 16 chars) over :func:`code_parts`; changes when any of that code changes."""
+    h = hashlib.sha256(f"python {sys.version_info[:2]}".encode())
+    for name, digest in code_parts(fn, package).items():
+        h.update(f"{name}:{digest};".encode())
     return h.hexdigest()[:16]
 
 
@@ -426,8 +487,8 @@ def cached(stage: str, deps: Mapping[str, Any], compute: Callable[[], Any],
            code: str | None = None) -> tuple[Any, bool, str]:
     """``(value, hit, key)``: the cached value for ``deps``, or ``compute()`` stored under it.
 
-    ``code`` is the stage's code version; by default :func:`code_version` of ``compute`` (the
-    source of the stage function that defines it and of what that runs).
+    ``code`` is the stage's code version; by default :func:`code_version` of ``compute`` (the code
+    of the stage function that defines it and of what that runs).
     """
     k = key(stage, deps, code if code is not None else code_version(compute))
     found, value = load(k)

@@ -106,7 +106,7 @@ def test_default_code_version_is_the_compute_functions_source(cache_dir):
     _, _, key = cache.cached("s", {}, compute)
     assert key == cache.key("s", {}, cache.code_version(_Counter))  # a callable instance: its class's source
     assert cache.code_version(compute.__call__) == cache.code_version(_Counter)
-    assert f"{_Counter.__module__}:_Counter" in cache.code_sources(compute, package=_Counter.__module__)
+    assert f"{_Counter.__module__}:_Counter" in cache.code_parts(compute, package=_Counter.__module__)
 
 
 def test_a_corrupt_entry_is_evicted_and_recomputed(cache_dir):
@@ -251,6 +251,7 @@ def toy_package(tmp_path, monkeypatch):
             return other.unused()
     """))
     monkeypatch.syspath_prepend(str(root))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)  # reloads compile the edited source, never a stale .pyc
     yield pkg
     for name in [m for m in sys.modules if m.startswith("toystages")]:
         del sys.modules[name]
@@ -261,31 +262,39 @@ def test_code_version_follows_the_stage_and_what_it_runs(toy_package):
 
     stage = importlib.import_module("toystages.stage")
     compute = stage.stage(1)  # a closure: its version is the enclosing stage's
-    sources = cache.code_sources(compute, package="toystages")
-    assert set(sources) == {"toystages.stage:stage", "toystages.stage:_prepare", "toystages.helper"}
+    parts = cache.code_parts(compute, package="toystages")
+    assert set(parts) == {"toystages.stage:stage", "toystages.stage:_prepare", "toystages.helper", "toystages"}
     v0 = cache.code_version(compute, package="toystages")
     assert cache.code_version(stage.stage, package="toystages") == v0
 
     def edit(name: str, old: str, new: str) -> str:
         path = toy_package / name
         path.write_text(path.read_text().replace(old, new))
-        return cache.code_version(compute, package="toystages")  # read from disk: no reload needed
+        assert cache.code_version(stage.stage, package="toystages") == current  # the loaded code ran, not the file
+        for module in ("toystages.helper", "toystages.other", "toystages.stage"):
+            importlib.reload(sys.modules[module])  # reloading picks the edit up
+        return cache.code_version(sys.modules["toystages.stage"].stage, package="toystages")
 
-    assert edit("stage.py", "def unrelated():\n    return other.unused()", "def unrelated():\n    return 1") == v0
-    assert edit("other.py", "return 0", "return 1") == v0  # not run by the stage
-    v1 = edit("helper.py", "2 * x", "3 * x")  # a module the stage imports
+    current = v0
+    current = edit("stage.py", "def unrelated():\n    return other.unused()", "def unrelated():\n    return 1")
+    assert current == v0
+    current = edit("other.py", "return 0", "return 1")  # not run by the stage
+    assert current == v0
+    current = edit("stage.py", "def _prepare(x):\n", "def _prepare(x):\n    # a comment\n")  # no code change
+    assert current == v0
+    v1 = current = edit("helper.py", "2 * x", "3 * x")  # a module the stage imports
     assert v1 != v0
-    v2 = edit("stage.py", "return x + 1", "return x + 2")  # a helper the stage calls
+    v2 = current = edit("stage.py", "return x + 1", "return x + 2")  # a helper the stage calls
     assert v2 not in (v0, v1)
     v3 = edit("stage.py", "return helper.scale(", "return -helper.scale(")  # the stage itself
     assert v3 not in (v0, v1, v2)
 
 
 def test_the_real_stages_versions_cover_their_modules():
-    reward = cache.code_sources(stages.learned_reward)
+    reward = cache.code_parts(stages.learned_reward)
     assert {"spot.stages:learned_reward", "spot.reward.train", "spot.reward.pt", "spot.reward.mr", "spot.nets"} <= set(reward)
     assert "spot.stages:cvae_stage" not in reward and "spot.subgoal.cvae" not in reward
     assert "spot.config" not in reward  # config values are in the deps, not the code version
-    cvae = cache.code_sources(stages.cvae_stage)
+    cvae = cache.code_parts(stages.cvae_stage)
     assert {"spot.stages:cvae_stage", "spot.subgoal.cvae"} <= set(cvae) and "spot.reward.pt" not in cvae
     assert cache.code_version(stages.learned_reward) != cache.code_version(stages.cvae_stage)
