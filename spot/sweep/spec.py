@@ -234,6 +234,22 @@ def _fields(data: dict[str, Any], where: str) -> dict[str, Any]:
             "table": _table(data.get("table"), where)}
 
 
+def smoke_base(base: dict[str, Any], smoke: dict[str, Any]) -> dict[str, Any]:
+    """The base of a smoke launch: ``base`` updated with the smoke block's ``base``, where a smoke
+    ``budget`` also wins over the base's settings of the keys its preset sets.
+
+    A key set in ``base`` beats a budget preset (file settings come after presets), so without this
+    the quickstart's ``iql.steps: 10000`` would override the tiny budget's 200 updates. When the
+    smoke block names a budget, every base key of that budget's preset
+    (:data:`spot.config.BUDGET_PRESETS`) is dropped; a key the smoke block sets itself is kept.
+    """
+    out = dict(base)
+    if "budget" in smoke:
+        for key in config_lib.BUDGET_PRESETS.get(smoke["budget"], {}):
+            out.pop(key, None)
+    return {**out, **smoke}
+
+
 def _smoke_fields(data: dict[str, Any], full: dict[str, Any], where: str) -> dict[str, Any]:
     """``full`` with the ``smoke:`` block applied (checked even when not applied)."""
     block = data.get("smoke", {})
@@ -243,7 +259,7 @@ def _smoke_fields(data: dict[str, Any], full: dict[str, Any], where: str) -> dic
     # Smoke runs are tiny CPU checks: no GPU unless the smoke block asks for one.
     resources = (_resources(block["resources"], f"{where} smoke") if "resources" in block
                  else {**full["resources"], "gpu": 0.0})
-    return {**full, "base": {**full["base"], **_config_keys(block.get("base", {}), where, "smoke.base")},
+    return {**full, "base": smoke_base(full["base"], _config_keys(block.get("base", {}), where, "smoke.base")),
             "grid": _replace_axes(full["grid"], _axes(block.get("grid", {}), where, "smoke.grid"), where, "grid"),
             "zip": _replace_axes(full["zip"], _axes(block.get("zip", {}), where, "smoke.zip"), where, "zip"),
             "seeds": _seeds(block["seeds"], where, "smoke.seeds") if "seeds" in block else full["seeds"],
