@@ -3,56 +3,190 @@
 These are measurements, printed, never asserted in tests. ``--small`` shrinks every size so a
 check finishes in seconds. Peak memory is the process's ``ru_maxrss`` (it includes everything the
 process did before, so run one benchmark per process for clean numbers: the CLI does).
+
+Every benchmark times the real jitted program of its stage (the train chunk of :mod:`spot.loop`,
+the relabelling program) on synthetic data, after compiling it ahead of time.
 """
 
 from __future__ import annotations
 
+import resource
 import time
 from typing import Any
 
 import numpy as np
 
-import spot  # noqa: F401  (XLA flags before jax)
 from spot.config import CVAEConfig, IQLConfig, PTConfig, RelabelConfig
 
 
-def bench_iql(small: bool = False, seeds: int = 1, order: str = IQLConfig.order) -> dict[str, Any]:
+# --------------------------------------------------------------------------- measurement helpers
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (Linux ``ru_maxrss`` is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def cpu_seconds() -> float:
+    """User + system CPU time of this process (all threads); on a shared machine, CPU time per step
+    is a steadier measure than wall time."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def synthetic_pairs(num_pairs: int, length: int, obs_dim: int, act_dim: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Random ``segment_batch``-format pairs (timesteps 1..T, random labels)."""
+    import jax
+
+    k = jax.random.split(jax.random.key(seed), 5)
+    ts = np.tile(np.arange(1, length + 1, dtype=np.int32), (num_pairs, 1))
+    return {
+        "obs_1": np.asarray(jax.random.normal(k[0], (num_pairs, length, obs_dim))),
+        "act_1": np.asarray(jax.random.uniform(k[1], (num_pairs, length, act_dim), minval=-1, maxval=1)),
+        "obs_2": np.asarray(jax.random.normal(k[2], (num_pairs, length, obs_dim))),
+        "act_2": np.asarray(jax.random.uniform(k[3], (num_pairs, length, act_dim), minval=-1, maxval=1)),
+        "timesteps_1": ts, "timesteps_2": ts.copy(),
+        "label": np.asarray(jax.random.bernoulli(k[4], 0.5, (num_pairs,)), np.float32),
+    }
+
+
+def synthetic_dataset(n_transitions: int, episode_len: int, obs_dim: int, act_dim: int, seed: int = 0) -> Any:
+    """Random transitions in episodes of ``episode_len`` steps (the last may be shorter)."""
+    from spot.data.dataset import Dataset
+
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n_transitions, obs_dim)).astype(np.float32)
+    return Dataset(
+        observations=obs,
+        actions=rng.uniform(-1, 1, size=(n_transitions, act_dim)).astype(np.float32),
+        rewards=rng.normal(size=n_transitions).astype(np.float32),
+        next_observations=np.roll(obs, -1, axis=0),
+        terminals=np.zeros(n_transitions, bool),
+        episode_ids=np.arange(n_transitions) // episode_len,
+        raw_index=np.arange(n_transitions),
+        name="synthetic",
+    )
+
+
+def _time_chunks(chunk: Any, state: Any, n: int, args: tuple, repeats: int) -> dict[str, float]:
+    """Compile ``chunk`` ahead of time, run it once to warm up (for ``repeats > 1``), then ``repeats``
+    times: ``elapsed_s``, ``cpu_s`` (process CPU time, all threads) and ``compile_s``."""
+    import jax
+
+    from spot import loop
+
+    compile_s = loop.compile_seconds(chunk, state, n, *args)
+    if repeats > 1:
+        state, metrics = chunk(state, n, *args)
+        jax.block_until_ready(metrics)
+    t0, c0 = time.perf_counter(), cpu_seconds()
+    for _ in range(repeats):
+        state, metrics = chunk(state, n, *args)
+    jax.block_until_ready((state, metrics))
+    loop.check_finite(metrics, n)
+    return {"elapsed_s": time.perf_counter() - t0, "cpu_s": cpu_seconds() - c0, "compile_s": compile_s}
+
+
+# --------------------------------------------------------------------------- stages
+def iql_updates(obs_dim: int = 11, act_dim: int = 3, n: int = 1_000_000, steps: int = 3000, seeds: int = 1,
+                cfg: IQLConfig | None = None) -> dict[str, float]:
+    """Updates per second of IQL's train chunk on ``n`` random transitions: ``steps`` timed updates
+    (rounded up to whole chunks) after one compile and one warm-up chunk; ``seeds > 1`` runs the
+    vmapped chunk. ``updates_per_cpu_s`` is per second of process CPU time (all threads)."""
+    import jax
+    import jax.numpy as jnp
+
+    from spot.batches import Transitions
     from spot.policy import iql
 
+    cfg = cfg or IQLConfig(chunk=min(1000, steps))
+    rng = np.random.default_rng(0)
+    data = Transitions(
+        obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
+        act=jnp.asarray(rng.uniform(-1, 1, (n, act_dim)).astype(np.float32)),
+        rew=jnp.asarray(rng.standard_normal(n, np.float32)),
+        next_obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
+        mask=jnp.asarray((rng.uniform(size=n) > 0.01).astype(np.float32)),
+    )
+    keys = jax.random.split(jax.random.key(0), seeds)
+    if seeds == 1:
+        state, key, fn = iql.init_state(keys[0], obs_dim, act_dim, cfg), keys[0], iql.make_train_chunk(cfg)
+    else:
+        state, key, fn = iql.init_state(keys, obs_dim, act_dim, cfg), keys, iql.make_vmapped_train_chunk(cfg)
+    chunks = -(-steps // cfg.chunk)
+    t = _time_chunks(fn, state, cfg.chunk, (data, key), chunks)
+    updates = chunks * cfg.chunk * seeds
+    return {"updates_per_s": updates / t["elapsed_s"], "updates_per_s_per_seed": updates / t["elapsed_s"] / seeds,
+            "updates_per_cpu_s": updates / t["cpu_s"], "compile_s": t["compile_s"], "peak_rss_mb": peak_rss_mb()}
+
+
+def bench_iql(small: bool = False, seeds: int = 1, order: str = IQLConfig.order) -> dict[str, Any]:
     cfg = IQLConfig(hidden=(64, 64), chunk=100, order=order) if small else IQLConfig(chunk=1000, order=order)
     n = 10_000 if small else 1_000_000
     steps = 300 if small else 3000
     return {"what": f"IQL updates (batch {cfg.batch_size}, {cfg.hidden}, obs 11, act 3, {n} transitions, "
                     f"{seeds} seed(s), order {order})",
-            **iql.bench_iql(obs_dim=11, act_dim=3, n=n, steps=steps, seeds=seeds, cfg=cfg)}
+            **iql_updates(obs_dim=11, act_dim=3, n=n, steps=steps, seeds=seeds, cfg=cfg)}
+
+
+def reward_steps(model: Any, batch: int = 256, length: int = 100, steps: int = 3, obs_dim: int = 11,
+                 act_dim: int = 3, seed: int = 0, micro_batch: int = 64) -> dict[str, float]:
+    """Time ``steps`` training steps of ``batch`` pairs of length ``length`` (the real train chunk,
+    one call): ``steps_per_s`` (compile excluded), ``cpu_s_per_step``, ``compile_s``, ``peak_rss_mb``."""
+    import jax
+
+    from spot.reward import train
+
+    init_key, train_key = jax.random.split(jax.random.key(seed))
+    data = jax.device_put(train.pref_pairs(synthetic_pairs(batch, length, obs_dim, act_dim, seed)))
+    state = train.init_state(model, init_key, obs_dim, act_dim, steps)
+    chunk = train.make_train_chunk(model, batch, steps, steps, micro_batch)
+    t = _time_chunks(chunk, state, steps, (data, train_key), 1)
+    return {"steps_per_s": steps / t["elapsed_s"], "cpu_s_per_step": t["cpu_s"] / steps, "compile_s": t["compile_s"],
+            "peak_rss_mb": peak_rss_mb()}
 
 
 def bench_pt(small: bool = False, dtype: str = "float32") -> dict[str, Any]:
-    from spot.reward import train
+    from spot.reward.pt import PT
 
     if small:
         cfg, batch, length, steps = PTConfig(embd_dim=64, pref_attn_dim=64, dtype=dtype), 32, 50, 3
     else:
         cfg, batch, length, steps = PTConfig(dtype=dtype), 256, 100, 3
-    out = train.bench_train_steps("pt", batch=batch, length=length, steps=steps, pt_cfg=cfg)
+    out = reward_steps(PT(cfg), batch=batch, length=length, steps=steps)
     return {"what": f"PT train steps ({cfg.n_layer} layer, {cfg.n_head} heads, {cfg.embd_dim} dims, segment {length}, "
                     f"batch {batch} pairs, {dtype})", **out}
 
 
-def bench_relabel(small: bool = False, mode: str = "chunked") -> dict[str, Any]:
+def relabel_transitions(n_transitions: int, model: Any, relabel_cfg: RelabelConfig | None = None, obs_dim: int = 11,
+                        act_dim: int = 3, episode_len: int = 1000, seed: int = 0) -> dict[str, float]:
+    """Relabel ``n_transitions`` random transitions with a freshly initialised ``model``:
+    ``transitions_per_s`` (compile excluded), ``compile_s``, ``total_s``, ``cpu_s_total`` (all
+    threads, compile included) and ``peak_rss_mb``."""
+    import jax
+
     from spot.reward import relabel
+
+    ds = synthetic_dataset(n_transitions, episode_len, obs_dim, act_dim, seed)
+    params = model.init(jax.random.key(seed), obs_dim, act_dim)
+    c0 = cpu_seconds()
+    out = relabel.relabel_rewards(model, params, ds, relabel_cfg or RelabelConfig(), progress=False)
+    return {"transitions_per_s": n_transitions / (out.total_s - out.compile_s), "compile_s": out.compile_s,
+            "total_s": out.total_s, "cpu_s_total": cpu_seconds() - c0, "peak_rss_mb": peak_rss_mb()}
+
+
+def bench_relabel(small: bool = False, mode: str = "chunked") -> dict[str, Any]:
+    from spot.reward.pt import PT
 
     n = 20_000 if small else 1_000_000
     cfg = PTConfig(embd_dim=64, pref_attn_dim=64) if small else PTConfig()
     rcfg = RelabelConfig(mode=mode, window=100 if mode == "chunked" else 25)
     return {"what": f"PT relabelling, {mode} mode, {n} transitions ({cfg.embd_dim} dims)",
-            **relabel.bench_relabel(n, pt_cfg=cfg, relabel_cfg=rcfg)}
+            **relabel_transitions(n, PT(cfg), relabel_cfg=rcfg)}
 
 
 def bench_cvae(small: bool = False) -> dict[str, Any]:
     import jax
+    import jax.numpy as jnp
 
-    from spot.reward.train import peak_rss_mb
     from spot.subgoal import cvae
     from spot.subgoal.extract import Triplets
 
@@ -61,18 +195,11 @@ def bench_cvae(small: bool = False) -> dict[str, Any]:
     steps = 500 if small else 5000
     rng = np.random.default_rng(0)
     s = rng.normal(size=(m, obs_dim)).astype(np.float32)
-    data = Triplets(jax.numpy.asarray(s), jax.numpy.asarray(rng.uniform(-1, 1, (m, act_dim)).astype(np.float32)),
-                    jax.numpy.asarray(s + 0.1))
+    data = Triplets(jnp.asarray(s), jnp.asarray(rng.uniform(-1, 1, (m, act_dim)).astype(np.float32)), jnp.asarray(s + 0.1))
     state = cvae.init(jax.random.key(0), obs_dim, act_dim, cfg, cvae.obs_stats(s))
-    chunk = cvae.make_train_chunk(cfg, steps)
-    t0 = time.perf_counter()
-    compiled = chunk.lower(state, data, jax.random.key(1)).compile()
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    jax.block_until_ready(compiled(state, data, jax.random.key(1)))
-    elapsed = time.perf_counter() - t0
+    t = _time_chunks(cvae.make_train_chunk(cfg, steps), state, steps, (data, jax.random.key(1)), 1)
     return {"what": f"CVAE steps (batch {cfg.batch_size}, hidden {cfg.hidden}, latent {cfg.latent_dim})",
-            "steps_per_s": steps / elapsed, "compile_s": compile_s, "peak_rss_mb": peak_rss_mb()}
+            "steps_per_s": steps / t["elapsed_s"], "compile_s": t["compile_s"], "peak_rss_mb": peak_rss_mb()}
 
 
 BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": bench_cvae}
@@ -83,3 +210,4 @@ def format_result(name: str, result: dict[str, Any]) -> str:
     for key, value in result.items():
         lines.append(f"  {key:18s} {value:,.3f}" if isinstance(value, float) else f"  {key:18s} {value}")
     return "\n".join(lines)
+

@@ -199,17 +199,16 @@ def true_reward(ctx: Context, labelled: Labelled | None) -> None:
 
 def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     """MR or PT trained on the preferences (eq. 1-2), best held-out checkpoint; cached."""
+    from spot.reward import models
     from spot.reward import train as reward_train
 
     cfg = ctx.cfg
-    kind = cfg.reward.kind
-    model_cfg = cfg.pt if kind == "pt" else cfg.mr
-    deps = _reward_deps(ctx, labelled, reward=kind, reward_cfg=cfg.reward, model_cfg=model_cfg)
+    model = models.from_config(cfg)
+    deps = _reward_deps(ctx, labelled, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
 
     def compute() -> dict[str, Any]:
         params, history = reward_train.train_reward_model(
-            kind, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward,
-            pt_cfg=cfg.pt, mr_cfg=cfg.mr, progress=ctx.progress)
+            model, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward, progress=ctx.progress)
         return {"params": params, "history": history}
 
     out, key = ctx.cached("reward", deps, compute)
@@ -218,7 +217,7 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     for name in names:
         ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
-    return RewardModel(kind, out["params"], key)
+    return RewardModel(model.kind, out["params"], key)
 
 
 def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
@@ -277,12 +276,11 @@ def true_rewards(ctx: Context, model: None) -> Rewards:
 
 def model_rewards(ctx: Context, model: RewardModel) -> Rewards:
     """MR/PT: every transition relabelled by the reward model (chunked or sliding windows); cached."""
-    from spot.reward import relabel
+    from spot.reward import models, relabel
 
     cfg = ctx.cfg
     rel, _ = ctx.cached("relabel", {"reward": model.cache_key, "relabel": cfg.relabel, "data": dataset_deps(ctx.ds)},
-                        lambda: relabel.relabel_rewards(model.kind, model.params, ctx.ds, cfg.relabel,
-                                                        pt_cfg=cfg.pt, mr_cfg=cfg.mr,
+                        lambda: relabel.relabel_rewards(models.from_config(cfg), model.params, ctx.ds, cfg.relabel,
                                                         progress=ctx.progress)._asdict())
     return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
 
@@ -425,30 +423,20 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
     return evaluate
 
 
-def _train_policy(ctx: Context, state: Any, train_chunk: Callable, data: Any) -> Policy:
-    """Chunks of ``iql.chunk`` updates with an evaluation every ``eval.every`` updates and at the end."""
+def _train_policy(ctx: Context, state: Any, train_chunk: Callable, args: Callable[[Any], tuple]) -> Policy:
+    """:func:`spot.policy.iql.train`: ``iql.steps`` updates, chunk metrics logged, the policy
+    evaluated in the env every ``eval.every`` updates and at the end; chunk ``c`` gets the key
+    ``fold_in(train_key, c)`` (``args(key)``: the chunk's arguments after ``(state, n)``)."""
     import jax
 
     from spot.policy import iql
 
-    cfg = ctx.cfg
     _, train_key = jax.random.split(ctx.keys["policy"])
     evaluate = _evaluate_fn(ctx)
-    steps_done, curve_steps, curve_scores, eval_s = 0, [], [], 0.0
-    n_chunks = -(-cfg.iql.steps // cfg.iql.chunk)
-    next_eval = min(cfg.eval.every, cfg.iql.steps)
-    for c in range(n_chunks):
-        state, metrics = train_chunk(state, data, jax.random.fold_in(train_key, c))
-        steps_done += cfg.iql.chunk
-        ctx.log(iql.check_finite(metrics, steps_done), step=steps_done)
-        if steps_done >= next_eval or c == n_chunks - 1:
-            t0 = time.perf_counter()
-            res = evaluate(state.actor.params, steps_done)
-            eval_s += time.perf_counter() - t0
-            curve_steps.append(steps_done)
-            curve_scores.append(float(res["score_mean"]))
-            next_eval += cfg.eval.every
-    return Policy(state, curve_steps, curve_scores, eval_s)
+    curve = iql.train(train_chunk, state, lambda c: args(jax.random.fold_in(train_key, c)), ctx.cfg.iql,
+                      ctx.cfg.eval.every, lambda params, step: evaluate(params, step)["score_mean"],
+                      log=lambda metrics, step: ctx.log(metrics, step=step))
+    return Policy(curve.state, curve.steps, curve.scores, curve.eval_s)
 
 
 def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Policy:
@@ -460,7 +448,7 @@ def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Polic
     data = iql.transitions_from(ctx.ds, shaped.reward)
     init_key, _ = jax.random.split(ctx.keys["policy"])
     state = iql.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, ctx.cfg.iql)
-    return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), data)
+    return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), lambda key: (data, key))
 
 
 def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
@@ -476,7 +464,7 @@ def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
     state = ipl.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, cfg.iql)
     chunk = ipl.make_train_chunk(cfg.iql, cfg.ipl)
     replay = data if cfg.ipl.use_replay else None
-    policy = _train_policy(ctx, state, lambda st, _data, key: chunk(st, replay, feedback, key), data)
+    policy = _train_policy(ctx, state, chunk, lambda key: (replay, feedback, key))
     # IPL's implied reward Q(s,a) - γV(s') summed over segments: how often it ranks the preferred
     # segment higher, on the training and held-out queries (reward/*, like the reward models').
     for name, batch in (("train", labelled.train_batch), ("eval", labelled.eval_batch)):

@@ -22,7 +22,7 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import NonFiniteError, SpotError
 from spot.config import HPLConfig
 from spot.data import labels, registry
-from spot.reward import hpl, train
+from spot.reward import hpl, hpl_nets, train
 from tests.conftest import make_dataset
 
 OBS, ACT = 4, 2
@@ -56,13 +56,13 @@ def test_categorical_kl_and_balancing_gradients():
     lq, lp = rng.normal(size=(2, 3, 2, 4)).astype(np.float32)  # [B=3, G=2, C=4]
     q, p = np_softmax(lq), np_softmax(lp)
     by_hand = np.sum(q * (np.log(q) - np.log(p)), axis=(-2, -1))  # summed over groups
-    np.testing.assert_allclose(hpl.categorical_kl(lq, lp), by_hand, rtol=1e-5)
-    np.testing.assert_allclose(hpl.categorical_kl(lq, lq + 3.0), 0.0, atol=1e-6)  # shift-invariant logits
+    np.testing.assert_allclose(hpl_nets.categorical_kl(lq, lp), by_hand, rtol=1e-5)
+    np.testing.assert_allclose(hpl_nets.categorical_kl(lq, lq + 3.0), 0.0, atol=1e-6)  # shift-invariant logits
 
     def grads(alpha: float) -> tuple[np.ndarray, np.ndarray]:
-        return jax.grad(lambda a, b: hpl.balanced_kl(a, b, alpha).sum(), argnums=(0, 1))(lq, lp)
+        return jax.grad(lambda a, b: hpl_nets.balanced_kl(a, b, alpha).sum(), argnums=(0, 1))(lq, lp)
 
-    full_q, full_p = jax.grad(lambda a, b: hpl.categorical_kl(a, b).sum(), argnums=(0, 1))(lq, lp)
+    full_q, full_p = jax.grad(lambda a, b: hpl_nets.categorical_kl(a, b).sum(), argnums=(0, 1))(lq, lp)
     np.testing.assert_allclose(full_p, p - q, rtol=1e-5, atol=1e-6)  # d KL(q||p) / d logits_p by hand
     assert np.abs(full_q).max() > 1e-3
     g_q, g_p = grads(1.0)  # alpha = 1: only the prior learns from the KL
@@ -74,34 +74,34 @@ def test_categorical_kl_and_balancing_gradients():
     g_q, g_p = grads(0.8)
     np.testing.assert_allclose(g_q, 0.2 * full_q, rtol=1e-4, atol=1e-7)
     np.testing.assert_allclose(g_p, 0.8 * full_p, rtol=1e-4, atol=1e-7)
-    np.testing.assert_allclose(hpl.balanced_kl(lq, lp, 0.8), by_hand, rtol=1e-5)  # value is the KL
+    np.testing.assert_allclose(hpl_nets.balanced_kl(lq, lp, 0.8), by_hand, rtol=1e-5)  # value is the KL
 
 
 def test_straight_through_sample():
     rng = np.random.default_rng(1)
     logits = rng.normal(size=(3, 4)).astype(np.float32) * 1.5  # G=3, C=4
-    draws = np.asarray(hpl.sample_latent(jax.random.key(0), jnp.broadcast_to(logits, (20000, 3, 4))))
+    draws = np.asarray(hpl_nets.sample_latent(jax.random.key(0), jnp.broadcast_to(logits, (20000, 3, 4))))
     assert set(np.unique(draws)) == {0.0, 1.0}  # forward value exactly one-hot
     np.testing.assert_array_equal(draws.sum(-1), 1.0)
     np.testing.assert_allclose(draws.mean(0), np_softmax(logits), atol=0.015)  # frequencies = softmax
-    other = np.asarray(hpl.sample_latent(jax.random.key(1), jnp.broadcast_to(logits, (20000, 3, 4))))
+    other = np.asarray(hpl_nets.sample_latent(jax.random.key(1), jnp.broadcast_to(logits, (20000, 3, 4))))
     assert not np.array_equal(draws, other)
 
     w = rng.normal(size=(3, 4)).astype(np.float32)
-    grad = jax.grad(lambda lg: jnp.sum(w * hpl.sample_latent(jax.random.key(2), lg)))(logits)
+    grad = jax.grad(lambda lg: jnp.sum(w * hpl_nets.sample_latent(jax.random.key(2), lg)))(logits)
     p = np_softmax(logits)
     np.testing.assert_allclose(grad, p * (w - np.sum(p * w, -1, keepdims=True)), rtol=1e-5, atol=1e-6)
 
 
 def test_huber_and_preference_bce_by_hand():
-    np.testing.assert_allclose(hpl.huber_to_zero(jnp.array([0.5, -2.0, 3.0, 0.0, 1.0])),
+    np.testing.assert_allclose(hpl_nets.huber_to_zero(jnp.array([0.5, -2.0, 3.0, 0.0, 1.0])),
                                [0.125, 1.5, 2.5, 0.0, 0.5], rtol=1e-6)
     ret_1 = jnp.array([0.0, 2.0, 1.0, 3.0])
     ret_2 = jnp.array([1.0, 0.0, 1.0, 1.0])
     label = jnp.array([1.0, 1.0, 0.5, 0.5])
     softplus = lambda x: math.log1p(math.exp(x))  # noqa: E731
     expected = [softplus(-1.0), softplus(2.0), math.log(2.0), 0.5 * softplus(2.0) + 0.5 * softplus(-2.0)]
-    np.testing.assert_allclose(hpl.preference_bce(ret_1, ret_2, label), expected, rtol=1e-6)
+    np.testing.assert_allclose(hpl_nets.preference_bce(ret_1, ret_2, label), expected, rtol=1e-6)
     loss, _ = train.pref_loss(ret_1, ret_2, label)  # the PT/MR loss on summed returns is the same
     assert float(loss) == pytest.approx(np.mean(expected), rel=1e-6)
 
@@ -111,7 +111,7 @@ def test_vae_loss_and_decoder_targets_by_hand():
     pred, target = rng.normal(size=(2, 1, 3, 2)).astype(np.float32)  # [B=1, T=3, D=2]
     lq, lp = rng.normal(size=(2, 1, 3, 2, 3)).astype(np.float32)
     weight = np.array([[1.0, 1.0, 0.0]], np.float32)  # step 2 is padding
-    loss, info = hpl.vae_loss(pred, target, lq, lp, weight, kl_coef=0.5, kl_balance=0.3)
+    loss, info = hpl_nets.vae_loss(pred, target, lq, lp, weight, kl_coef=0.5, kl_balance=0.3)
     recon = np.sum((pred - target) ** 2, -1)[0, :2].mean()
     q, p = np_softmax(lq), np_softmax(lp)
     kl = np.sum(q * np.log(q / p), axis=(-2, -1))[0, :2].mean()
@@ -120,7 +120,7 @@ def test_vae_loss_and_decoder_targets_by_hand():
     assert float(loss) == pytest.approx(recon + 0.5 * kl, rel=1e-5)
 
     valid = jnp.asarray(np.arange(10)[None] < np.array([[10], [4]]), jnp.float32)  # rows of 10 and 4 real steps
-    target_idx, delta = jax.vmap(lambda k: hpl.decoder_targets(k, valid, 3))(jax.random.split(jax.random.key(0), 500))
+    target_idx, delta = jax.vmap(lambda k: hpl_nets.decoder_targets(k, valid, 3))(jax.random.split(jax.random.key(0), 500))
     target_idx, delta = np.asarray(target_idx), np.asarray(delta)
     pos = np.arange(10)
     np.testing.assert_array_equal(target_idx[:, 0], np.minimum(pos + delta[:, 0], 9))
@@ -131,7 +131,7 @@ def test_vae_loss_and_decoder_targets_by_hand():
 
 def test_reward_objective_by_hand():
     cfg = dataclasses.replace(LINEAR_HEADS, reg_coef=0.1, extra_batch=5, prior_samples=2)
-    params = hpl.init_params(jax.random.key(0), cfg, OBS, ACT)
+    params = hpl_nets.init_params(jax.random.key(0), cfg, OBS, ACT)
     bias = 2.0  # zero kernel: r(s, a, z) = sigmoid(2) everywhere
     params["reward"] = jax.tree.map(jnp.zeros_like, params["reward"])
     params["reward"]["params"]["Dense_0"]["bias"] = jnp.full((1,), bias)
@@ -157,8 +157,8 @@ def test_reward_objective_by_hand():
 @pytest.mark.parametrize("n_layer", [1, 2])
 def test_encoder_sees_only_its_future_window(n_layer):
     cfg = dataclasses.replace(TINY, n_layer=n_layer)  # seq_len 8, k = 2
-    params = hpl.init_params(jax.random.key(0), cfg, OBS, ACT)
-    encode = jax.jit(hpl.encode, static_argnums=1)
+    params = hpl_nets.init_params(jax.random.key(0), cfg, OBS, ACT)
+    encode = jax.jit(hpl_nets.encode, static_argnums=1)
     x = jax.random.normal(jax.random.key(1), (1, 8, OBS + ACT))
     valid = jnp.ones((1, 8))
     base = np.asarray(encode(params, cfg, x, valid))
@@ -197,7 +197,7 @@ def test_relabel_is_the_average_over_prior_samples():
     g, c, n_samples = LINEAR_HEADS.latent_groups, LINEAR_HEADS.latent_classes, 4000
     cfg = dataclasses.replace(LINEAR_HEADS, prior_samples=n_samples)
     ds = make_dataset([3, 2])
-    params = hpl.init_params(jax.random.key(0), cfg, OBS, ACT)
+    params = hpl_nets.init_params(jax.random.key(0), cfg, OBS, ACT)
     rng = np.random.default_rng(3)
     logits = rng.normal(size=(g, c)).astype(np.float32)
     params["prior"]["params"]["Dense_0"]["kernel"] = jnp.zeros((OBS + ACT, g * c))  # p(z | s, a) = softmax(logits)
@@ -211,7 +211,7 @@ def test_relabel_is_the_average_over_prior_samples():
 
     # By hand: the same latents (batch 0 uses fold_in(key, 0); its 8 rows are the 5 padded with the last).
     x = np.concatenate([ds.observations, ds.actions], -1)[np.minimum(np.arange(8), 4)]
-    z = np.asarray(hpl.sample_latent(jax.random.fold_in(key, 0), jnp.broadcast_to(logits, (n_samples, 8, g, c))))
+    z = np.asarray(hpl_nets.sample_latent(jax.random.fold_in(key, 0), jnp.broadcast_to(logits, (n_samples, 8, g, c))))
     inputs = np.concatenate([np.broadcast_to(x, (n_samples, 8, OBS + ACT)), z.reshape(n_samples, 8, -1)], -1)
     r = 1.0 / (1.0 + np.exp(-(inputs @ w[:, 0] + 0.3)))  # sigmoid reward head
     np.testing.assert_allclose(relabelled, r.mean(0)[:5], rtol=1e-4)  # float32 sum of 4000 terms
@@ -231,11 +231,10 @@ def test_relabel_is_the_average_over_prior_samples():
 # --------------------------------------------------------------------------- one trace, errors
 def test_each_phase_compiles_once_and_history():
     ds = make_dataset([30, 5, 40, 3, 22])  # some episodes shorter than seq_len: padded segments
-    before = dict(hpl.TRACE_COUNT)
     tb, eb = random_pairs(12, 6, 0), random_pairs(5, 6, 1)
     params, history = hpl.train_hpl(jax.random.key(0), ds, tb, eb, TINY)
-    assert hpl.TRACE_COUNT["hpl/vae"] == before.get("hpl/vae", 0) + 1
-    assert hpl.TRACE_COUNT["hpl/reward"] == before.get("hpl/reward", 0) + 1
+    vae_chunk, reward_chunk = hpl.make_vae_chunk(TINY, 10), hpl.make_reward_chunk(TINY, 4, 10)  # the run's
+    assert vae_chunk._cache_size() == 1 and reward_chunk._cache_size() == 1
     assert history["vae_step"] == [10, 20, 25] and history["reward_step"] == [10, 20, 25]
     assert history["best_step"] in history["reward_step"] and history["eval_on"] == "eval"
     assert history["best_eval_loss"] == min(history["eval_loss"])
@@ -246,11 +245,10 @@ def test_each_phase_compiles_once_and_history():
     r = hpl.relabel_hpl(params, ds, TINY, jax.random.key(1), batch_size=32)
     assert r.shape == (len(ds),) and np.all((r > 0) & (r < 1))  # sigmoid reward head
 
-    # Same config and shapes (another seed, no eval batch): no new trace, no compile.
+    # Same config and shapes (another seed, no eval batch): nothing compiled again.
     _, again = hpl.train_hpl(jax.random.key(1), ds, tb, None, TINY)
-    assert hpl.TRACE_COUNT["hpl/vae"] == before.get("hpl/vae", 0) + 1
-    assert hpl.TRACE_COUNT["hpl/reward"] == before.get("hpl/reward", 0) + 1
-    assert again["vae_compile_s"] == 0.0 and again["eval_on"] == "train"
+    assert vae_chunk._cache_size() == 1 and reward_chunk._cache_size() == 1
+    assert again["eval_on"] == "train"
     _, same = hpl.train_hpl(jax.random.key(0), ds, tb, eb, TINY)  # same seed, same numbers
     assert same["vae_loss"] == history["vae_loss"] and same["eval_loss"] == history["eval_loss"]
 

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spot import SpotError
+from spot import SpotError, loop
 from spot.config import IPLConfig, IQLConfig
 from spot.data import labels, registry
 from spot.policy import ipl, iql
@@ -195,19 +195,18 @@ def test_update_losses_match_numpy(eager_update):
 
 
 # --------------------------------------------------------------------------- chunk
-def test_chunk_traces_once_and_is_deterministic(problem):
+def test_chunk_compiles_once_and_is_deterministic(problem):
     """Without replay (the Meta-World setting; the learning test runs chunks with replay)."""
     fb, _ = problem
     cfg = dataclasses.replace(IPL_CFG, use_replay=False)
     chunk_fn = ipl.make_train_chunk(IQL_CFG, cfg)
-    before = ipl.TRACE_COUNT["chunk"]
     runs = []
     for _ in range(2):
         state = ipl.init_state(jax.random.key(5), OBS, ACT, IQL_CFG)
-        state, m1 = chunk_fn(state, None, fb, jax.random.key(6))
-        state, m2 = chunk_fn(state, None, fb, jax.random.key(6))
-        runs.append((iql.check_finite(m2, 2 * IQL_CFG.chunk), jax.device_get(state.critic.params)))
-    assert ipl.TRACE_COUNT["chunk"] - before == 1 and chunk_fn._cache_size() == 1
+        state, m1 = chunk_fn(state, IQL_CFG.chunk, None, fb, jax.random.key(6))
+        state, m2 = chunk_fn(state, IQL_CFG.chunk, None, fb, jax.random.key(6))
+        runs.append((loop.check_finite(m2, 2 * IQL_CFG.chunk), jax.device_get(state.critic.params)))
+    assert chunk_fn._cache_size() == 1
     assert int(state.step) == 2 * IQL_CFG.chunk
     assert runs[0][0] == runs[1][0]
     jax.tree.map(np.testing.assert_array_equal, runs[0][1], runs[1][1])
@@ -217,7 +216,7 @@ def test_chunk_traces_once_and_is_deterministic(problem):
     # The actor is IQL's: iql.act evaluates it.
     assert np.asarray(iql.act(state.actor.params, np.zeros((2, OBS)), IQL_CFG)).shape == (2, ACT)
     with pytest.raises(SpotError, match="replay"):
-        ipl.make_train_chunk(IQL_CFG, IPL_CFG)(state, None, fb, jax.random.key(6))
+        ipl.make_train_chunk(IQL_CFG, IPL_CFG)(state, IQL_CFG.chunk, None, fb, jax.random.key(6))
 
 
 # --------------------------------------------------------------------------- learning
@@ -236,9 +235,8 @@ def test_implied_reward_ranks_held_out_segments_of_local_hopper(spot_dirs):
     ipl_cfg = IPLConfig(subsample=16, feedback_batch=8)
     init = ipl.evaluate_preferences(ipl.init_state(jax.random.key(0), ds.obs_dim, ds.act_dim, iql_cfg),
                                     held, iql_cfg, ipl_cfg)
-    before = ipl.TRACE_COUNT["chunk"]
     state, history = ipl.train_ipl(jax.random.key(0), iql.transitions_from(ds), feedback, iql_cfg, ipl_cfg)
-    assert ipl.TRACE_COUNT["chunk"] - before == 1  # two chunks with replay, one trace
+    assert ipl.make_train_chunk(iql_cfg, ipl_cfg)._cache_size() == 1  # two chunks with replay, one program
     final = ipl.evaluate_preferences(state, held, iql_cfg, ipl_cfg)
     assert len(held_q) == 60 and len(history) == 2
     assert all(np.isfinite(v) for h in history for v in h.values())

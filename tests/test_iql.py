@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from spot import NonFiniteError
+from spot import NonFiniteError, loop
 from spot.config import IQLConfig
 from spot.data.dataset import raw_from_episodes
 from spot.policy import iql
@@ -71,14 +71,13 @@ def chunk_fn():
 
 @pytest.fixture(scope="module")
 def trained(data, chunk_fn):
-    """Three chunks (1200 updates) from seed 0, counting traces of the scanned update."""
-    traces_before = iql.TRACE_COUNT["chunk"]
+    """Three chunks (1200 updates) from seed 0."""
     state = iql.init_state(jax.random.key(0), 2, 2, CFG)
     history = []
     for c in range(3):
-        state, metrics = chunk_fn(state, data, jax.random.key(1))
-        history.append(iql.check_finite(metrics, (c + 1) * CFG.chunk))
-    return state, history, iql.TRACE_COUNT["chunk"] - traces_before
+        state, metrics = chunk_fn(state, CFG.chunk, data, jax.random.key(1))
+        history.append(loop.check_finite(metrics, (c + 1) * CFG.chunk))
+    return state, history
 
 
 # --------------------------------------------------------------------------- numeric
@@ -109,9 +108,9 @@ def test_gaussian_log_prob_by_hand():
 
 def test_check_finite_raises_with_step_and_name():
     with pytest.raises(NonFiniteError) as err:
-        iql.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)
+        loop.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)
     assert err.value.step == 400 and err.value.loss_name == "iql/critic_loss"
-    assert iql.check_finite({"iql/value_loss": jnp.float32(1.0), "iql/adv_max": jnp.inf}, 1)
+    assert loop.check_finite({"iql/value_loss": jnp.float32(1.0), "iql/adv_max": jnp.inf}, 1)
 
 
 def test_transitions_from_dataset():
@@ -165,10 +164,9 @@ def test_update_order_picks_the_value_network(data):
     assert abs(out["parallel"][1]["iql/target_mean"] - out["sequential"][1]["iql/target_mean"]) > 1e-6
 
 
-def test_chunk_traces_once(trained, chunk_fn):
-    _, history, traces = trained
-    assert traces == 1  # three calls, one trace of the scanned update
-    assert chunk_fn._cache_size() == 1  # and one compiled program (fresh states included)
+def test_chunk_compiles_once(trained, chunk_fn):
+    _, history = trained
+    assert chunk_fn._cache_size() == 1  # three calls, one compiled program (fresh states included)
     assert set(history[0]) >= {"iql/value_loss", "iql/critic_loss", "iql/actor_loss", "iql/q_mean",
                                "iql/v_mean", "iql/adv_mean"}
 
@@ -177,7 +175,7 @@ def test_chunk_is_deterministic(data, chunk_fn):
     runs = []
     for _ in range(2):
         state = iql.init_state(jax.random.key(7), 2, 2, CFG)
-        state, metrics = chunk_fn(state, data, jax.random.key(8))
+        state, metrics = chunk_fn(state, CFG.chunk, data, jax.random.key(8))
         runs.append((jax.device_get(metrics), jax.device_get(state.actor.params)))
     assert runs[0][0] == runs[1][0]
     jax.tree.map(np.testing.assert_array_equal, runs[0][1], runs[1][1])
@@ -188,9 +186,9 @@ def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
     init_keys, train_keys = jax.random.split(jax.random.key(11), 2), jax.random.split(jax.random.key(12), 2)
     states = iql.init_state(init_keys, 2, 2, CFG)  # stacked: state s is init_state(init_keys[s])
     jax.tree.map(lambda a, b: np.testing.assert_array_equal(a[1], b), states, iql.init_state(init_keys[1], 2, 2, CFG))
-    states, metrics = iql.make_vmapped_train_chunk(CFG)(states, data, train_keys)
+    states, metrics = iql.make_vmapped_train_chunk(CFG)(states, CFG.chunk, data, train_keys)
     for s in range(2):
-        alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), data, train_keys[s])
+        alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), CFG.chunk, data, train_keys[s])
         for name, value in alone_metrics.items():
             np.testing.assert_allclose(metrics[name][s], value, rtol=2e-3, atol=2e-4, err_msg=name)
         jax.tree.map(lambda a, b, s=s: np.testing.assert_allclose(a[s], b, rtol=2e-3, atol=2e-4),
@@ -199,7 +197,7 @@ def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
 
 # --------------------------------------------------------------------------- learning
 def test_iql_beats_behaviour_and_bc(trained):
-    state, history, _ = trained
+    state, history = trained
     assert history[-1]["iql/critic_loss"] < history[0]["iql/critic_loss"]
     starts = np.random.default_rng(1).uniform(-1, 1, (100, 2)).astype(np.float32)
     rng = np.random.default_rng(2)

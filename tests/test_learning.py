@@ -11,10 +11,10 @@ import jax
 import numpy as np
 import pytest
 
-from spot import config, envs
+from spot import config, envs, loop
 from spot.data import labels, registry
 from spot.policy import iql
-from spot.reward import train
+from spot.reward import models, train
 from spot.reward.relabel import normalize_rewards
 
 
@@ -26,9 +26,9 @@ def test_reward_models_rank_held_out_segments_of_local_hopper(kind, spot_dirs):
     prefs = labels.scripted_teacher(ds, 300, 25, seed=0)
     train_q, held_q = labels.split_eval(prefs, 0.2, 0)
     cfg = config.load(None, ["budget=tiny", "reward.steps=200", "reward.batch_size=32", "reward.eval_every=50"])
-    _, history = train.train_reward_model(kind, jax.random.key(0), labels.segment_batch(ds, train_q),
-                                          labels.segment_batch(ds, held_q), cfg.reward, cfg.pt, cfg.mr,
-                                          progress=False)
+    _, history = train.train_reward_model(models.MODELS[kind](getattr(cfg, kind)), jax.random.key(0),
+                                          labels.segment_batch(ds, train_q), labels.segment_batch(ds, held_q),
+                                          cfg.reward, progress=False)
     assert history["eval_on"] == "eval" and len(held_q) == 60
     assert history["best_eval_acc"] >= 0.68, history["best_eval_acc"]
 
@@ -41,8 +41,8 @@ def test_iql_beats_random_policy_on_local_hopper(spot_dirs):
     state = iql.init_state(jax.random.key(1), ds.obs_dim, ds.act_dim, cfg)
     chunk = iql.make_train_chunk(cfg)
     for c in range(cfg.steps // cfg.chunk):
-        state, metrics = chunk(state, data, jax.random.key(c))
-    iql.check_finite(metrics, cfg.steps)
+        state, metrics = chunk(state, cfg.chunk, data, jax.random.key(c))
+    loop.check_finite(metrics, cfg.steps)
     policy = envs.evaluate(lambda o: np.asarray(iql.act(state.actor.params, o, cfg)), "hopper-medium", 5, 100)
     rng = np.random.default_rng(0)
     random = envs.evaluate(lambda o: rng.uniform(-1, 1, (o.shape[0], ds.act_dim)), "hopper-medium", 5, 100)

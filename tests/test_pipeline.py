@@ -80,8 +80,8 @@ def test_nan_loss_marks_run_failed_with_step_and_loss(tmp_path, spot_dirs, tiny_
     def poisoned(cfg):
         chunk = real(cfg)
 
-        def run_chunk(state, data, key):
-            state, metrics = chunk(state, data, key)
+        def run_chunk(state, *args):
+            state, metrics = chunk(state, *args)
             return state, {**metrics, "iql/critic_loss": metrics["iql/critic_loss"] * np.nan}
         return run_chunk
 

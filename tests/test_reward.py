@@ -21,6 +21,8 @@ from spot import SpotError
 from spot.config import MRConfig, PTConfig, RelabelConfig, RewardConfig
 from spot.nets import MLP, Dropout, param_count
 from spot.reward import mr, pt, relabel, train
+from spot.reward.mr import MR
+from spot.reward.pt import PT
 from tests.conftest import make_dataset
 
 PT_TINY = PTConfig(embd_dim=16, n_layer=2, n_head=2, dropout=0.1, pref_attn_dim=8, max_timestep=50)
@@ -180,17 +182,17 @@ def test_jit_matches_nojit(pt_params):
 
 
 # --------------------------------------------------------------------------- (d) one trace
-def test_train_chunk_traces_once_with_partial_last_chunk():
-    before = train.TRACE_COUNT["mr"]
+def test_train_chunk_compiles_once_with_partial_last_chunk():
     cfg = RewardConfig(steps=25, batch_size=8, eval_every=10)
-    args = ("mr", jax.random.key(0), synthetic_pairs(32, 5, 0), synthetic_pairs(8, 5, 1), cfg)
-    _, history = train.train_reward_model(*args, mr_cfg=MR_TINY, progress=False)
-    assert train.TRACE_COUNT["mr"] == before + 1
+    args = (MR(MR_TINY), jax.random.key(0), synthetic_pairs(32, 5, 0), synthetic_pairs(8, 5, 1), cfg)
+    _, history = train.train_reward_model(*args, progress=False)
+    chunk = train.make_train_chunk(MR(MR_TINY), 8, 10, 25)  # the run's chunk (kept per model and sizes)
+    assert chunk._cache_size() == 1
     assert history["step"] == [10, 20, 25]
     assert len(history["eval_loss"]) == 3 and history["best_step"] in history["step"]
     # Same config and shapes again (another seed): the compiled programs are reused.
-    _, again = train.train_reward_model(*args[:1], jax.random.key(1), *args[2:], mr_cfg=MR_TINY, progress=False)
-    assert train.TRACE_COUNT["mr"] == before + 1 and again["compile_s"] == 0.0
+    _, again = train.train_reward_model(*args[:1], jax.random.key(1), *args[2:], progress=False)
+    assert chunk._cache_size() == 1 and train.make_evaluate(MR(MR_TINY))._cache_size() == 1
 
 
 def test_bad_batches_raise_spot_error():
@@ -200,8 +202,8 @@ def test_bad_batches_raise_spot_error():
     with pytest.raises(SpotError, match="labels must be"):
         train.pref_pairs({**batch, "label": np.full(8, 2.0, np.float32)})
     with pytest.raises(SpotError, match="max_timestep"):
-        train.train_reward_model("pt", jax.random.key(0), {**batch, "timesteps_1": batch["timesteps_1"] + 60},
-                                 None, RewardConfig(steps=1), pt_cfg=PT_TINY, progress=False)
+        train.train_reward_model(PT(PT_TINY), jax.random.key(0), {**batch, "timesteps_1": batch["timesteps_1"] + 60},
+                                 None, RewardConfig(steps=1), progress=False)
 
 
 # --------------------------------------------------------------------------- (e) learning
@@ -209,12 +211,12 @@ def test_bad_batches_raise_spot_error():
 def test_mr_learns_synthetic_preferences():
     train_b, eval_b = synthetic_pairs(256, 10, 0), synthetic_pairs(128, 10, 1)
     cfg = RewardConfig(steps=200, batch_size=32, eval_every=50)
-    params, history = train.train_reward_model("mr", jax.random.key(0), train_b, eval_b, cfg,
-                                               mr_cfg=MR_TINY, progress=False)
+    params, history = train.train_reward_model(MR(MR_TINY), jax.random.key(0), train_b, eval_b, cfg,
+                                               progress=False)
     assert history["best_eval_acc"] >= 0.9
     assert history["eval_loss"][-1] < history["eval_loss"][0] < math.log(2)
     # The returned parameters are the best-on-eval ones.
-    f = train.model_fn("mr", params, mr_cfg=MR_TINY)
+    f = train.model_fn(MR(MR_TINY), params)
     mask = np.ones(eval_b["timesteps_1"].shape, np.float32)
     logits = [f(eval_b[f"obs_{s}"], eval_b[f"act_{s}"], eval_b[f"timesteps_{s}"], mask)[0].mean(axis=1)
               for s in ("1", "2")]
@@ -228,8 +230,7 @@ def test_pt_learns_synthetic_preferences():
     cfg = RewardConfig(steps=300, batch_size=32, eval_every=100)
     pt_cfg = PTConfig(embd_dim=16, n_layer=1, n_head=2, pref_attn_dim=16, warmup_steps=10, lr=1e-3,
                       max_timestep=50)
-    _, history = train.train_reward_model("pt", jax.random.key(0), train_b, eval_b, cfg,
-                                          pt_cfg=pt_cfg, progress=False)
+    _, history = train.train_reward_model(PT(pt_cfg), jax.random.key(0), train_b, eval_b, cfg, progress=False)
     assert history["best_eval_acc"] >= 0.8
     assert history["best_eval_loss"] < 0.45
 
@@ -240,8 +241,8 @@ def test_relabel_mr_matches_per_step_reward():
     params = mr.init_params(jax.random.key(0), MR_TINY, OBS, ACT)
     direct = mr.per_step_reward(params, jnp.asarray(ds.observations), jnp.asarray(ds.actions), MR_TINY)
     for mode in ("chunked", "sliding"):
-        out = relabel.relabel_rewards("mr", params, ds, RelabelConfig(mode=mode, window=4, batch_size=2),
-                                      mr_cfg=MR_TINY, progress=False)
+        out = relabel.relabel_rewards(MR(MR_TINY), params, ds, RelabelConfig(mode=mode, window=4, batch_size=2),
+                                      progress=False)
         assert out.weights is None and out.rewards.dtype == np.float32
         np.testing.assert_allclose(out.rewards, direct, rtol=1e-6, atol=1e-7)
 
@@ -250,11 +251,11 @@ def test_relabel_pt_chunked_and_sliding(pt_params):
     lengths = [7, 2, 5]  # chunks of 3: (3, 3, 1), (2,), (3, 2); sliding windows of 1..3 steps
     ds = make_dataset(lengths, seed=1)
     window = 3
-    chunked = relabel.relabel_rewards("pt", pt_params, ds, RelabelConfig(window=window, batch_size=3),
-                                      pt_cfg=PT_TINY, progress=False)
-    sliding = relabel.relabel_rewards("pt", pt_params, ds, RelabelConfig(mode="sliding", window=window, batch_size=5),
-                                      pt_cfg=PT_TINY, progress=False)
-    f = train.model_fn("pt", pt_params, pt_cfg=PT_TINY)
+    chunked = relabel.relabel_rewards(PT(PT_TINY), pt_params, ds, RelabelConfig(window=window, batch_size=3),
+                                      progress=False)
+    sliding = relabel.relabel_rewards(PT(PT_TINY), pt_params, ds, RelabelConfig(mode="sliding", window=window, batch_size=5),
+                                      progress=False)
+    f = train.model_fn(PT(PT_TINY), pt_params)
 
     def direct(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ts = np.arange(1, rows.size + 1)[None]
@@ -275,7 +276,7 @@ def test_relabel_pt_chunked_and_sliding(pt_params):
         start += length
     assert sliding.weights is None
     with pytest.raises(SpotError, match="max_timestep"):
-        relabel.relabel_rewards("pt", pt_params, ds, RelabelConfig(window=51), pt_cfg=PT_TINY, progress=False)
+        relabel.relabel_rewards(PT(PT_TINY), pt_params, ds, RelabelConfig(window=51), progress=False)
 
 
 def test_normalize_rewards_by_hand():
@@ -308,13 +309,13 @@ def test_nan_loss_names_the_step():
     first = int(np.flatnonzero((np.asarray(drawn) == bad).any(axis=1))[0])
     cfg = RewardConfig(steps=100, batch_size=batch_size, eval_every=100)
     with pytest.raises(train.NonFiniteError) as err:
-        train.train_reward_model("mr", key, data, synthetic_pairs(4, 5, 1), cfg, mr_cfg=MR_TINY, progress=False)
+        train.train_reward_model(MR(MR_TINY), key, data, synthetic_pairs(4, 5, 1), cfg, progress=False)
     assert (err.value.step, err.value.loss_name) == (first, "reward/train_loss")
     assert f"at step {first}" in str(err.value)
 
     eval_b = synthetic_pairs(4, 5, 1)
     eval_b["act_1"][0, 0, 0] = np.inf
     with pytest.raises(train.NonFiniteError) as err:
-        train.train_reward_model("mr", key, synthetic_pairs(num_pairs, 5, 0), eval_b, cfg, mr_cfg=MR_TINY,
+        train.train_reward_model(MR(MR_TINY), key, synthetic_pairs(num_pairs, 5, 0), eval_b, cfg,
                                  progress=False)
     assert (err.value.step, err.value.loss_name) == (100, "reward/eval_loss")

@@ -183,7 +183,7 @@ def test_train_chunk_compiles_once():
     data = extract.Triplets(*(jnp.asarray(x) for x in (s, a, g)))
     before = chunk._cache_size()  # 1 if test_non_finite_loss_raises already compiled it
     for i in range(3):
-        state, metrics = chunk(state, data, jax.random.key(i))
+        state, metrics = chunk(state, 5, data, jax.random.key(i))
     assert chunk._cache_size() == max(before, 1)
     assert int(state.step) == 15 and set(metrics) >= {"cvae/loss", "cvae/recon", "cvae/kl", "cvae/cos"}
 

@@ -46,13 +46,12 @@ Deviations and choices:
 * ``ipl/pref_acc`` (non-tie pairs) uses the ensemble-mean logit; ``chi2_coeff = 0`` disables the
   clipping (its bound is infinite).
 
-Training runs as a jitted ``lax.scan`` over ``iql_cfg.chunk`` updates with minibatches drawn in
-jit from ``fold_in(key, state.step)``; the state is donated.
+Training runs in :mod:`spot.loop` chunks of ``iql_cfg.chunk`` updates (exactly ``iql_cfg.steps``
+in all) with minibatches drawn in jit from ``fold_in(key, state.step)``; the state is donated.
 """
 
 from __future__ import annotations
 
-import collections
 import functools
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
@@ -62,14 +61,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from spot import SpotError
+from spot import SpotError, loop
 from spot.config import IPLConfig, IQLConfig
 from spot.nets import Params
 from spot.policy import iql
 from spot.policy.iql import IQLState, Transitions
 
-# Python traces of the scanned update body ("chunk"); tests assert one per train chunk.
-TRACE_COUNT: collections.Counter[str] = collections.Counter()
 FEEDBACK_KEYS = ("obs_1", "act_1", "obs_2", "act_2", "label")
 
 
@@ -304,36 +301,35 @@ def sample_feedback(key: jax.Array, feedback: FeedbackPairs, ipl_cfg: IPLConfig)
 
 
 # --------------------------------------------------------------------------- training
-def _chunk_fn(iql_cfg: IQLConfig, ipl_cfg: IPLConfig, kind: str) -> Callable[..., tuple[IQLState, dict]]:
-    def train_chunk(state: IQLState, replay_data: Transitions | None, feedback: FeedbackPairs,
-                    key: jax.Array) -> tuple[IQLState, dict]:
+def sampled_update(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tuple[IQLState, dict]]:
+    """``update(state, replay_data, feedback, key)``: :func:`update` on a feedback minibatch
+    (:func:`sample_feedback`) and, with replay, ``iql_cfg.batch_size`` dataset rows, both drawn from
+    ``fold_in(key, state.step)``."""
+
+    def step(state: IQLState, replay_data: Transitions | None, feedback: FeedbackPairs,
+             key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
         if ipl_cfg.use_replay and replay_data is None:
             raise SpotError("ipl.use_replay is on but no replay data was given")
+        fb_key, replay_key = jax.random.split(jax.random.fold_in(key, state.step))
+        replay = None
+        if ipl_cfg.use_replay:
+            idx = jax.random.randint(replay_key, (iql_cfg.batch_size,), 0, replay_data.obs.shape[0])
+            replay = jax.tree.map(lambda x: x[idx], replay_data)
+        return update(state, sample_feedback(fb_key, feedback, ipl_cfg), replay, iql_cfg, ipl_cfg)
 
-        def body(state: IQLState, _: None) -> tuple[IQLState, dict[str, jax.Array]]:
-            TRACE_COUNT[kind] += 1
-            fb_key, replay_key = jax.random.split(jax.random.fold_in(key, state.step))
-            replay = None
-            if ipl_cfg.use_replay:
-                idx = jax.random.randint(replay_key, (iql_cfg.batch_size,), 0, replay_data.obs.shape[0])
-                replay = jax.tree.map(lambda x: x[idx], replay_data)
-            return update(state, sample_feedback(fb_key, feedback, ipl_cfg), replay, iql_cfg, ipl_cfg)
-
-        state, metrics = jax.lax.scan(body, state, None, length=iql_cfg.chunk)
-        return state, jax.tree.map(lambda m: m.mean(axis=0), metrics)
-
-    return train_chunk
+    return step
 
 
+@functools.lru_cache(maxsize=16)
 def make_train_chunk(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tuple[IQLState, dict]]:
-    """Jitted ``train_chunk(state, replay_data, feedback, key) -> (state, metrics)``.
+    """Jitted ``train_chunk(state, n, replay_data, feedback, key) -> (state, metrics)``.
 
-    Runs ``iql_cfg.chunk`` updates; update ``k`` of a run draws its minibatches with
-    ``fold_in(key, state.step)``, so one key can serve a whole run. ``replay_data`` is the whole
-    dataset as :class:`iql.Transitions` (``None`` allowed when ``use_replay`` is off), ``feedback``
-    all training pairs. Metrics are means over the chunk. ``state`` is donated.
+    Runs ``n <= iql_cfg.chunk`` updates of :func:`sampled_update`, so one key can serve a whole run.
+    ``replay_data`` is the whole dataset as :class:`iql.Transitions` (``None`` allowed when
+    ``use_replay`` is off), ``feedback`` all training pairs. Metrics are means over the ``n``
+    updates (:func:`spot.loop.make_chunk`, ``"mean"``). ``state`` is donated. Kept per config.
     """
-    return jax.jit(_chunk_fn(iql_cfg, ipl_cfg, "chunk"), donate_argnums=0)
+    return loop.make_chunk(sampled_update(iql_cfg, ipl_cfg), iql_cfg.chunk, "mean")
 
 
 @functools.partial(jax.jit, static_argnames=("iql_cfg", "ipl_cfg"))
@@ -370,28 +366,23 @@ def evaluate_preferences(state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLC
 
 def train_ipl(key: jax.Array, data: Transitions | None, feedback: FeedbackPairs, iql_cfg: IQLConfig,
               ipl_cfg: IPLConfig, on_chunk: Callable[[int, IQLState, dict], Any] | None = None,
-              ) -> tuple[IQLState, list[dict[str, np.ndarray]]]:
-    """Train IPL for ``ceil(iql_cfg.steps / chunk)`` chunks.
+              ) -> tuple[IQLState, list[dict[str, float]]]:
+    """Train IPL for exactly ``iql_cfg.steps`` updates in chunks of ``iql_cfg.chunk``.
 
     Args:
       key: PRNG key of the IPL stage (split into init and train keys).
       data: replay transitions (``None`` when ``ipl_cfg.use_replay`` is off).
       feedback: training pairs (:func:`feedback_from`).
-      on_chunk: called as ``on_chunk(steps_done, state, host_metrics)`` after each chunk (do not
+      on_chunk: called as ``on_chunk(steps_done, state, chunk_metrics)`` after each chunk (do not
         keep ``state``: the next chunk donates it).
 
     Returns:
-      ``(state, history)``, one dict of host metrics per chunk. Raises
+      ``(state, history)``, one row of chunk-mean metrics (and ``step``) per chunk. Raises
       :class:`spot.NonFiniteError` on a non-finite loss.
     """
     init_key, train_key = jax.random.split(key)
     state = init_state(init_key, feedback.obs_1.shape[-1], feedback.act_1.shape[-1], iql_cfg)
-    train_chunk = make_train_chunk(iql_cfg, ipl_cfg)
-    history = []
-    for c in range(-(-iql_cfg.steps // iql_cfg.chunk)):
-        state, metrics = train_chunk(state, data, feedback, train_key)
-        host = iql.check_finite(metrics, (c + 1) * iql_cfg.chunk)
-        history.append(host)
-        if on_chunk is not None:
-            on_chunk((c + 1) * iql_cfg.chunk, state, host)
-    return state, history
+    callback = None if on_chunk is None else (lambda row, st: on_chunk(row["step"], st, row))
+    out = loop.run(make_train_chunk(iql_cfg, ipl_cfg), state, (data, feedback, train_key), steps=iql_cfg.steps,
+                   length=iql_cfg.chunk, on_chunk=callback)
+    return out.state, out.rows

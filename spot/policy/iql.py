@@ -39,21 +39,21 @@ about this CPU's peak (~160 GFLOP/s on 2 cores for the plain and transposed-righ
 for the weight gradients, which XLA hands to Eigen); Adam, the Polyak step and the elementwise
 work are the rest.
 
-Training runs as a jitted ``lax.scan`` over ``IQLConfig.chunk`` updates with minibatches drawn
-inside jit (STYLE.md rules 4 and 7); several seeds can run as a vmap axis in one program
-(:func:`make_vmapped_train_chunk`). :func:`check_finite` raises :class:`spot.NonFiniteError` at a
-chunk boundary.
+Training runs in :mod:`spot.loop` chunks of ``IQLConfig.chunk`` updates with minibatches drawn
+inside jit (STYLE.md rules 4 and 7), exactly ``IQLConfig.steps`` updates in all (the last chunk is
+shorter when ``steps`` is not a multiple of ``chunk``, so the actor's cosine schedule ends at the
+last update); several seeds can run as a vmap axis in one program
+(:func:`make_vmapped_train_chunk`). :func:`train` is the run: chunks, the NaN/inf check
+(:class:`spot.NonFiniteError` at a chunk boundary) and the evaluation schedule.
 """
 
 from __future__ import annotations
 
-import collections
-import dataclasses
 import functools
 import math
-import resource
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import flax.linen as nn
@@ -63,35 +63,14 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from spot import NonFiniteError
+from spot import loop
+from spot.batches import Transitions
 from spot.config import IQL_ORDERS, IQLConfig
-from spot.data.dataset import Dataset
 from spot.nets import MLP, Params, create_train_state, orthogonal_init
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0  # reference learner.py passes log_std_min=-5; policy.py max 2
 AWR_WEIGHT_MAX = 100.0  # reference actor.py: exp_a = minimum(exp(beta * adv), 100)
 NUM_CRITICS = 2
-
-# Python traces of the scanned update body per kind ("chunk", "vmapped_chunk"); tests assert one.
-TRACE_COUNT: collections.Counter[str] = collections.Counter()
-
-
-class Transitions(NamedTuple):
-    """An offline dataset on device, one row per transition (all float32).
-
-    Attributes:
-      obs: ``[N, obs_dim]``.
-      act: ``[N, act_dim]``.
-      rew: ``[N]``.
-      next_obs: ``[N, obs_dim]``.
-      mask: ``[N]``, ``1 - terminal`` (0 stops bootstrapping).
-    """
-
-    obs: jax.Array
-    act: jax.Array
-    rew: jax.Array
-    next_obs: jax.Array
-    mask: jax.Array
 
 
 class IQLState(NamedTuple):
@@ -297,61 +276,78 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
     return new_state, metrics
 
 
-def _chunk_fn(cfg: IQLConfig, kind: str) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
-    def train_chunk(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict]:
-        n = data.rew.shape[0]
+def sampled_update(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
+    """``update(state, data, key)``: :func:`update` on ``cfg.batch_size`` rows of the whole dataset
+    ``data`` drawn with ``fold_in(key, state.step)``, so one key can serve a whole run."""
 
-        def step(state: IQLState) -> tuple[IQLState, dict[str, jax.Array]]:
-            idx = jax.random.randint(jax.random.fold_in(key, state.step), (cfg.batch_size,), 0, n)
-            return update(state, jax.tree.map(lambda x: x[idx], data), cfg)
+    def step(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
+        idx = jax.random.randint(jax.random.fold_in(key, state.step), (cfg.batch_size,), 0, data.rew.shape[0])
+        return update(state, jax.tree.map(lambda x: x[idx], data), cfg)
 
-        def body(carry: tuple[IQLState, dict], _: None) -> tuple[tuple[IQLState, dict], None]:
-            TRACE_COUNT[kind] += 1
-            state, sums = carry
-            state, metrics = step(state)
-            return (state, jax.tree.map(jnp.add, sums, metrics)), None
-
-        # Metrics summed in the carry: one fused add per update instead of a stacked output per
-        # metric (~2 % of an update at the reference sizes).
-        zeros = jax.tree.map(lambda m: jnp.zeros(m.shape, m.dtype), jax.eval_shape(step, state)[1])
-        (state, sums), _ = jax.lax.scan(body, (state, zeros), None, length=cfg.chunk)
-        return state, jax.tree.map(lambda m: m / cfg.chunk, sums)
-
-    return train_chunk
+    return step
 
 
-def make_train_chunk(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
-    """Jitted ``train_chunk(state, data, key) -> (state, metrics)``: ``cfg.chunk`` updates.
-
-    Minibatch ``k`` of the run is drawn with ``fold_in(key, state.step)``, so one key can serve
-    a whole run. Metrics are means over the chunk. ``state`` is donated: do not reuse it.
+@functools.lru_cache(maxsize=16)
+def make_train_chunk(cfg: IQLConfig) -> Callable[..., tuple[IQLState, dict]]:
+    """Jitted ``train_chunk(state, n, data, key) -> (state, metrics)``: ``n`` updates (at most
+    ``cfg.chunk`` in a run) of :func:`sampled_update`, metrics averaged over them in the loop carry
+    (:func:`spot.loop.make_chunk`, ``"sum"``). ``state`` is donated: do not reuse it. Kept per config.
     """
-    return jax.jit(_chunk_fn(cfg, "chunk"), donate_argnums=0)
+    return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum")
 
 
-def make_vmapped_train_chunk(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
+@functools.lru_cache(maxsize=16)
+def make_vmapped_train_chunk(cfg: IQLConfig) -> Callable[..., tuple[IQLState, dict]]:
     """Like :func:`make_train_chunk` for ``S`` seeds in one program.
 
-    The returned ``fn(states, data, keys)`` takes states stacked over a leading seed axis
-    (``init_state(keys, ...)`` with keys ``[S]``), the shared
-    ``data`` and keys ``[S]``; metrics come back with shape ``[S]``.
+    The returned ``fn(states, n, data, keys)`` takes states stacked over a leading seed axis
+    (``init_state(keys, ...)`` with keys ``[S]``), the shared ``n`` and ``data`` and keys ``[S]``;
+    metrics come back with shape ``[S]``.
     """
-    return jax.jit(jax.vmap(_chunk_fn(cfg, "vmapped_chunk"), in_axes=(0, None, 0)), donate_argnums=0)
+    return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum", vmap_axes=(0, None, 0))
 
 
-def check_finite(metrics: dict[str, Any], step: int) -> dict[str, np.ndarray]:
-    """Fetch chunk metrics to the host; raise :class:`spot.NonFiniteError` if a loss is NaN/inf.
+@dataclass
+class Curve:
+    """A trained policy's final state and its evaluation curve."""
+
+    state: Any
+    steps: list[int]
+    scores: list[float]
+    eval_s: float  # wall seconds spent evaluating
+
+
+def train(chunk: Callable, state: Any, args: Callable[[int], tuple], cfg: IQLConfig, eval_every: int,
+          evaluate: Callable[[Params, int], float],
+          log: Callable[[dict[str, float], int], None] | None = None) -> Curve:
+    """Exactly ``cfg.steps`` updates in chunks of ``cfg.chunk`` (the last shorter if need be), with
+    ``evaluate(actor_params, steps_done) -> score`` every ``eval_every`` updates and after the last.
 
     Args:
-      metrics: a train chunk's metrics (scalars, or ``[S]`` arrays for vmapped seeds).
-      step: updates done so far (reported in the error).
+      chunk: :func:`make_train_chunk` or IPL's; ``args(c)``: its arguments after ``(state, n)`` for
+        chunk ``c``.
+      log: ``log(chunk_mean_metrics, steps_done)`` after every chunk.
+
+    Raises:
+      NonFiniteError: a ``*loss`` metric is NaN/inf (the step is the chunk's end).
     """
-    host = jax.device_get(metrics)
-    for name, value in host.items():
-        value = np.asarray(value)
-        if name.endswith("loss") and not np.all(np.isfinite(value)):
-            raise NonFiniteError(step, name, float(value[~np.isfinite(value)][0]) if value.ndim else float(value))
-    return host
+    curve = Curve(state, [], [], 0.0)
+    next_eval = min(eval_every, cfg.steps)
+
+    def on_chunk(row: dict[str, Any], state: Any) -> None:
+        nonlocal next_eval
+        done = row["step"]
+        if log is not None:
+            log({k: v for k, v in row.items() if k != "step"}, done)
+        if done >= next_eval or done == cfg.steps:
+            t0 = time.perf_counter()
+            curve.scores.append(float(evaluate(state.actor.params, done)))
+            curve.eval_s += time.perf_counter() - t0
+            curve.steps.append(done)
+            next_eval += eval_every
+
+    curve.state = loop.run(chunk, state, args, steps=cfg.steps, length=cfg.chunk, on_chunk=on_chunk).state
+    return curve
 
 
 @functools.partial(jax.jit, static_argnames="cfg")
@@ -362,11 +358,11 @@ def act(actor_params: Params, obs: jax.Array, cfg: IQLConfig) -> jax.Array:
     return mean
 
 
-def transitions_from(ds: Dataset, rewards: np.ndarray | None = None) -> Transitions:
+def transitions_from(ds: Any, rewards: np.ndarray | None = None) -> Transitions:
     """Move a dataset's transitions to the device once, as float32.
 
     Args:
-      ds: the ``qlearning`` view.
+      ds: the ``qlearning`` view (:class:`spot.data.dataset.Dataset`).
       rewards: ``[N]`` rewards to train on (e.g. relabelled); default the dataset's true reward.
     """
     rew = ds.rewards if rewards is None else np.asarray(rewards)
@@ -379,59 +375,3 @@ def transitions_from(ds: Dataset, rewards: np.ndarray | None = None) -> Transiti
         next_obs=jnp.asarray(ds.next_observations, jnp.float32),
         mask=jnp.asarray(1.0 - ds.terminals.astype(np.float32), jnp.float32),
     )
-
-
-# --------------------------------------------------------------------------- benchmark
-def bench_iql(obs_dim: int = 11, act_dim: int = 3, batch: int | None = None,
-              hidden: tuple[int, ...] | None = None, n: int = 1_000_000, steps: int = 3000,
-              seeds: int = 1, cfg: IQLConfig | None = None) -> dict[str, float]:
-    """Updates per second of the train chunk on random data (measurement only, never asserted).
-
-    Args:
-      obs_dim, act_dim, n: size of the synthetic dataset.
-      batch, hidden: override ``cfg.batch_size`` / ``cfg.hidden`` when given.
-      steps: timed updates (rounded up to whole chunks), after one compile.
-      seeds: 1 runs :func:`make_train_chunk`; more runs them vmapped in one program.
-      cfg: base config (default :class:`IQLConfig`, chunk ``min(1000, steps)``).
-
-    Returns:
-      ``updates_per_s`` (all seeds together), ``updates_per_s_per_seed``, ``updates_per_cpu_s``
-      (per second of process CPU time, all threads: on a shared machine, cores x this is what
-      the machine would do alone), ``compile_s``, ``peak_rss_mb`` (process peak, includes
-      everything run before).
-    """
-    cfg = cfg or IQLConfig(chunk=min(1000, steps))
-    cfg = dataclasses.replace(cfg, batch_size=batch or cfg.batch_size, hidden=tuple(hidden or cfg.hidden))
-    rng = np.random.default_rng(0)
-    data = Transitions(
-        obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
-        act=jnp.asarray(rng.uniform(-1, 1, (n, act_dim)).astype(np.float32)),
-        rew=jnp.asarray(rng.standard_normal(n, np.float32)),
-        next_obs=jnp.asarray(rng.standard_normal((n, obs_dim), np.float32)),
-        mask=jnp.asarray((rng.uniform(size=n) > 0.01).astype(np.float32)),
-    )
-    keys = jax.random.split(jax.random.key(0), seeds)
-    if seeds == 1:
-        state, key, fn = init_state(keys[0], obs_dim, act_dim, cfg), keys[0], make_train_chunk(cfg)
-    else:
-        state = init_state(keys, obs_dim, act_dim, cfg)
-        key, fn = keys, make_vmapped_train_chunk(cfg)
-    t0 = time.perf_counter()
-    compiled = fn.lower(state, data, key).compile()
-    compile_s = time.perf_counter() - t0
-    state, metrics = compiled(state, data, key)  # warm-up chunk
-    jax.block_until_ready(metrics)
-    chunks = -(-steps // cfg.chunk)
-    t0, cpu0 = time.perf_counter(), time.process_time()
-    for _ in range(chunks):
-        state, metrics = compiled(state, data, key)
-    jax.block_until_ready((state, metrics))
-    elapsed, cpu = time.perf_counter() - t0, time.process_time() - cpu0
-    updates = chunks * cfg.chunk * seeds
-    return {
-        "updates_per_s": updates / elapsed,
-        "updates_per_s_per_seed": updates / elapsed / seeds,
-        "updates_per_cpu_s": updates / cpu,
-        "compile_s": compile_s,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-    }

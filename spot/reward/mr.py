@@ -8,13 +8,19 @@ The segment logit is the **mean** over the (unpadded) steps, ``l(sigma) = (1/T) 
 (PT repo ``train_type="mean"``), not the sum of eq. (1) of the paper; under the softmax of eq. (1)-(2)
 this only rescales the reward by 1/T. The per-step "importance" of MR is uniform, ``w_t = 1/T``, so MR
 exposes the same ``forward -> (r_hat, w, logit)`` interface as :mod:`spot.reward.pt`.
+
+:class:`MR` is this model behind the reward-model interface (:class:`spot.reward.models.RewardModel`):
+``init``, ``apply`` and ``optimizer`` (Adam at ``MRConfig.lr``, constant).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import optax
 
 from spot.config import MRConfig
 from spot.nets import MLP, Params, jit_init
@@ -55,3 +61,28 @@ def forward(params: Params, cfg: MRConfig, obs: jax.Array, act: jax.Array,
     valid = mask.astype(jnp.float32)
     w = valid / jnp.maximum(valid.sum(axis=1, keepdims=True), 1.0)
     return r_hat, w, jnp.sum(w * r_hat, axis=1)
+
+
+@dataclass(frozen=True)
+class MR:
+    """The MR reward model of config ``cfg`` (hashable: jitted programs are kept per model)."""
+
+    cfg: MRConfig
+    kind: str = "mr"
+
+    def init(self, key: jax.Array, obs_dim: int, act_dim: int) -> Params:
+        return init_params(key, self.cfg, obs_dim, act_dim)
+
+    def apply(self, params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
+              dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """``(r_hat, w, logit)`` (:func:`forward`); MR ignores timesteps and has no dropout."""
+        del timesteps, dropout_key
+        return forward(params, self.cfg, obs, act, mask)
+
+    def optimizer(self, total_steps: int) -> optax.GradientTransformation:
+        """Adam, constant learning rate ``cfg.lr``."""
+        del total_steps
+        return optax.adam(self.cfg.lr)
+
+    def check_timesteps(self, lo: int, hi: int, where: str) -> None:
+        """MR reads no timesteps: any range is fine."""

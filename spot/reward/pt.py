@@ -26,9 +26,16 @@ running the full block; it saves ~40 % of the FLOPs of a 1-layer model.
 Mixed precision (``PTConfig.dtype = "bfloat16"``): the transformer blocks' matmuls run in bfloat16;
 parameters, the residual stream, the embeddings, every softmax, the preference-attention head and
 the loss stay float32.
+
+:class:`PT` is this model behind the reward-model interface (:class:`spot.reward.models.RewardModel`):
+``init``, ``apply`` and ``optimizer`` (AdamW(0.9, ``pt.b2``), weight decay ``PTConfig.weight_decay``,
+learning rate by default linear from 0 to ``PTConfig.lr`` over ``warmup_steps``, then constant;
+:func:`learning_rate` has the PT repo's warmup-cosine schedule too).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import flax.linen as nn
 import jax
@@ -36,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from spot import SpotError
 from spot.config import PTConfig
 from spot.nets import LN_EPS, MASKED_LOGIT, Dropout, Params, TransformerBlock, jit_init
 
@@ -124,25 +132,6 @@ class PreferenceTransformer(nn.Module):
         return self.pref_head(x)[:, 0, 2 * self.pref_attn_dim]
 
 
-def learning_rate(cfg: PTConfig, total_steps: int | None = None) -> float | optax.Schedule:
-    """PT's learning rate (``pt.schedule``): ``warmup_constant`` rises linearly from 0 to ``lr``
-    over the warmup, then stays (Table 5); ``warmup_cosine`` rises from ``lr`` to
-    ``pt.peak_factor * lr`` over the warmup, then falls along a cosine to ``lr`` at
-    ``total_steps`` (the PT repo's ``warmup_cosine_decay_schedule``). The warmup is
-    ``pt.warmup_steps``, or ``pt.warmup_fraction`` of ``total_steps`` when that is > 0 (PT repo: 10 %)."""
-    warmup = cfg.warmup_steps
-    if cfg.warmup_fraction > 0 or cfg.schedule == "warmup_cosine":
-        if total_steps is None:
-            raise ValueError("pt.schedule=warmup_cosine and pt.warmup_fraction need the total number of steps")
-        if cfg.warmup_fraction > 0:
-            warmup = int(cfg.warmup_fraction * total_steps)
-    if cfg.schedule == "warmup_cosine":
-        return optax.warmup_cosine_decay_schedule(
-            init_value=cfg.lr, peak_value=cfg.peak_factor * cfg.lr, warmup_steps=warmup,
-            decay_steps=max(total_steps, warmup + 1), end_value=cfg.lr)
-    return cfg.lr if warmup == 0 else optax.warmup_constant_schedule(0.0, cfg.lr, warmup)
-
-
 def make_model(cfg: PTConfig) -> PreferenceTransformer:
     if cfg.embd_dim % cfg.n_head:
         raise ValueError(f"pt.embd_dim {cfg.embd_dim} must be divisible by pt.n_head {cfg.n_head}")
@@ -188,3 +177,49 @@ def last_step_reward(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Arr
     """``r_hat`` at the last window position, ``[B]`` (PT repo relabelling, ``label_mode='last'``)."""
     return make_model(cfg).apply(params, obs, act, timesteps, mask,
                                  method=PreferenceTransformer.last_step_reward)
+
+
+def learning_rate(cfg: PTConfig, total_steps: int | None = None) -> float | optax.Schedule:
+    """PT's learning rate (``pt.schedule``): ``warmup_constant`` rises linearly from 0 to ``lr``
+    over the warmup, then stays (Table 5); ``warmup_cosine`` rises from ``lr`` to
+    ``pt.peak_factor * lr`` over the warmup, then falls along a cosine to ``lr`` at
+    ``total_steps`` (the PT repo's ``warmup_cosine_decay_schedule``). The warmup is
+    ``pt.warmup_steps``, or ``pt.warmup_fraction`` of ``total_steps`` when that is > 0 (PT repo: 10 %)."""
+    warmup = cfg.warmup_steps
+    if cfg.warmup_fraction > 0 or cfg.schedule == "warmup_cosine":
+        if total_steps is None:
+            raise ValueError("pt.schedule=warmup_cosine and pt.warmup_fraction need the total number of steps")
+        if cfg.warmup_fraction > 0:
+            warmup = int(cfg.warmup_fraction * total_steps)
+    if cfg.schedule == "warmup_cosine":
+        return optax.warmup_cosine_decay_schedule(
+            init_value=cfg.lr, peak_value=cfg.peak_factor * cfg.lr, warmup_steps=warmup,
+            decay_steps=max(total_steps, warmup + 1), end_value=cfg.lr)
+    return cfg.lr if warmup == 0 else optax.warmup_constant_schedule(0.0, cfg.lr, warmup)
+
+
+@dataclass(frozen=True)
+class PT:
+    """The Preference Transformer of config ``cfg`` (hashable: jitted programs are kept per model)."""
+
+    cfg: PTConfig
+    kind: str = "pt"
+
+    def init(self, key: jax.Array, obs_dim: int, act_dim: int) -> Params:
+        return init_params(key, self.cfg, obs_dim, act_dim)
+
+    def apply(self, params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
+              dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """``(r_hat, w, logit)`` (:func:`forward`); dropout on iff ``dropout_key`` is given."""
+        return forward(params, self.cfg, obs, act, timesteps, mask, dropout_key)
+
+    def optimizer(self, total_steps: int) -> optax.GradientTransformation:
+        """AdamW(0.9, ``pt.b2``) with :func:`learning_rate` (Table 5: b2 0.99, linear warmup, constant)."""
+        cfg = self.cfg
+        return optax.adamw(learning_rate(cfg, total_steps), b1=0.9, b2=cfg.b2, weight_decay=cfg.weight_decay)
+
+    def check_timesteps(self, lo: int, hi: int, where: str) -> None:
+        """Timesteps index the learned embedding: they must lie in ``[0, max_timestep]``."""
+        if lo < 0 or hi > self.cfg.max_timestep:
+            raise SpotError(f"{where} has timesteps in [{lo}, {hi}]; pt.max_timestep is {self.cfg.max_timestep}, "
+                            "expected 0 <= timestep <= pt.max_timestep")

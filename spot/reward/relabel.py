@@ -18,7 +18,8 @@ relabelled by the reward model. Trajectories are the episodes of the ``qlearning
 * MR: ``r_phi(s, a)`` of each transition (``reward_from_preference``); ``window`` is unused except
   to size batches.
 
-Every mode runs one jitted program with fixed shapes (the last batch is padded), compiled once.
+Every mode runs one jitted program with fixed shapes (the last batch is padded), compiled once
+per model, window and batch size in a process (jit's own cache).
 
 :func:`normalize_rewards` then rescales by the spread of the per-episode returns of the *new*
 rewards: ``pt``: ``r * 1000 / (R_max - R_min) + 0.5`` (PT repo ``train_offline.py`` for
@@ -27,6 +28,7 @@ locomotion), ``iql``: ``r * 1000 / (R_max - R_min)`` (IQL reference, §2.3), ``n
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -37,12 +39,12 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from spot import SpotError
+from spot import SpotError, loop
 from spot.config import MRConfig, PTConfig, RelabelConfig
 from spot.data.dataset import Dataset
-from spot.nets import Params, compile_cached
+from spot.nets import Params
 from spot.reward import mr, pt
-from spot.reward.train import cpu_seconds, init_params, peak_rss_mb
+from spot.reward.models import RewardModel
 
 NORMALIZE_MODES = ("pt", "iql", "wiserl", "minmax", "none")
 
@@ -73,26 +75,27 @@ def chunk_bounds(ds: Dataset, window: int) -> tuple[np.ndarray, np.ndarray]:
     return chunk_start, np.minimum(chunk_start + window, ends[episode])
 
 
-def _run_batched(name: tuple, program: Callable, params: Params, ds: Dataset, inputs: tuple[np.ndarray, ...],
+def _run_batched(program: Callable, params: Params, ds: Dataset, inputs: tuple[np.ndarray, ...],
                  batch: int, progress: bool, desc: str) -> tuple[tuple[np.ndarray, ...], float]:
-    """Run ``program(params, obs_all, act_all, *inputs_batch)`` over ``inputs`` in fixed-size
+    """Run jitted ``program(params, obs_all, act_all, *inputs_batch)`` over ``inputs`` in fixed-size
     batches (the last padded with zeros); returns the concatenated, unpadded outputs and compile
-    time. ``name`` identifies the program for :func:`spot.nets.compile_cached`."""
+    time."""
     n = inputs[0].shape[0]
     n_batches = max(math.ceil(n / batch), 1)
     padded = [np.concatenate([x, np.zeros((n_batches * batch - n, *x.shape[1:]), x.dtype)]) for x in inputs]
     obs_all = jax.device_put(np.asarray(ds.observations, np.float32))
     act_all = jax.device_put(np.asarray(ds.actions, np.float32))
-    compiled, compile_s = compile_cached(name, jax.jit(program), params, obs_all, act_all,
-                                         *(x[:batch] for x in padded))
+    compile_s = loop.compile_seconds(program, params, obs_all, act_all, *(x[:batch] for x in padded))
     outputs = []
     for i in tqdm(range(n_batches), desc=desc, disable=not progress, leave=False):
-        out = compiled(params, obs_all, act_all, *(x[i * batch:(i + 1) * batch] for x in padded))
+        out = program(params, obs_all, act_all, *(x[i * batch:(i + 1) * batch] for x in padded))
         outputs.append(jax.device_get(out))
     return tuple(np.concatenate(parts)[:n] for parts in zip(*outputs, strict=True)), compile_s
 
 
+@functools.lru_cache(maxsize=16)
 def _chunked_program(cfg: PTConfig, window: int) -> Callable:
+    @jax.jit
     def run(params: Params, obs_all: jax.Array, act_all: jax.Array, start: jax.Array,
             end: jax.Array) -> tuple[jax.Array, jax.Array]:
         idx = start[:, None] + jnp.arange(window)  # [B, W]
@@ -105,7 +108,9 @@ def _chunked_program(cfg: PTConfig, window: int) -> Callable:
     return run
 
 
+@functools.lru_cache(maxsize=16)
 def _sliding_program(cfg: PTConfig, window: int) -> Callable:
+    @jax.jit
     def run(params: Params, obs_all: jax.Array, act_all: jax.Array, row: jax.Array,
             episode_start: jax.Array) -> tuple[jax.Array]:
         idx = row[:, None] - (window - 1) + jnp.arange(window)  # window ending at row, [B, W]
@@ -119,24 +124,25 @@ def _sliding_program(cfg: PTConfig, window: int) -> Callable:
     return run
 
 
+@functools.lru_cache(maxsize=16)
 def _mr_program(cfg: MRConfig) -> Callable:
+    @jax.jit
     def run(params: Params, obs_all: jax.Array, act_all: jax.Array, row: jax.Array) -> tuple[jax.Array]:
         return (mr.per_step_reward(params, obs_all[row], act_all[row], cfg),)
 
     return run
 
 
-def relabel_rewards(kind: str, params: Params, ds: Dataset, relabel_cfg: RelabelConfig,
-                    pt_cfg: PTConfig | None = None, mr_cfg: MRConfig | None = None,
+def relabel_rewards(model: RewardModel, params: Params, ds: Dataset, relabel_cfg: RelabelConfig,
                     progress: bool = True) -> Relabelled:
     """Per-transition rewards of ``ds`` from a trained reward model (see module docstring).
 
     Args:
-      kind: ``"mr"`` or ``"pt"``; params: the model's parameters (from ``train_reward_model``).
+      model: ``MR(cfg)`` or ``PT(cfg)`` (:mod:`spot.reward.models`); params: its parameters (from
+        ``train_reward_model``).
       ds: the ``qlearning`` view; episodes from ``ds.episode_bounds()``.
       relabel_cfg: ``mode`` (PT only), ``window``, ``batch_size`` (windows/chunks per pass; MR uses
         ``batch_size * window`` transitions per pass).
-      pt_cfg / mr_cfg: config of the model ``kind``.
       progress: tqdm bar over batches.
 
     Returns:
@@ -146,39 +152,43 @@ def relabel_rewards(kind: str, params: Params, ds: Dataset, relabel_cfg: Relabel
     window, batch = relabel_cfg.window, relabel_cfg.batch_size
     rows = np.arange(len(ds), dtype=np.int32)
     weights = None
-    if kind == "mr":
-        if mr_cfg is None:
-            raise SpotError("relabelling with an MR model needs mr_cfg")
-        (rewards,), compile_s = _run_batched(("relabel/mr", mr_cfg), _mr_program(mr_cfg), params, ds,
-                                             (rows,), batch * window, progress, "relabel (mr)")
-    elif kind == "pt":
-        if pt_cfg is None:
-            raise SpotError("relabelling with a PT model needs pt_cfg")
-        if window > pt_cfg.max_timestep:
-            raise SpotError(f"relabel.window {window} exceeds pt.max_timestep {pt_cfg.max_timestep}; "
-                            "timesteps 1..window must fit the timestep embedding")
-        if relabel_cfg.mode == "chunked":
-            start, end = chunk_bounds(ds, window)
-            (r_hat, w), compile_s = _run_batched(
-                ("relabel/chunked", pt_cfg, window), _chunked_program(pt_cfg, window), params, ds,
-                (start.astype(np.int32), end.astype(np.int32)), batch, progress, "relabel (pt, chunked)")
-            idx = start[:, None] + np.arange(window)
-            valid = idx < end[:, None]
-            rewards = np.empty(len(ds), np.float32)
-            weights = np.empty(len(ds), np.float32)
-            rewards[idx[valid]] = r_hat[valid]
-            weights[idx[valid]] = w[valid]
-        elif relabel_cfg.mode == "sliding":
-            starts, ends = ds.episode_bounds()
-            episode_start = np.repeat(starts, ends - starts).astype(np.int32)
-            (rewards,), compile_s = _run_batched(
-                ("relabel/sliding", pt_cfg, window), _sliding_program(pt_cfg, window), params, ds,
-                (rows, episode_start), batch, progress, "relabel (pt, sliding)")
-        else:
-            raise SpotError(f"relabel.mode '{relabel_cfg.mode}' is not one of 'chunked', 'sliding'")
+    if isinstance(model, mr.MR):  # per transition: no sequence modes
+        (rewards,), compile_s = _run_batched(_mr_program(model.cfg), params, ds, (rows,), batch * window,
+                                             progress, "relabel (mr)")
+    elif isinstance(model, pt.PT):
+        rewards, weights, compile_s = _relabel_pt(model.cfg, params, ds, relabel_cfg, progress)
     else:
-        raise SpotError(f"reward model kind '{kind}' is not one of 'mr', 'pt'")
+        raise SpotError(f"relabelling has no program for reward model {model!r}; expected MR or PT")
     return Relabelled(np.asarray(rewards, np.float32), weights, compile_s, time.perf_counter() - t0)
+
+
+def _relabel_pt(cfg: PTConfig, params: Params, ds: Dataset, relabel_cfg: RelabelConfig,
+                progress: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+    """PT's ``chunked`` or ``sliding`` relabelling: ``(rewards, weights or None, compile_s)``."""
+    window, batch = relabel_cfg.window, relabel_cfg.batch_size
+    if window > cfg.max_timestep:
+        raise SpotError(f"relabel.window {window} exceeds pt.max_timestep {cfg.max_timestep}; "
+                        "timesteps 1..window must fit the timestep embedding")
+    if relabel_cfg.mode == "chunked":
+        start, end = chunk_bounds(ds, window)
+        (r_hat, w), compile_s = _run_batched(
+            _chunked_program(cfg, window), params, ds, (start.astype(np.int32), end.astype(np.int32)), batch,
+            progress, "relabel (pt, chunked)")
+        idx = start[:, None] + np.arange(window)
+        valid = idx < end[:, None]
+        rewards = np.empty(len(ds), np.float32)
+        weights = np.empty(len(ds), np.float32)
+        rewards[idx[valid]] = r_hat[valid]
+        weights[idx[valid]] = w[valid]
+        return rewards, weights, compile_s
+    if relabel_cfg.mode == "sliding":
+        starts, ends = ds.episode_bounds()
+        episode_start = np.repeat(starts, ends - starts).astype(np.int32)
+        (rewards,), compile_s = _run_batched(
+            _sliding_program(cfg, window), params, ds, (np.arange(len(ds), dtype=np.int32), episode_start),
+            batch, progress, "relabel (pt, sliding)")
+        return rewards, None, compile_s
+    raise SpotError(f"relabel.mode '{relabel_cfg.mode}' is not one of 'chunked', 'sliding'")
 
 
 def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
@@ -220,38 +230,3 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
         )
     out = rewards.astype(np.float64) * (max_episode_steps / spread)
     return (out + 0.5 if mode == "pt" else out).astype(np.float32)
-
-
-def synthetic_dataset(n_transitions: int, episode_len: int, obs_dim: int, act_dim: int, seed: int = 0) -> Dataset:
-    """Random transitions in episodes of ``episode_len`` steps (the last may be shorter), for benchmarks."""
-    rng = np.random.default_rng(seed)
-    obs = rng.normal(size=(n_transitions, obs_dim)).astype(np.float32)
-    return Dataset(
-        observations=obs,
-        actions=rng.uniform(-1, 1, size=(n_transitions, act_dim)).astype(np.float32),
-        rewards=rng.normal(size=n_transitions).astype(np.float32),
-        next_observations=np.roll(obs, -1, axis=0),
-        terminals=np.zeros(n_transitions, bool),
-        episode_ids=np.arange(n_transitions) // episode_len,
-        raw_index=np.arange(n_transitions),
-        name="synthetic",
-    )
-
-
-def bench_relabel(n_transitions: int, kind: str = "pt", pt_cfg: PTConfig | None = None,
-                  mr_cfg: MRConfig | None = None, relabel_cfg: RelabelConfig | None = None,
-                  obs_dim: int = 11, act_dim: int = 3, episode_len: int = 1000,
-                  seed: int = 0) -> dict[str, float]:
-    """Relabel ``n_transitions`` random transitions with a freshly initialised model.
-
-    Returns ``transitions_per_s`` (compile excluded), ``compile_s``, ``total_s``, ``cpu_s_total``
-    (CPU time of all threads, compile included) and ``peak_rss_mb`` (whole process).
-    """
-    pt_cfg, mr_cfg, relabel_cfg = pt_cfg or PTConfig(), mr_cfg or MRConfig(), relabel_cfg or RelabelConfig()
-    ds = synthetic_dataset(n_transitions, episode_len, obs_dim, act_dim, seed)
-    params = init_params(kind, jax.random.key(seed), obs_dim, act_dim, pt_cfg, mr_cfg)
-    c0 = cpu_seconds()
-    out = relabel_rewards(kind, params, ds, relabel_cfg, pt_cfg, mr_cfg, progress=False)
-    run_s = out.total_s - out.compile_s
-    return {"transitions_per_s": n_transitions / run_s, "compile_s": out.compile_s, "total_s": out.total_s,
-            "cpu_s_total": cpu_seconds() - c0, "peak_rss_mb": peak_rss_mb()}

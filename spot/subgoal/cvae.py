@@ -34,16 +34,14 @@ Generation (eq. 10): ``ĝ = μ_θ(z, s, a)`` with ``z`` the prior mean (``mode="
 sample (``mode="sample"``).
 
 Training (:func:`train_cvae`): Adam (``cfg.lr``), minibatches of ``cfg.batch_size`` triplets
-drawn with replacement on device, ``jit(lax.scan)`` chunks of equal length (state donated,
-per-step keys ``fold_in(key, step)``), a held-out loss after every chunk, and
+drawn with replacement on device, exactly ``cfg.steps`` steps in :mod:`spot.loop` chunks (state
+donated, per-step keys ``fold_in(key, step)``), a held-out loss after every chunk, and
 :class:`spot.NonFiniteError` on a NaN/inf loss. The final parameters are returned.
 """
 
 from __future__ import annotations
 
 import functools
-import math
-import sys
 from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
@@ -53,9 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
-from tqdm.auto import tqdm
 
-from spot import NonFiniteError, SpotError
+from spot import SpotError, loop
 from spot.config import CVAEConfig
 from spot.nets import MLP, Params
 from spot.subgoal.extract import Triplets
@@ -223,15 +220,9 @@ def init(key: jax.Array, obs_dim: int, act_dim: int, cfg: CVAEConfig,
     return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
 
 
-@functools.cache
-def make_train_chunk(cfg: CVAEConfig, num_steps: int) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
-    """``train_chunk(state, data, key) -> (state, metrics)``: ``num_steps`` Adam steps in one scan.
-
-    ``data`` is the full training set of triplets on device; each step samples ``cfg.batch_size``
-    rows with replacement from ``fold_in(key, step)``. ``metrics`` are means over the chunk.
-    The state is donated. Memoised on ``(cfg, num_steps)``, so repeated trainings in one
-    process (a sweep trial, the tests) reuse the compiled chunk for data of the same shape.
-    """
+def make_update(cfg: CVAEConfig) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
+    """``update(state, data, key) -> (state, info)``: one Adam step on ``cfg.batch_size`` rows of
+    the training triplets ``data`` drawn with replacement from ``fold_in(key, state.step)``."""
     opt = _optimizer(cfg)
 
     def update(state: CVAEState, data: Triplets, key: jax.Array) -> tuple[CVAEState, dict[str, jax.Array]]:
@@ -248,11 +239,22 @@ def make_train_chunk(cfg: CVAEConfig, num_steps: int) -> Callable[..., tuple[CVA
         params = state.params.replace(net=optax.apply_updates(state.params.net, updates))
         return CVAEState(params, opt_state, state.step + 1), info
 
-    def train_chunk(state: CVAEState, data: Triplets, key: jax.Array) -> tuple[CVAEState, dict[str, jax.Array]]:
-        state, infos = jax.lax.scan(lambda st, _: update(st, data, key), state, None, length=num_steps)
-        return state, jax.tree.map(jnp.mean, infos)
+    return update
 
-    return jax.jit(train_chunk, donate_argnums=0)
+
+@functools.lru_cache(maxsize=16)
+def make_train_chunk(cfg: CVAEConfig, length: int) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
+    """Jitted ``train_chunk(state, n, data, key) -> (state, metrics)``: ``n <= length`` steps of
+    :func:`make_update` in one scan (:func:`spot.loop.make_chunk`); ``metrics`` are means over
+    the ``n`` steps. The state is donated. Kept per ``(cfg, length)``, so repeated trainings in
+    one process (a sweep trial, the tests) reuse the compiled chunk for data of the same shape.
+    """
+    return loop.make_chunk(make_update(cfg), length, "mean")
+
+
+@functools.lru_cache(maxsize=16)
+def _heldout_fn(cfg: CVAEConfig) -> Callable[[CVAEParams, Triplets, jax.Array], dict[str, jax.Array]]:
+    return jax.jit(lambda p, b, k: loss_fn(p, b, k, cfg)[1])
 
 
 def _split(key: jax.Array, n: int, holdout: float, groups: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -272,7 +274,7 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
                obs_stats: tuple[np.ndarray, np.ndarray], progress: bool = True, *,
                log_every: int = 500, holdout: float = 0.1,
                groups: np.ndarray | None = None) -> tuple[CVAEParams, list[dict[str, float]]]:
-    """Train the CVAE for ``cfg.steps`` steps (rounded up to whole chunks) on raw triplets.
+    """Train the CVAE for exactly ``cfg.steps`` steps on raw triplets.
 
     Args:
       key: root key of this stage; split into init / split / train / eval keys.
@@ -281,9 +283,9 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
       obs_stats: ``(mean, std)`` of the dataset's observations (:func:`obs_stats`); replaced by
         ``(0, 1)`` when ``cfg.inputs = "raw"``.
       progress: show a progress bar on stderr.
-      log_every: steps per jitted chunk (= log interval). The chunk length is
-        ``ceil(steps / ceil(steps / log_every))`` so every chunk has the same length and compiles
-        once; the total may exceed ``cfg.steps`` by less than one step per chunk.
+      log_every: steps per jitted chunk (= log interval); the last chunk is shorter when
+        ``cfg.steps`` is not a multiple (the same compiled program, :mod:`spot.loop`). Chunk ``c``
+        trains with the key ``fold_in(train_key, c)``.
       holdout: fraction of triplets (or of ``groups``) held out for the ``cvae/heldout_*``
         metrics; no held-out split when it rounds to zero groups.
       groups: optional ``[M]`` segment id per triplet, so a segment's triplets are not split
@@ -309,27 +311,18 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
     data = Triplets(*(jnp.asarray(x[train_idx]) for x in (s, a, g)))
     held = Triplets(*(jnp.asarray(x[held_idx]) for x in (s, a, g))) if held_idx.size else None
 
-    n_chunks = math.ceil(cfg.steps / log_every)
-    chunk_len = math.ceil(cfg.steps / n_chunks)
-    train_chunk = make_train_chunk(cfg, chunk_len)
-    eval_loss = jax.jit(lambda p, b, k: loss_fn(p, b, k, cfg)[1])
+    length = loop.chunk_length(cfg.steps, log_every)
+    heldout = _heldout_fn(cfg)
+
+    def evaluate(state: CVAEState) -> dict[str, jax.Array]:
+        return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, eval_key).items()}
+
     state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats)
-    history: list[dict[str, float]] = []
-    bar = tqdm(total=n_chunks * chunk_len, desc="cvae", disable=not progress, file=sys.stderr)
-    for chunk in range(n_chunks):
-        state, metrics = train_chunk(state, data, jax.random.fold_in(train_key, chunk))
-        if held is not None:
-            held_info = eval_loss(state.params, held, eval_key)
-            metrics |= {k.replace("cvae/", "cvae/heldout_"): v for k, v in held_info.items()}
-        row = {"step": int(state.step), **{k: float(v) for k, v in jax.device_get(metrics).items()}}
-        for name in ("cvae/loss", "cvae/heldout_loss"):
-            if name in row and not math.isfinite(row[name]):
-                raise NonFiniteError(row["step"], name, row[name])
-        history.append(row)
-        bar.update(chunk_len)
-        bar.set_postfix(loss=f"{row['cvae/loss']:.4f}")
-    bar.close()
-    return state.params, history
+    out = loop.run(make_train_chunk(cfg, length), state, lambda c: (data, jax.random.fold_in(train_key, c)),
+                   steps=cfg.steps, length=length, losses={"cvae/loss": "cvae/loss"},
+                   evaluate=evaluate if held is not None else None,
+                   eval_loss=("cvae/heldout_loss", "cvae/heldout_loss"), progress=progress, desc="cvae")
+    return out.state.params, out.rows
 
 
 # --------------------------------------------------------------------------- generation
