@@ -112,6 +112,7 @@ class SubgoalConfig:
     filter_on: str = F("r_hat", "per-step value the reward filter compares with its segment mean: r_hat = PT's per-step reward (eq. 5); z = the attention-weighted z_t = sum_j A_tj r_j (the authors' code)", choices=("r_hat", "z"))
     last_step: bool = F(False, "the last step of every preferred segment is always a subgoal (the authors' code)")
     triplets: str = F("next_subgoal", "CVAE triplets: next_subgoal = every step paired with the first subgoal at or after it; interval = subgoal.interval_draws uniform draws from each interval [g_(i-1), g_i) (g_0 = segment start) paired with g_i, so a subgoal step maps to the next subgoal (the authors' code, one draw per interval per reward-model step)", choices=("next_subgoal", "interval"))
+    source: str = F("attention", "where the CVAE's training subgoals come from: attention = the attention subgoals of eq. 5-6; random = the same number of dataset states drawn uniformly at random (a control: does the gain come from attention subgoals?)", choices=("attention", "random"))
     interval_draws: int = F(10, "draws per interval for subgoal.triplets=interval (the CVAE trains on this fixed set; the authors redraw one per interval at every reward-model step)", range=(1, None))
 
 
@@ -129,7 +130,7 @@ class CVAEConfig:
 
 @dataclass(frozen=True)
 class ShapingConfig:
-    kind: str = F("none", "shaping term: none, cosine (eq. 11-12), neg_distance, potential", choices=("none", "cosine", "neg_distance", "potential"))
+    kind: str = F("none", "shaping term: none, cosine (eq. 11-12), neg_distance, potential; constant = a control: every transition gets the dataset mean of the cosine term (a survival bonus of the same mean)", choices=("none", "cosine", "neg_distance", "potential", "constant"))
     weight: float = F(1.0, "lambda of eq. 13", range=(-1.0, 1.0))
     subgoal: str = F("mean", "g_hat from the prior mean or a prior sample", choices=("mean", "sample"))
     potential_sign: str = F("neg", "potential of the potential-based term (Table 3): neg = Phi(x) = -||x - g_hat|| (higher near the subgoal); pos = +||x - g_hat|| (the authors' code, which produced Table 3: its lambda axis is the negative of neg's)", choices=("neg", "pos"))

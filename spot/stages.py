@@ -329,6 +329,9 @@ def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
                                       np.asarray(attn), ctx.cfg.subgoal))
     triplets, states, info = extract.extract(sides[0], sides[1], batch["label"], ctx.cfg.subgoal,
                                              rng=np.random.default_rng(ctx.cfg.seed))
+    if ctx.cfg.subgoal.source == "random":  # the control: same count, random dataset states
+        triplets = extract.random_subgoals(triplets, ctx.ds.observations, np.random.default_rng([ctx.cfg.seed, 1]))
+        states = triplets.g
     ctx.log(info)
     return triplets, states
 

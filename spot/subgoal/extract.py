@@ -310,3 +310,10 @@ def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
             "non-tied label and a top_k large enough to select a step"
         )
     return triplets, pref.obs[mask], info
+
+
+def random_subgoals(triplets: Triplets, observations: np.ndarray, rng: np.random.Generator) -> Triplets:
+    """The control ``subgoal.source=random``: each triplet's subgoal replaced by a dataset state
+    drawn uniformly at random (with replacement); ``s`` and ``a`` are kept."""
+    pick = rng.integers(0, observations.shape[0], size=triplets.g.shape[0])
+    return Triplets(triplets.s, triplets.a, np.asarray(observations[pick], dtype=triplets.g.dtype))

@@ -6,6 +6,10 @@ term measures how ``s'`` relates to it:
 * ``cosine`` (eq. 11-12, SPOT's choice): ``r_shape = (cos(s', ĝ) + 1) / 2 ∈ [0, 1]``, with
   ``cos(x, y) = x·y / max(||x|| ||y||, 1e-8)`` so a zero state gives ``r_shape = ½``;
 * ``neg_distance``: ``r_shape = -||s' - ĝ||``;
+* ``constant`` (a control, not in the paper): every transition gets the mean of the ``cosine``
+  term over the dataset, a bonus of the same size that carries no information about subgoals. On
+  Hopper and Walker2d a positive per-step bonus alone rewards staying alive, so SPOT beating this
+  control is what shows the subgoals matter;
 * ``potential`` (Ng et al., 1999): ``r_shape = γ Φ(s') - Φ(s)`` with ``Φ(x) = -||x - ĝ||``. Both
   potentials use the *same* ``ĝ = G(s, a)`` (the CVAE has no ``a'`` for ``s'``), so the term
   telescopes only while ĝ stays put; Φ(s') is set to 0 at terminal transitions (absorbing state)
@@ -38,7 +42,7 @@ from spot import SpotError
 from spot.config import ShapingConfig
 from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate
 
-KINDS = ("none", "cosine", "neg_distance", "potential")
+KINDS = ("none", "cosine", "neg_distance", "potential", "constant")
 POTENTIAL_SIGNS = ("neg", "pos")
 
 
@@ -78,8 +82,9 @@ def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Arra
         raise SpotError(f"next_obs {next_obs.shape} and g_hat {g_hat.shape} must have the same shape")
     if kind == "none":
         return jnp.zeros(next_obs.shape[:-1])
-    if kind == "cosine":
-        return 0.5 * (cosine_similarity(next_obs, g_hat) + 1.0)
+    if kind in ("cosine", "constant"):
+        cos = 0.5 * (cosine_similarity(next_obs, g_hat) + 1.0)
+        return cos if kind == "cosine" else jnp.full_like(cos, cos.mean())
     if kind == "neg_distance":
         return -jnp.linalg.norm(next_obs - g_hat, axis=-1)
     if obs is None:
