@@ -298,3 +298,18 @@ def test_the_real_stages_versions_cover_their_modules():
     cvae = cache.code_parts(stages.cvae_stage)
     assert {"spot.stages:cvae_stage", "spot.subgoal.cvae"} <= set(cvae) and "spot.reward.pt" not in cvae
     assert cache.code_version(stages.learned_reward) != cache.code_version(stages.cvae_stage)
+
+
+def test_figures_read_a_cvae_entry_and_refuse_a_pickle(cache_dir, tmp_path):
+    from spot import SpotError, figures
+
+    params = _cvae_params()
+    cache.store("cvae-test", {"params": params, "history": []})
+    got = figures.load_cvae(cache_dir / "cvae-test.npz")
+    assert got.latent_dim == 4 and got.hidden == (32, 64)
+    np.testing.assert_array_equal(got.obs_std, params.obs_std)
+    marker = tmp_path / "marker"
+    (tmp_path / "cvae-old.pkl").write_bytes(pickle.dumps({"params": _Exploit(marker)}))
+    with pytest.raises(SpotError, match="is not a stage-cache entry"):
+        figures.load_cvae(tmp_path / "cvae-old.pkl")
+    assert not marker.exists()
