@@ -13,10 +13,12 @@
   observation vectors of a gymnasium MuJoCo locomotion env (Hopper-v5, Walker2d-v5,
   HalfCheetah-v5) offscreen. The observation leaves out the x position (``obs = [qpos[1:],
   qvel]``), so the state is ``qpos = [0, obs[:nq-1]]``, ``qvel = obs[nq-1:]``. The caller gets ĝ
-  from a CVAE (:func:`load_cvae` + :func:`spot.subgoal.cvae.generate`).
+  from a CVAE (:func:`load_cvae` for a stage-cache entry, :func:`cvae_from_run` for the CVAE a
+  run saved as its ``models/cvae`` artifact, + :func:`spot.subgoal.cvae.generate`).
 * **Fig. 4** (PCA of observations and subgoals): every SPOT/PT run with diagnostics logs
-  ``subgoal_projection.png``; :func:`fetch_artifact` copies it out of a run, and
-  :func:`projection_from_cvae` redraws it for a dataset from a CVAE.
+  ``subgoal_projection.png``; :func:`fetch_artifact` copies it out of a run (:func:`save_image`
+  writes it in the format of the output's extension), and :func:`projection_from_cvae` redraws it
+  for a dataset from a CVAE.
 
 Headless rendering: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when it is first imported;
 :func:`spot.runtime.configure` (called by the ``spot`` command) sets ``MUJOCO_GL=egl`` if the
@@ -189,8 +191,41 @@ def plot_fig2(bins: pd.DataFrame, path: str | Path, *, ddof: int = 1, reference:
 
 
 # --------------------------------------------------------------------------- Fig. 4
+def image_format(path: str | Path) -> str:
+    """The output format named by ``path``'s extension; SpotError if matplotlib cannot write it."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    fmt = Path(path).suffix.lower().lstrip(".")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if fmt not in formats:
+        raise SpotError(f"--out {path}: unknown figure format {fmt!r}; use one of .{', .'.join(sorted(formats))}")
+    return fmt
+
+
+def save_image(png: str | Path, out: str | Path, dpi: int = 110) -> Path:
+    """Write the PNG ``png`` to ``out`` in the format of its extension: a copy for ``.png``, else the
+    image at its pixel size in a figure of that format (a raster inside a PDF or SVG)."""
+    out = Path(out)
+    fmt = image_format(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if fmt == "png":
+        shutil.copyfile(png, out)
+        return out
+    from matplotlib.image import imread
+
+    img = imread(str(png))
+    fig = Figure(figsize=(img.shape[1] / dpi, img.shape[0] / dpi), dpi=dpi)
+    fig.figimage(img, resize=False)
+    fig.savefig(out, dpi=dpi, format=fmt)
+    return out
+
+
 def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_uri: str | None = None) -> Path:
-    """Copy one artifact of a run (e.g. ``subgoal_projection.png``) to ``out``."""
+    """Copy one artifact of a run (e.g. ``subgoal_projection.png``) to ``out``; a PNG is written in
+    the format of ``out``'s extension (:func:`save_image`)."""
+    is_png = artifact_path.lower().endswith(".png")
+    if is_png:
+        image_format(out)  # an unknown extension fails before the download
     client = tracking.reader(tracking_uri)
     uri = client.tracking_uri
     artifact_uri = tracking.artifact_uri(client, run_id)
@@ -200,8 +235,22 @@ def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_ur
         got = tracking.download_artifact(run_id, artifact_uri, artifact_path, uri, tmp)
         if got is None:
             raise SpotError(f"run {run_id} has no artifact {artifact_path!r} (tracking URI {uri})")
-        shutil.copyfile(got, out)
+        if is_png:
+            save_image(got, out)
+        else:
+            shutil.copyfile(got, out)
     return out
+
+
+def cvae_from_run(run_id: str, tracking_uri: str | None = None) -> tuple[Any, Any]:
+    """``(CVAE params, run config)`` of a run that saved its CVAE (``models/cvae``: SPOT runs, and
+    PT runs with the Fig. 2 diagnostics)."""
+    from spot.subgoal import cvae as cvae_lib
+
+    params, _ = tracking.load_model(run_id, "cvae", tracking_uri)
+    if not isinstance(params, cvae_lib.CVAEParams):
+        raise SpotError(f"run {run_id}: models/cvae holds {type(params).__name__}, not CVAE params")
+    return params, tracking.run_config(run_id, tracking_uri)
 
 
 def load_cvae(path: str | Path) -> Any:

@@ -34,7 +34,7 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
     t_start = time.perf_counter()
     kind = stages.stages_of(cfg)
     ds, card, env_name, data_s = _load(cfg, progress)
-    with _tracking(cfg, card, tracker, parent_run_id, extra_tags) as tr:
+    with _tracking(cfg, card, tracker, parent_run_id, extra_tags, ds) as tr:
         ctx = Context(cfg, ds, card, env_name, tr, _keys(cfg.seed), progress, on_eval)
         ctx.times["time/data_s"] = data_s
         labelled = ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None
@@ -73,11 +73,34 @@ def _keys(seed: int) -> dict[str, Any]:
 
 @contextlib.contextmanager
 def _tracking(cfg: ExperimentConfig, card: dict[str, Any], tracker: Tracker | None,
-              parent_run_id: str | None, extra_tags: dict[str, str] | None):
+              parent_run_id: str | None, extra_tags: dict[str, str] | None, ds: Any):
     if tracker is not None:
         yield tracker
         return
     from spot import tracking
 
-    with tracking.start_run(cfg, card, parent_run_id=parent_run_id, extra_tags=extra_tags) as tr:
+    with tracking.start_run(cfg, card, parent_run_id=parent_run_id, extra_tags=extra_tags, dataset=ds) as tr:
         yield tr
+
+
+def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | None = None) -> dict[str, Any]:
+    """Evaluate the policy a run saved (``models/policy``) again, in the env and with the episode
+    seeds the run evaluated it with (``episodes`` defaults to the run's ``eval.episodes``; the
+    first ``eval.episodes`` episodes are the run's). Returns the scores and the run's logged
+    ``eval/score_final``, ``logged_score_final``.
+    """
+    import numpy as np
+
+    from spot import envs, tracking
+    from spot.policy import iql
+
+    params, head = tracking.load_model(run_id, "policy", tracking_uri)
+    cfg = tracking.run_config(run_id, tracking_uri)
+    n = episodes or cfg.eval.episodes
+    actor = params["actor"]
+    res = envs.evaluate(lambda o: np.asarray(iql.act(actor, o, cfg.iql)), head["env"], n, seed=int(head["eval_seed"]))
+    logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")
+    return {"run_id": run_id, "method": cfg.method, "env": head["env"], "episodes": n,
+            "eval_seed": int(head["eval_seed"]), "steps": head.get("steps"),
+            "score_mean": float(res["score_mean"]), "score_std": float(res["score_std"]),
+            "return_mean": float(res["return_mean"]), "logged_score_final": logged}

@@ -9,6 +9,11 @@ from mlflow.tracking import MlflowClient
 from spot import SpotError, config, tracking
 
 
+def _params(cfg):
+    """What MLflow returns for the params of ``cfg``: the active ones, as strings."""
+    return {k: str(list(v) if isinstance(v, tuple) else v) for k, v in tracking.active_params(cfg).items()}
+
+
 def test_memory_tracker_keeps_steps_and_drops_non_finite(tmp_path):
     tr = tracking.MemoryTracker()
     tr.log_metrics({"a": 1, "b": float("nan"), "c": None, "d": np.float32(2.5)}, step=3)
@@ -19,7 +24,53 @@ def test_memory_tracker_keeps_steps_and_drops_non_finite(tmp_path):
     tr.set_tags({"k": 1})
     assert tr.metrics == {"a": [(3, 1.0)], "d": [(3, 2.5)], "s": [(10, 1.0), (30, 3.0)]}
     assert tr.artifacts["x.txt"] == b"hello" and tr.tags == {"k": "1"}
+    tr.log_artifact(f, "models")
+    tr.log_dict({"a": [1.0, float("nan")], "b": np.array([np.inf, 2.0]), "c": np.float32(0.5)}, "x.json")
+    assert tr.artifacts["models/x.txt"] == b"hello"
+    assert tr.artifacts["x.json"] == {"a": [1.0, None], "b": [None, 2.0], "c": 0.5}  # valid JSON: no NaN
     assert isinstance(tr, tracking.Tracker)
+
+
+def test_json_artifacts_are_strict_json(tmp_path):
+    import json
+
+    cfg = config.load(None, [f"tracking.uri=sqlite:///{tmp_path / 'm.db'}", "tracking.experiment=t"])
+    with tracking.start_run(cfg, {"name": "hopper-medium-replay"}, system_metrics=False) as tr:
+        tr.log_dict({"mean_error": [[0.5, float("nan")], [float("-inf"), 1.0]]}, "extrapolation_error.json")
+    path = tmp_path / "artifacts" / tr.run_id  # spot's local store keeps artifacts beside the database
+    got = next(path.rglob("extrapolation_error.json")).read_text()
+
+    def refuse(name):
+        raise ValueError(f"bare {name} in JSON")
+
+    assert json.loads(got, parse_constant=refuse) == {"mean_error": [[0.5, None], [None, 1.0]]}
+
+
+@pytest.mark.parametrize("method, dropped", [
+    ("oracle", ("mr.", "pt.", "hpl.", "ipl.")), ("mr", ("pt.", "hpl.", "ipl.")), ("pt", ("mr.", "hpl.", "ipl.")),
+    ("spot", ("mr.", "hpl.", "ipl.")), ("ipl", ("mr.", "pt.", "hpl.")), ("hpl", ("mr.", "pt.", "ipl.")),
+])
+def test_only_the_active_methods_params(method, dropped):
+    cfg = config.load(None, [f"method={method}"])
+    flat, active = config.to_flat(cfg), tracking.active_params(cfg)
+    assert not any(k.startswith(dropped) for k in active)
+    assert active == {k: v for k, v in flat.items() if not k.startswith(dropped)}  # the rest, all of it
+
+
+@pytest.mark.parametrize("overrides", [
+    ["method=spot", "budget=tiny", "data.name=drawer-open", "seed=3", "iql.hidden=[8, 8]", "shaping.weight=0.5"],
+    ["method=oracle", "variant=authors", "labels.teacher=discounted", "eval.every=3000"],
+    ["method=hpl", "budget=small", "data.name=walker2d-medium-replay", "tracking.experiment=x"],
+])
+def test_reproduce_command_resolves_to_the_same_config(overrides):
+    import shlex
+
+    cfg = config.load(None, overrides)
+    command = tracking.reproduce_command(cfg)
+    words = shlex.split(command)
+    assert words[:2] == ["spot", "run"] and not any(w.startswith("tracking.") for w in words)
+    again = config.load(None, words[2:])
+    assert config.replace(again, **{"tracking.experiment": cfg.tracking.experiment}) == cfg
 
 
 def test_mlflow_tracker_batches_and_marks_failures(tmp_path):
@@ -33,7 +84,7 @@ def test_mlflow_tracker_batches_and_marks_failures(tmp_path):
     assert run.info.status == "FINISHED" and run.data.metrics["x"] == 1.0 and "nan" not in run.data.metrics
     history = client.get_metric_history(run_id, "curve")
     assert len(history) == 1500 and {m.step for m in history} == set(range(1500))
-    assert config.from_flat(run.data.params) == cfg  # every param, across several batches
+    assert run.data.params == _params(cfg)  # every active param, across several batches
     with pytest.raises(RuntimeError), tracking.start_run(cfg, {"name": "x"}) as tr:
         raise RuntimeError("boom")
     failed = client.get_run(tr.run_id)
@@ -107,5 +158,5 @@ def test_record_failure_once_per_attempt(client):
     run = client.get_run(run_id)
     assert run.info.status == "FAILED" and run.data.tags["failure_reason"] == "ValueError: bad file"
     assert run.data.tags["mlflow.parentRunId"] == "p" and run.data.tags["method"] == "pt"
-    assert config.from_flat(run.data.params) == cfg  # every param (over 100: several batches)
+    assert run.data.params == _params(cfg)  # every active param (over 100: several batches)
     assert tracking.record_failure(client, exp, cfg, tags, ValueError("again")) is None  # the attempt has one

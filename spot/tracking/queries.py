@@ -15,7 +15,7 @@ from urllib.parse import urlparse
 
 from spot import SpotError
 from spot import config as config_lib
-from spot.tracking.record import log_params, run_tags
+from spot.tracking.record import log_params, mlflow_tags, run_tags
 from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
 
 STATUSES = ("RUNNING", "SCHEDULED", "FINISHED", "FAILED", "KILLED")
@@ -77,6 +77,7 @@ def record_failure(client: Any, experiment_id: str, cfg: config_lib.ExperimentCo
     if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
         return None
     all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
+    all_tags.update(mlflow_tags(cfg, all_tags))
     all_tags["failure_reason"] = f"{type(error).__name__}: {error}"[:4000]
     if parent_run_id:
         all_tags["mlflow.parentRunId"] = parent_run_id

@@ -1,9 +1,18 @@
 """What every run records, and how a failed run is marked.
 
-Every run logs the full resolved config as params (flat dotted keys), tags naming the method,
-dataset, dataset source, label source, seed, budget, git commit and package versions, and the
-config YAML as an artifact. The pipeline writes through the :class:`Tracker` interface;
-:class:`MlflowTracker` is its MLflow implementation, :class:`MemoryTracker` an in-memory one.
+Every run logs its resolved config as params (flat dotted keys; the model sections of other
+methods, ``mr.*``, ``pt.*``, ``hpl.*``, ``ipl.*``, are left out: :func:`active_params`), tags
+naming the method, dataset, dataset source, label source, seed, budget, git commit, package
+versions and the dataset fingerprint (``data_digest``), and MLflow's own fields: a description
+(``mlflow.note.content``: method, dataset, budget, sweep, the command line and a ``spot run``
+command that reproduces the config), ``mlflow.source.name`` (the command), ``mlflow.source.type``,
+``mlflow.source.git.commit``, the dataset as a logged input (:func:`log_dataset_input`) and
+MLflow's system metrics (``system/*``, :class:`SystemMetrics`). Artifacts: the config YAML, the
+dataset card, package versions and the environment (``environment.json``, ``requirements.txt``).
+JSON artifacts are valid JSON (:func:`json_safe`: NaN and infinities become null).
+
+The pipeline writes through the :class:`Tracker` interface; :class:`MlflowTracker` is its MLflow
+implementation, :class:`MemoryTracker` an in-memory one.
 """
 
 from __future__ import annotations
@@ -11,8 +20,13 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib.metadata
+import json
 import math
+import os
+import platform
+import shlex
 import subprocess
+import sys
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -36,6 +50,12 @@ def git_commit() -> str:
         return commit + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+
+
+def commit_hash() -> str | None:
+    """The bare commit hash of :func:`git_commit` (no ``-dirty``), or None outside a git checkout."""
+    commit = git_commit().removesuffix("-dirty")
+    return None if commit == "unknown" else commit
 
 
 @functools.cache
@@ -63,6 +83,180 @@ def run_tags(cfg: config_lib.ExperimentConfig, card: dict[str, Any], extra: dict
     tags.update({f"version.{k}": v for k, v in package_versions().items()})
     tags.update(extra or {})
     return tags
+
+
+# --------------------------------------------------------------------------- MLflow's own fields
+COMMAND_ENV = "SPOT_COMMAND"
+"""Environment variable holding the ``spot`` command line (set by :func:`spot.cli.main`; inherited
+by the processes a sweep starts on this machine, whose own ``sys.argv`` is Ray's worker)."""
+
+# The model sections only one reward.kind reads; a run logs the one of its kind (all for a kind
+# registered by a plugin, which may read any of them).
+MODEL_SECTIONS = ("mr", "pt", "hpl", "ipl")
+
+
+def command_line() -> str:
+    """The command that started this process: ``$SPOT_COMMAND``, else ``sys.argv``."""
+    return os.environ.get(COMMAND_ENV) or shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])
+
+
+def active_params(cfg: config_lib.ExperimentConfig) -> dict[str, Any]:
+    """The flat config without the model sections of other methods (``mr.*``, ``pt.*``, ``hpl.*``,
+    ``ipl.*`` but the run's own ``reward.kind``); the full config is the ``config.yaml`` artifact."""
+    kind = cfg.reward.kind
+    drop = set(MODEL_SECTIONS) - {kind} if kind in (*MODEL_SECTIONS, "none") else set()
+    return {k: v for k, v in config_lib.to_flat(cfg).items() if k.split(".", 1)[0] not in drop}
+
+
+def _override_text(key: str, value: Any) -> str:
+    text = json.dumps(list(value)) if isinstance(value, (tuple, list)) else str(value)
+    return shlex.quote(f"{key}={text}")
+
+
+def reproduce_command(cfg: config_lib.ExperimentConfig) -> str:
+    """A ``spot run`` command line whose config resolves to ``cfg`` (tracking keys aside): the
+    method, budget, variant, dataset and seed, and every key that differs from what those presets
+    give."""
+    anchors = {"method": cfg.method, "budget": cfg.budget, "variant": cfg.variant,
+               "data.name": cfg.data.name}
+    preset = config_lib.to_flat(config_lib.resolve(anchors))
+    flat = config_lib.to_flat(cfg)
+    keys = [*anchors, "seed", *(k for k in flat if k not in anchors and k != "seed"
+                                and not k.startswith("tracking.") and flat[k] != preset[k])]
+    return "spot run " + " ".join(_override_text(k, flat[k]) for k in keys)
+
+
+def description(cfg: config_lib.ExperimentConfig, tags: Mapping[str, str], command: str) -> str:
+    """The run's description (``mlflow.note.content``, Markdown)."""
+    lines = [f"**{cfg.method}** on **{tags.get('dataset', cfg.data.name)}** "
+             f"({tags.get('dataset_source', '?')}, size {tags.get('dataset_size', '?')}), "
+             f"budget **{cfg.budget}**, seed {cfg.seed}, variant {cfg.variant}"]
+    if tags.get("sweep_id"):
+        axes = ", ".join(f"{k[len('axis.'):]}={v}" for k, v in tags.items() if k.startswith("axis."))
+        lines.append(f"sweep **{tags.get('sweep_name', '?')}** (launch `{tags['sweep_id']}`)"
+                     + (f", trial {axes}" if axes else ""))
+    lines.append(f"command: `{command}`")
+    lines.append(f"reproduce this config: `{reproduce_command(cfg)}`")
+    if tags.get("data_digest"):
+        lines.append(f"dataset fingerprint (SHA-256 of its arrays): `{tags['data_digest']}`")
+    return "\n\n".join(lines)
+
+
+def environment() -> dict[str, Any]:
+    """Python, platform, CPU, accelerators, the XLA/JAX/threading environment variables and every
+    installed distribution's version (``environment.json``)."""
+    cpu_model = platform.processor()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu_model = line.split(":", 1)[1].strip()
+                break
+    devices: Any = "jax not imported"
+    if "jax" in sys.modules:
+        try:
+            devices = [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in sys.modules["jax"].devices()]
+        except Exception as e:  # noqa: BLE001 - no backend: say so in the record
+            devices = f"unavailable ({type(e).__name__}: {e})"
+    env_keys = sorted(k for k in os.environ if k.startswith(("XLA_", "JAX_", "TF_", "CUDA_", "MUJOCO_", "SPOT_"))
+                      or k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PYOPENGL_PLATFORM"))
+    return {
+        "python": sys.version, "executable": sys.executable, "platform": platform.platform(),
+        "cpu": {"model": cpu_model, "count": os.cpu_count(),
+                "affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None},
+        "devices": devices,
+        "env": {k: os.environ[k] for k in env_keys},
+        "git_commit": git_commit(),
+        "command": command_line(),
+        "packages": installed_distributions(),
+    }
+
+
+def installed_distributions() -> dict[str, str]:
+    """``{name: version}`` of every installed distribution (what ``pip freeze`` lists)."""
+    out = {}
+    for dist in importlib.metadata.distributions():
+        name = dist.metadata["Name"]
+        if name:
+            out[name] = dist.version
+    return dict(sorted(out.items(), key=lambda kv: kv[0].lower()))
+
+
+def requirements_text(packages: Mapping[str, str]) -> str:
+    """``name==version`` lines, ``pip freeze``'s format."""
+    return "".join(f"{name}=={version}\n" for name, version in packages.items())
+
+
+def json_safe(data: Any) -> Any:
+    """``data`` with NaN and infinities as None (JSON has no NaN; ``json.dumps`` would write a bare
+    ``NaN`` that strict readers refuse), numpy scalars and arrays as Python values."""
+    if isinstance(data, Mapping):
+        return {k: json_safe(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [json_safe(v) for v in data]
+    if hasattr(data, "tolist") and not isinstance(data, (str, bytes)):  # numpy arrays and scalars
+        return json_safe(data.tolist())
+    if isinstance(data, float) and not math.isfinite(data):
+        return None
+    return data
+
+
+DIGEST_CHARS = 32  # MLflow keeps at most 36 characters of a dataset digest
+
+
+def log_dataset_input(client: Any, run_id: str, ds: Any, card: Mapping[str, Any], cfg: config_lib.ExperimentConfig,
+                      digest: str) -> None:
+    """The run's dataset as an MLflow input (context ``training``): its name, the file it was read
+    from, the first :data:`DIGEST_CHARS` hex digits of its fingerprint as the digest, and a schema
+    of its arrays (name, dtype, shape)."""
+    import numpy as np
+    from mlflow.data.meta_dataset import MetaDataset
+    from mlflow.data.sources import LocalArtifactDatasetSource
+    from mlflow.entities import DatasetInput, InputTag
+    from mlflow.types import Schema, TensorSpec
+
+    from spot.data import registry
+
+    path = Path(cfg.data.name)
+    if not path.exists():
+        path = registry.dataset_path(cfg.data.name, cfg.data.size, cfg.data.build_seed)
+    arrays = [(name, getattr(ds, name, None)) for name in
+              ("observations", "actions", "rewards", "next_observations", "terminals")]
+    schema = Schema([TensorSpec(np.dtype(a.dtype), (-1, *a.shape[1:]), name)
+                     for name, a in arrays if isinstance(a, np.ndarray)])
+    name = str(card.get("name") or cfg.data.name)
+    dataset = MetaDataset(LocalArtifactDatasetSource(str(path.resolve())), name=name,
+                          digest=digest[:DIGEST_CHARS], schema=schema)
+    tags = [InputTag("mlflow.data.context", "training")]
+    client.log_inputs(run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags)])
+
+
+class SystemMetrics:
+    """MLflow's system metrics monitor (CPU, memory, disk, network, GPU if any: ``system/*``) on
+    one run, sampled every ``interval`` seconds (``$MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL``,
+    default 10). MLflow's monitor logs nothing for a run shorter than one interval; :meth:`stop`
+    then logs the samples it took, so every run has at least one point."""
+
+    def __init__(self, run_id: str, tracking_uri: str, interval: float | None = None) -> None:
+        import logging
+
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        logging.getLogger("mlflow.system_metrics").setLevel(logging.WARNING)  # no start/stop lines per run
+        interval = interval or float(os.environ.get("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL", 10))
+        self.monitor = SystemMetricsMonitor(run_id, sampling_interval=interval, tracking_uri=tracking_uri)
+
+    def start(self) -> SystemMetrics:
+        self.monitor.start()
+        return self
+
+    def stop(self) -> None:
+        mon = self.monitor
+        mon.finish()
+        if mon._logging_step == 0:  # nothing published yet: the samples of a short run
+            metrics = mon.aggregate_metrics()
+            if metrics:
+                mon.publish_metrics(metrics)
+                mon.mlflow_logger.flush()
 
 
 # --------------------------------------------------------------------------- the tracker interface
@@ -95,11 +289,11 @@ class Tracker(Protocol):
     def log_series(self, name: str, steps: Sequence[int], values: Sequence[Any]) -> None:
         """One metric over steps (e.g. a learning curve); non-finite points are dropped."""
 
-    def log_artifact(self, path: Path) -> None:
-        """A file, stored under its own name."""
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        """A file, stored under its own name (in the artifact folder ``artifact_path`` if given)."""
 
     def log_dict(self, data: Any, name: str) -> None:
-        """A JSON (``.json``) or YAML (``.yaml``) artifact."""
+        """A JSON (``.json``, NaN and infinities as null) or YAML (``.yaml``) artifact."""
 
     def log_text(self, text: str, name: str) -> None:
         """A text artifact."""
@@ -112,7 +306,8 @@ class MemoryTracker:
     """A :class:`Tracker` that keeps metrics, artifacts and tags in dicts (tests, dry runs).
 
     ``metrics[name]`` is a list of ``(step, value)``; run-level values have step ``None``;
-    ``artifacts[name]`` holds the bytes of a logged file, or the logged dict/text.
+    ``artifacts[name]`` holds the bytes of a logged file (``name`` is ``<artifact_path>/<file>``
+    when a folder is given), or the logged dict (as :func:`json_safe` makes it) or text.
     """
 
     def __init__(self, run_id: str = "memory") -> None:
@@ -129,11 +324,12 @@ class MemoryTracker:
         for step, value in zip(steps, values, strict=True):
             self.log_metrics({name: value}, step=int(step))
 
-    def log_artifact(self, path: Path) -> None:
-        self.artifacts[Path(path).name] = Path(path).read_bytes()
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        name = Path(path).name if artifact_path is None else f"{artifact_path}/{Path(path).name}"
+        self.artifacts[name] = Path(path).read_bytes()
 
     def log_dict(self, data: Any, name: str) -> None:
-        self.artifacts[name] = data
+        self.artifacts[name] = json_safe(data)
 
     def log_text(self, text: str, name: str) -> None:
         self.artifacts[name] = text
@@ -177,11 +373,11 @@ class MlflowTracker:
         if points:
             self._send(points)
 
-    def log_artifact(self, path: Path) -> None:
-        self.client.log_artifact(self.run_id, str(path))
+    def log_artifact(self, path: Path, artifact_path: str | None = None) -> None:
+        self.client.log_artifact(self.run_id, str(path), artifact_path)
 
     def log_dict(self, data: Any, name: str) -> None:
-        self.client.log_dict(self.run_id, data, name)
+        self.client.log_dict(self.run_id, json_safe(data), name)
 
     def log_text(self, text: str, name: str) -> None:
         self.client.log_text(self.run_id, text, name)
@@ -193,23 +389,37 @@ class MlflowTracker:
 
 
 def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> None:
-    """The full resolved config as params (flat dotted keys), in batches of MLflow's limit."""
+    """The resolved config as params (flat dotted keys, :func:`active_params`), in batches of
+    MLflow's limit."""
     from mlflow.entities import Param
 
-    flat = config_lib.to_flat(cfg)
+    flat = active_params(cfg)
     params = [Param(k, str(list(v) if isinstance(v, tuple) else v)) for k, v in flat.items()]
     for i in range(0, len(params), 100):  # MLflow's limit of params per batch
         client.log_batch(run_id, params=params[i:i + 100])
 
 
+def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[str, str]:
+    """MLflow's own run fields as tags: description, source name and type, git commit."""
+    command = command_line()
+    out = {"mlflow.note.content": description(cfg, tags, command), "mlflow.source.name": command,
+           "mlflow.source.type": "LOCAL"}
+    commit = commit_hash()
+    if commit:
+        out["mlflow.source.git.commit"] = commit
+    return out
+
+
 @contextlib.contextmanager
 def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_name: str | None = None,
-              extra_tags: dict[str, str] | None = None,
-              parent_run_id: str | None = None) -> Iterator[MlflowTracker]:
+              extra_tags: dict[str, str] | None = None, parent_run_id: str | None = None,
+              dataset: Any = None, system_metrics: bool = True) -> Iterator[MlflowTracker]:
     """Open an MLflow run for ``cfg`` and yield its :class:`MlflowTracker`.
 
-    The run gets the tags of :func:`run_tags`, the full resolved config as params, and the config
-    YAML, dataset card and package versions as artifacts. It ends FINISHED, or FAILED (KILLED on
+    The run gets the tags of :func:`run_tags` and :func:`mlflow_tags` (with ``dataset``: its
+    fingerprint as ``data_digest`` and the dataset as a logged input), the active config as params,
+    the config YAML, dataset card, package versions and environment as artifacts, and MLflow's
+    system metrics while it runs (``system_metrics``). It ends FINISHED, or FAILED (KILLED on
     Ctrl-C) with a ``failure_reason`` tag when the body raises.
     """
     from mlflow.tracking import MlflowClient
@@ -218,23 +428,35 @@ def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_nam
     client = MlflowClient(uri)
     exp_id = experiment_id(cfg.tracking.experiment, uri)
     tags = run_tags(cfg, card, extra_tags)
-    tags["mlflow.source.name"] = "spot"
-    tags["mlflow.source.git.commit"] = tags["git_commit"]
+    digest = dataset.fingerprint() if dataset is not None else None
+    if digest:
+        tags["data_digest"] = digest
+    tags.update(mlflow_tags(cfg, tags))
     if parent_run_id:
         tags["mlflow.parentRunId"] = parent_run_id
     name = run_name or f"{cfg.method}-{tags['dataset']}-s{cfg.seed}"
     run = client.create_run(exp_id, run_name=name, tags=tags)
     tracker = MlflowTracker(client, run.info.run_id)
+    monitor = SystemMetrics(run.info.run_id, uri).start() if system_metrics else None
     try:
         log_params(client, run.info.run_id, cfg)
+        if digest:
+            log_dataset_input(client, run.info.run_id, dataset, card, cfg, digest)
         tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
         tracker.log_dict(card, "dataset_card.json")
         tracker.log_dict(package_versions(), "package_versions.json")
+        env = environment()
+        tracker.log_dict(env, "environment.json")
+        tracker.log_text(requirements_text(env["packages"]), "requirements.txt")
         yield tracker
     except BaseException as e:
+        if monitor is not None:
+            monitor.stop()
         tracker.set_tags({"failure_reason": f"{type(e).__name__}: {e}"[:4000]})
         status = "KILLED" if isinstance(e, KeyboardInterrupt) else "FAILED"
         client.set_terminated(run.info.run_id, status)
         raise
     else:
+        if monitor is not None:
+            monitor.stop()
         client.set_terminated(run.info.run_id, "FINISHED")
