@@ -181,6 +181,49 @@ def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -
     return iql.init_state(key, obs_dim, act_dim, iql_cfg, optimizers=_optimizers(iql_cfg))
 
 
+def _update_rows(fb: FeedbackPairs, replay: Transitions | None, gamma: float,
+                 use_replay: bool) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """The rows one update trains on: ``obs, act, next_obs, discount``, segment 1's transitions,
+    then segment 2's (discount ``gamma``, no terminals inside segments), then the replay rows
+    (``gamma * mask``) when ``use_replay``."""
+    if fb.obs_1.ndim != 3 or fb.obs_1.shape != fb.obs_2.shape or fb.label.shape != fb.obs_1.shape[:1]:
+        raise ValueError(f"expected obs_1, obs_2 [B, S, o] and label [B], got {fb.obs_1.shape}, "
+                         f"{fb.obs_2.shape}, {fb.label.shape}")
+    if use_replay and (replay is None or replay.obs.ndim != 2 or replay.obs.shape[1] != fb.obs_1.shape[2]):
+        raise ValueError(f"use_replay needs replay obs [R, {fb.obs_1.shape[2]}], got "
+                         f"{None if replay is None else replay.obs.shape}")
+    obs, act, next_obs = _transitions(fb)
+    discount = jnp.full((obs.shape[0],), gamma, jnp.float32)
+    if use_replay:
+        obs = jnp.concatenate([obs, replay.obs])
+        act = jnp.concatenate([act, replay.act])
+        next_obs = jnp.concatenate([next_obs, replay.next_obs])
+        discount = jnp.concatenate([discount, gamma * replay.mask])
+    return obs, act, next_obs, discount
+
+
+def _critic_objective(q: jax.Array, discount: jax.Array, next_v: jax.Array, split: Callable, label: jax.Array,
+                      segments: tuple[int, int], ipl_cfg: IPLConfig) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """``L_pref + L_chi2`` of the critics' outputs ``q [n_critics, N]`` (module docstring, step 2),
+    with the implicit reward ``q - discount * next_v``; ``segments = (B, S - 1)``."""
+    reward = q - discount * next_v
+    r_1, r_2, r_replay = split(reward)
+    r_1 = r_1.reshape(-1, *segments)  # shape is (n_critics, B, S - 1)
+    r_2 = r_2.reshape(-1, *segments)
+    pref = preference_loss(r_1, r_2, label)
+    chi2 = chi2_loss(r_1, r_2, r_replay, ipl_cfg.chi2_coeff, ipl_cfg.chi2_replay_weight)
+    logits = (r_2.sum(axis=-1) - r_1.sum(axis=-1)).mean(axis=0)
+    info = {
+        "ipl/pref_loss": pref, "ipl/chi2_loss": chi2, "ipl/critic_loss": pref + chi2,
+        "ipl/pref_acc": _accuracy(logits, label), "ipl/q_mean": q.mean(),
+        "ipl/reward_mean": reward.mean(), "ipl/reward_std": reward.std(),
+        "ipl/reward_feedback_mean": 0.5 * (r_1.mean() + r_2.mean()),
+    }
+    if r_replay is not None:
+        info["ipl/reward_replay_mean"] = r_replay.mean()
+    return pref + chi2, info
+
+
 def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_cfg: IQLConfig,
            ipl_cfg: IPLConfig) -> tuple[IQLState, dict[str, jax.Array]]:
     """One IPL-IQL update (value, critics, actor, target), pure.
@@ -195,23 +238,11 @@ def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_c
     Returns:
       ``(new_state, metrics)`` with scalar metrics named ``ipl/...``.
     """
-    if fb.obs_1.ndim != 3 or fb.obs_1.shape != fb.obs_2.shape or fb.label.shape != fb.obs_1.shape[:1]:
-        raise ValueError(f"expected obs_1, obs_2 [B, S, o] and label [B], got {fb.obs_1.shape}, "
-                         f"{fb.obs_2.shape}, {fb.label.shape}")
     use_replay = ipl_cfg.use_replay
-    if use_replay and (replay is None or replay.obs.ndim != 2 or replay.obs.shape[1] != fb.obs_1.shape[2]):
-        raise ValueError(f"use_replay needs replay obs [R, {fb.obs_1.shape[2]}], got "
-                         f"{None if replay is None else replay.obs.shape}")
     b, s = fb.obs_1.shape[:2]
     n_fb = b * (s - 1)  # transitions per segment side
     gamma = iql_cfg.discount
-    obs, act, next_obs = _transitions(fb)
-    discount = jnp.full((2 * n_fb,), gamma, jnp.float32)  # no terminals inside segments
-    if use_replay:
-        obs = jnp.concatenate([obs, replay.obs])
-        act = jnp.concatenate([act, replay.act])
-        next_obs = jnp.concatenate([next_obs, replay.next_obs])
-        discount = jnp.concatenate([discount, gamma * replay.mask])
+    obs, act, next_obs, discount = _update_rows(fb, replay, gamma, use_replay)
     n = obs.shape[0]
 
     def split(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array | None]:
@@ -240,22 +271,7 @@ def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_c
 
     def critic_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
         q = state.critic.apply_fn(params, obs, act)  # shape is (n_critics, N)
-        reward = q - discount * next_v
-        r_1, r_2, r_replay = split(reward)
-        r_1 = r_1.reshape(-1, b, s - 1)  # shape is (n_critics, B, S - 1)
-        r_2 = r_2.reshape(-1, b, s - 1)
-        pref = preference_loss(r_1, r_2, fb.label)
-        chi2 = chi2_loss(r_1, r_2, r_replay, ipl_cfg.chi2_coeff, ipl_cfg.chi2_replay_weight)
-        logits = (r_2.sum(axis=-1) - r_1.sum(axis=-1)).mean(axis=0)
-        info = {
-            "ipl/pref_loss": pref, "ipl/chi2_loss": chi2, "ipl/critic_loss": pref + chi2,
-            "ipl/pref_acc": _accuracy(logits, fb.label), "ipl/q_mean": q.mean(),
-            "ipl/reward_mean": reward.mean(), "ipl/reward_std": reward.std(),
-            "ipl/reward_feedback_mean": 0.5 * (r_1.mean() + r_2.mean()),
-        }
-        if use_replay:
-            info["ipl/reward_replay_mean"] = r_replay.mean()
-        return pref + chi2, info
+        return _critic_objective(q, discount, next_v, split, fb.label, (b, s - 1), ipl_cfg)
 
     critic_grads, critic_info = jax.grad(critic_loss_fn, has_aux=True)(state.critic.params)
     critic = state.critic.apply_gradients(grads=critic_grads)
