@@ -1,15 +1,21 @@
 """The ``spot`` command. Thin: parses arguments and calls into the library.
 
 User errors (:class:`spot.SpotError`) print one line ``error: ...`` and exit with code 2; no
-traceback. Run ``spot <command> --help`` for each command's options.
+traceback. Run ``spot <command> --help`` for each command's options, defaults and an example.
+One name per concept across commands: ``--tracking-uri`` (the MLflow store), ``--data-seed`` (the
+dataset build seed, ``data.build_seed``; ``--seed`` is its old name), ``--quiet`` (no progress
+bars) wherever a command draws them.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shlex
 import sys
 from pathlib import Path
+from typing import Any
 
 from spot import NonFiniteError, SpotError
 
@@ -32,7 +38,7 @@ def _data_list(args: argparse.Namespace) -> None:
 def _data_build(args: argparse.Namespace) -> None:
     from spot.data import registry
 
-    path = registry.build(args.name, args.size, args.seed, force=args.force)
+    path = registry.build(args.name, args.size, args.data_seed, force=args.force, progress=not args.quiet)
     card = registry.read_card(path)
     print(f"built {path}")
     print(json.dumps({k: card[k] for k in card if k not in ("name",)}, indent=2, default=str))
@@ -44,14 +50,14 @@ def _data_info(args: argparse.Namespace) -> None:
     as_path = Path(args.name)
     if not as_path.exists():
         registry.entry(args.name)  # unknown names fail here, before any build
-        path = registry.dataset_path(args.name, args.size, args.seed)
+        path = registry.dataset_path(args.name, args.size, args.data_seed)
         if not path.exists():
             raise SpotError(
-                f"dataset '{args.name}' (size {args.size}, seed {args.seed}) is not built yet; "
-                f"run: spot data build {args.name} --size {args.size} --seed {args.seed}"
+                f"dataset '{args.name}' (size {args.size}, seed {args.data_seed}) is not built yet; "
+                f"run: spot data build {args.name} --size {args.size} --data-seed {args.data_seed}"
             )
         args.name = str(path)
-    ds, card = registry.load(args.name, source="file")
+    ds, card = registry.load(args.name, source="file", progress=not args.quiet)
     print(json.dumps({"summary": ds.summary(), "card": card}, indent=2, default=str))
 
 
@@ -110,7 +116,7 @@ _LABEL_FLAGS = {"num_queries": "labels.num_queries", "segment_length": "labels.s
                 "teacher": "labels.teacher", "score": "labels.score", "discount": "labels.discount",
                 "tie_threshold": "labels.tie_threshold", "mistake_rate": "labels.mistake_rate",
                 "allow_cross_episode": "labels.allow_cross_episode", "label_seed": "labels.seed",
-                "size": "data.size", "seed": "data.build_seed"}
+                "size": "data.size", "data_seed": "data.build_seed"}
 
 
 def _labels_make(args: argparse.Namespace) -> None:
@@ -121,7 +127,8 @@ def _labels_make(args: argparse.Namespace) -> None:
 
     flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
     cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])
-    ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source)
+    ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
+                          progress=not args.quiet)
     prefs = stages.make_preferences(cfg, ds)
     prefs.save_npz(args.out)
     lc = cfg.labels
@@ -148,7 +155,7 @@ def _labels_info(args: argparse.Namespace) -> None:
     print(f"{path}: {len(prefs)} queries, segment length {prefs.segment_length}, source {prefs.source}")
     _print_label_stats(prefs)
     if args.dataset:
-        ds, _ = registry.load(args.dataset, args.size, args.seed)
+        ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=not args.quiet)
         labels.check_against(prefs, ds)
         print(f"all segments fit dataset '{ds.name}' ({len(ds)} transitions)")
 
@@ -175,14 +182,40 @@ def _config_keys(args: argparse.Namespace) -> None:
 
 # --------------------------------------------------------------------------- run
 def _run(args: argparse.Namespace) -> None:
-    from spot import config, pipeline
+    from mlflow.tracking import MlflowClient
 
-    cfg = config.load(args.config, args.overrides)
+    from spot import config, pipeline, tracking
+
+    overrides = [*args.overrides, *([f"tracking.uri={args.tracking_uri}"] if args.tracking_uri else [])]
+    cfg = config.load(args.config, overrides)
     final = pipeline.run(cfg, progress=not args.quiet)
     print(f"run {final['run_id']}: {cfg.method} on {cfg.data.name} (seed {cfg.seed})")
     for key in sorted(final):
         if key != "run_id":
             print(f"  {key:24s} {final[key]:.3f}")
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    exp_id = MlflowClient(uri).get_run(final["run_id"]).info.experiment_id
+    print("\n".join(tracking.where_logged(uri, exp_id, final["run_id"])))
+
+
+def _eval(args: argparse.Namespace) -> None:
+    from spot import pipeline
+
+    res = pipeline.evaluate_run(args.run_id, args.tracking_uri, args.episodes)
+    n, seed = res["episodes"], res["eval_seed"]
+    print(f"run {res['run_id']}: {res['method']} policy after {res['steps']} updates on {res['env']}, "
+          f"{n} episodes (env seeds {seed}..{seed + n - 1})")
+    print(f"  {'score_mean':24s} {res['score_mean']:.3f}")
+    print(f"  {'score_std':24s} {res['score_std']:.3f}")
+    print(f"  {'return_mean':24s} {res['return_mean']:.3f}")
+    logged = res["logged_score_final"]
+    if logged is None:
+        print("  the run logged no eval/score_final")
+    elif abs(logged - res["score_mean"]) <= 1e-9 * max(1.0, abs(logged)):
+        print(f"  reproduces the logged eval/score_final {logged:.3f}")
+    else:
+        print(f"  logged eval/score_final {logged:.3f} (differs: other episodes{' count' if args.episodes else ''}, "
+              "or another machine's floating point)")
 
 
 # --------------------------------------------------------------------------- bench
@@ -203,9 +236,13 @@ def _bench(args: argparse.Namespace) -> None:
 def _sweep(args: argparse.Namespace) -> int:
     from spot import sweep
 
-    rows = sweep.run_sweep(args.file, smoke=args.smoke, resume=args.resume, retry_errored=args.retry_errored,
-                           address=args.address, max_concurrent=args.max_concurrent,
-                           tracking_uri=args.tracking_uri, storage=args.storage)
+    try:
+        rows = sweep.run_sweep(args.file, smoke=args.smoke, resume=args.resume, retry_errored=args.retry_errored,
+                               address=args.address, max_concurrent=args.max_concurrent,
+                               tracking_uri=args.tracking_uri, storage=args.storage)
+    except sweep.Interrupted as e:
+        print(f"interrupted: {e}", file=sys.stderr)
+        return e.exit_code  # 143 for SIGTERM, 130 for SIGINT
     return 0 if all(r.status == "FINISHED" for r in rows) else 1  # the summary lists what failed
 
 
@@ -266,6 +303,7 @@ def _report(args: argparse.Namespace) -> None:
 def _figures(args: argparse.Namespace) -> None:
     from spot import figures, tables
 
+    figures.image_format(args.out)  # an unknown extension fails before any work
     if args.figure == "fig2":
         runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
         bins = figures.extrapolation_bins(runs, args.tracking_uri, dataset=args.dataset, source=args.source)
@@ -284,10 +322,22 @@ def _figures(args: argparse.Namespace) -> None:
             if not args.env:
                 raise SpotError("--pairs needs --env (e.g. Hopper-v5 or hopper-medium-expert)")
             obs, goal = figures.pairs_from_file(args.pairs)
+        elif args.run_id and args.index:  # the run's CVAE on the run's dataset (or --dataset)
+            from spot.data import registry
+
+            params, cfg = figures.cvae_from_run(args.run_id, args.tracking_uri)
+            if args.dataset:
+                ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
+            else:
+                ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
+                                      progress=False)
+                args.dataset = args.dataset or cfg.data.name
+            obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
         elif args.cvae and args.index:
             obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
         else:
-            raise SpotError("fig3 needs --pairs FILE.npy --env ENV, or --cvae FILE --dataset NAME --index I [I ...]")
+            raise SpotError("fig3 needs --pairs FILE.npy --env ENV, --run-id ID --index I [I ...], "
+                            "or --cvae FILE --dataset NAME --index I [I ...]")
         path = figures.render_state_and_subgoal(args.env or args.dataset, obs, goal, args.out,
                                                 width=args.width, height=args.height)
     elif args.run_id:
@@ -300,31 +350,103 @@ def _figures(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------- parser
+class _Formatter(argparse.HelpFormatter):
+    """Wraps one-paragraph descriptions, keeps the line breaks of the examples, and adds
+    ``(default: X)`` to every option with a default worth showing (not None, False or an empty
+    list; not where the help names the default)."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        if (default is None or default is False or default is argparse.SUPPRESS or default in ("", [])
+                or "default" in text
+                or not (action.option_strings or action.nargs in ("?", "*"))):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _parser(sub: Any, name: str, help: str, examples: str, **kw: Any) -> argparse.ArgumentParser:
+    """A subcommand with the shared formatter and ``examples`` (one per line) as its epilog."""
+    lines = "\n".join(f"  {line}" for line in examples.strip().splitlines())
+    return sub.add_parser(name, help=help, description=kw.pop("description", help[0].upper() + help[1:] + "."),
+                          epilog=f"example{'s' if len(examples.strip().splitlines()) > 1 else ''}:\n{lines}",
+                          formatter_class=_Formatter, **kw)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer (>= 1), got {value}")
+    return value
+
+
+def _data_seed(d: argparse.ArgumentParser, default: int | None = 0, what: str = "dataset build seed") -> None:
+    """``--data-seed`` (``data.build_seed``), with ``--seed`` kept as its old name."""
+    d.add_argument("--data-seed", "--seed", dest="data_seed", type=int, default=default,
+                   help=f"{what} (data.build_seed; --seed is the old name)")
+
+
+def _quiet(d: argparse.ArgumentParser) -> None:
+    d.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+_URI_HELP = "MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db)"
+_SIZES = ("tiny", "small", "paper")
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    from spot import __version__
+
+    try:
+        return f"spot {version('spot-pbrl')}"
+    except PackageNotFoundError:
+        return f"spot {__version__} (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from spot.config import IQL_ORDERS, IQLConfig
 
-    p = argparse.ArgumentParser(prog="spot", description="Offline preference-based RL: SPOT and baselines.")
+    p = argparse.ArgumentParser(
+        prog="spot", description="Offline preference-based RL: SPOT and baselines.", formatter_class=_Formatter,
+        epilog="examples:\n  spot sweep sweeps/quickstart.yaml --smoke\n  spot run configs/quickstart.yaml method=pt\n"
+               "  spot tables --table 1\n\nEvery command has --help with its options, defaults and an example.")
+    p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    data = sub.add_parser("data", help="list, build and inspect datasets").add_subparsers(dest="sub", required=True, metavar="SUB")
-    d = data.add_parser("list", help="registered datasets and what is built")
+    data = sub.add_parser("data", help="list, build, inspect and fetch datasets").add_subparsers(
+        dest="sub", required=True, metavar="SUB")
+    d = _parser(data, "list", "registered datasets and what is built", "spot data list")
     d.set_defaults(fn=_data_list)
-    d = data.add_parser("build", help="build a dataset with its local recipe (once; cached)")
-    d.add_argument("name")
-    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-    d.add_argument("--seed", type=int, default=0)
+    d = _parser(data, "build", "build a dataset with its local recipe (once; cached)",
+                "spot data build hopper-medium-replay --size small --data-seed 0")
+    d.add_argument("name", help="registered dataset name (spot data list)")
+    d.add_argument("--size", default="small", choices=_SIZES, help="dataset size")
+    _data_seed(d)
     d.add_argument("--force", action="store_true", help="rebuild even if cached")
+    _quiet(d)
     d.set_defaults(fn=_data_build)
-    d = data.add_parser("info", help="summary and card of a built dataset or an hdf5 file")
+    d = _parser(data, "info", "summary and card of a built dataset or an hdf5 file",
+                "spot data info hopper-medium-replay --size tiny")
     d.add_argument("name", help="registered name or path")
-    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--size", default="small", choices=_SIZES, help="dataset size (registered names)")
+    _data_seed(d)
+    _quiet(d)
     d.set_defaults(fn=_data_info)
-    d = data.add_parser(
-        "fetch", help="download the paper's real data files (D4RL, robomimic, PT labels), verified",
+    d = _parser(
+        data, "fetch", "download the paper's real data files (D4RL, robomimic, PT labels), verified",
+        "spot data fetch --list\nspot data fetch d4rl/hopper-medium-replay-v2",
         description="Download a registered source's files to DEST with resume and mirror fallback; "
-                    "each file's size and sha256 are verified before it is put in place. "
-                    "Example: spot data fetch d4rl/hopper-medium-replay-v2")
+                    "each file's size and sha256 are verified before it is put in place.")
     d.add_argument("name", nargs="?", help="registry name (see --list) or minari:<dataset id>")
     d.add_argument("--list", action="store_true", help="list the registered sources and exit")
     d.add_argument("--dest", help="destination folder (default: $SPOT_DATA_DIR/real)")
@@ -335,20 +457,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "or a test server (default: $SPOT_FETCH_REGISTRY, else the package's)")
     d.add_argument("--lock", metavar="FILE",
                    help="trust-on-first-use lock file (default: $SPOT_DATA_LOCK, else ./spot-data.lock.json)")
-    d.add_argument("--quiet", action="store_true", help="no progress bars")
+    _quiet(d)
     d.set_defaults(fn=_data_fetch)
 
-    lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(dest="sub", required=True, metavar="SUB")
-    d = lab.add_parser("make", help="the preference queries `spot run` would make on a dataset -> .npz",
-                       description="Resolves the labels settings like `spot run` (method, budget and suite "
-                                   "presets, --config, KEY=VALUE overrides); the flags are shorthands for "
-                                   "labels.* keys and win over the overrides.")
+    lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(
+        dest="sub", required=True, metavar="SUB")
+    d = _parser(lab, "make", "the preference queries `spot run` would make on a dataset -> .npz",
+                "spot labels make drawer-open --out queries.npz --size tiny method=ipl",
+                description="Resolves the labels settings like `spot run` (method, budget and suite "
+                            "presets, --config, KEY=VALUE overrides); the flags are shorthands for "
+                            "labels.* keys and win over the overrides.")
     d.add_argument("dataset", help="data.name: a registered name or a dataset file")
     d.add_argument("overrides", nargs="*", help="a.b=value config overrides, e.g. method=ipl budget=paper")
     d.add_argument("--out", required=True, help="output .npz")
     d.add_argument("--config", dest="config_file", help="YAML run config (as for `spot run`)")
-    d.add_argument("--size", choices=("tiny", "small", "paper"), help="data.size (default: the budget's)")
-    d.add_argument("--seed", type=int, help="data.build_seed, the dataset build seed")
+    d.add_argument("--size", choices=_SIZES, help="data.size (default: the budget's)")
+    _data_seed(d, None, "dataset build seed (default: the config's)")
     d.add_argument("--num-queries", type=int, help="labels.num_queries")
     d.add_argument("--segment-length", type=int, help="labels.segment_length")
     d.add_argument("--teacher", choices=("sum", "discounted"), help="labels.teacher")
@@ -359,56 +483,81 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mistake-rate", type=float, help="labels.mistake_rate")
     d.add_argument("--allow-cross-episode", action="store_true", default=None, help="labels.allow_cross_episode=true")
     d.add_argument("--label-seed", type=int, help="labels.seed")
+    _quiet(d)
     d.set_defaults(fn=_labels_make)
-    d = lab.add_parser("info", help="inspect a .npz query file or a PT human-label folder")
-    d.add_argument("path")
+    d = _parser(lab, "info", "inspect a .npz query file or a PT human-label folder",
+                "spot labels info queries.npz --dataset drawer-open --size tiny")
+    d.add_argument("path", help=".npz query file or PT human-label folder")
     d.add_argument("--dataset", help="check that every segment fits this dataset")
-    d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--size", default="small", choices=_SIZES, help="with --dataset: its size")
+    _data_seed(d)
+    _quiet(d)
     d.set_defaults(fn=_labels_info)
 
-    d = sub.add_parser("run", help="one run (one seed) end to end, logged to MLflow")
+    d = _parser(sub, "run", "one run (one seed) end to end, logged to MLflow",
+                "spot run configs/quickstart.yaml method=spot seed=1\n"
+                "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000",
+                description="One run (one seed) end to end, logged to MLflow. It ends with where it logged, "
+                            "the mlflow ui command and a link to the run.")
     d.add_argument("config", nargs="?", help="YAML run config (see configs/)")
     d.add_argument("overrides", nargs="*", help="a.b=value overrides, e.g. method=pt iql.steps=5000")
-    d.add_argument("--quiet", action="store_true", help="no progress bars")
+    d.add_argument("--tracking-uri", help="MLflow tracking URI, same as the override tracking.uri=URI (default: "
+                                          "tracking.uri, else $MLFLOW_TRACKING_URI, else ./mlruns/mlflow.db)")
+    _quiet(d)
     d.set_defaults(fn=_run)
 
-    d = sub.add_parser("bench", help="throughput, compile time and peak memory of a stage (paper sizes)")
-    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"))
+    d = _parser(sub, "eval", "evaluate a logged run's saved policy again",
+                "spot eval 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --episodes 10 --tracking-uri sqlite:///spot_runs/mlflow.db",
+                description="Download a run's policy (models/policy) and config, rebuild its evaluation env "
+                            "and evaluate the policy's mean action on the run's evaluation seeds. With the "
+                            "run's eval.episodes this reproduces its eval/score_final.")
+    d.add_argument("run_id", help="MLflow run id")
+    d.add_argument("--episodes", type=_positive_int, help="episodes (default: the run's eval.episodes)")
+    d.add_argument("--tracking-uri", help=_URI_HELP)
+    d.set_defaults(fn=_eval)
+
+    d = _parser(sub, "bench", "throughput, compile time and peak memory of a stage (paper sizes)",
+                "spot bench iql --small\nspot bench iql --seeds 5 --order sequential")
+    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"), help="the stage")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
-    d.add_argument("--seeds", type=int, default=1, help="iql: seeds as a vmap axis")
+    d.add_argument("--seeds", type=_positive_int, default=1, help="iql: seeds as a vmap axis")
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
     d.set_defaults(fn=_bench)
 
-    d = sub.add_parser("sweep", help="run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
-                       description="Exit code 0 when every (config, seed) run finished, 1 otherwise. See docs/sweeps.md.")
+    d = _parser(sub, "sweep", "run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
+                "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/table1.yaml --address auto --max-concurrent 8",
+                description="Run a sweep file with Ray Tune, one MLflow run per (config, seed). Exit code 0 "
+                            "when every run finished, 1 otherwise. See docs/sweeps.md.")
     d.add_argument("file", help="sweep YAML file")
     d.add_argument("--smoke", action="store_true", help="apply the file's smoke block (experiment <name>-smoke)")
     d.add_argument("--resume", action="store_true", help="continue the last launch of this sweep")
     d.add_argument("--retry-errored", action="store_true", help="with --resume: run failed trials again")
     d.add_argument("--address", help="Ray cluster address (default: local Ray on all CPUs)")
-    d.add_argument("--max-concurrent", type=int, help="trials at once (default: the file's max_concurrent)")
-    d.add_argument("--tracking-uri", help="MLflow URI (default: a loopback server on ./spot_runs/mlflow.db)")
-    d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder (default: %(default)s)")
+    d.add_argument("--max-concurrent", type=_positive_int, help="trials at once, >= 1 (default: the file's max_concurrent)")
+    d.add_argument("--tracking-uri", help="MLflow tracking URI (default: a loopback server on ./spot_runs/mlflow.db)")
+    d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder")
     d.set_defaults(fn=_sweep)
 
-    cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(dest="sub", required=True, metavar="SUB")
-    d = cfg.add_parser("show", help="print the fully resolved config")
+    cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(
+        dest="sub", required=True, metavar="SUB")
+    d = _parser(cfg, "show", "print the fully resolved config", "spot config show configs/quickstart.yaml method=pt")
     d.add_argument("config", nargs="?", help="YAML run config")
     d.add_argument("overrides", nargs="*", help="a.b=value overrides")
     d.set_defaults(fn=_config_show)
-    d = cfg.add_parser("keys", help="every config key with type, help and valid values")
+    d = _parser(cfg, "keys", "every config key with type, help and valid values", "spot config keys | grep '^iql'")
     d.set_defaults(fn=_config_keys)
-    d = sub.add_parser("tables", help="a paper table from the MLflow runs, the paper's numbers beside ours")
-    d.add_argument("--table", type=int, required=True, choices=(1, 2, 3, 4, 7, 8))
+
+    d = _parser(sub, "tables", "a paper table from the MLflow runs, the paper's numbers beside ours",
+                "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex")
+    d.add_argument("--table", type=int, required=True, choices=(1, 2, 3, 4, 7, 8), help="paper table")
     d.add_argument("--experiment", action="append",
                    help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)")
-    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
-    d.add_argument("--format", default="md", choices=("md", "latex", "csv"))
+    d.add_argument("--format", default="md", choices=("md", "latex", "csv"), help="output format")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
     d.add_argument("--allow-mixed", action="store_true", help="average cells whose runs differ in more than the seed")
     d.add_argument("--out", help="write the table to this file instead of printing it")
@@ -417,16 +566,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     res = sub.add_parser("results", help="export finished runs from MLflow to a small CSV").add_subparsers(
         dest="sub", required=True, metavar="SUB")
-    d = res.add_parser("export", help="one row per run: identity, config hash, data digest, params, metrics")
+    d = _parser(res, "export", "one row per run: identity, config hash, data digest, params, metrics",
+                "spot results export --experiment table1 --out results/table1.csv")
     d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
-    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--out", required=True, help="the CSV to write, e.g. results/lab_table1.csv")
     d.set_defaults(fn=_results_export)
 
-    d = sub.add_parser("report", help="the paper's claims: effect, 95%% CI, n and verdict per claim")
+    d = _parser(sub, "report", "the paper's claims: effect, 95%% CI, n and verdict per claim",
+                "spot report --results results/ --out report.md")
     d.add_argument("--results", nargs="+", help="results CSVs (files or folders); default: read MLflow")
-    d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--use", action="append", metavar="CLAIM=EXPERIMENT",
                    help="read a claim's runs from this experiment (claims 1-6, C for the controls)")
@@ -435,30 +586,35 @@ def build_parser() -> argparse.ArgumentParser:
 
     figs = sub.add_parser("figures", help="the paper's figures 2, 3 and 4 from runs").add_subparsers(
         dest="figure", required=True, metavar="FIGURE")
-    d = figs.add_parser("fig2", help="extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD")
+    d = _parser(figs, "fig2", "extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD",
+                "spot figures fig2 --experiment table1 --out fig2.pdf")
     d.add_argument("--experiment", action="append", help="MLflow experiment (repeatable; default: all)")
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--dataset", help="the paper's dataset name, if the runs span several")
     d.add_argument("--source", choices=("recipe", "file"), help="dataset source, if the runs span both")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over runs: 1 = sample, 0 = population")
-    d.add_argument("--out", default="fig2.png")
-    d = figs.add_parser("fig3", help="locomotion states rendered beside their predicted subgoals (MuJoCo, headless)")
+    d.add_argument("--out", default="fig2.png", help="output file; its extension picks the format (.png, .pdf, .svg...)")
+    d = _parser(figs, "fig3", "locomotion states rendered beside their predicted subgoals (MuJoCo, headless)",
+                "spot figures fig3 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --index 120 480\n"
+                "spot figures fig3 --pairs pairs.npy --env Hopper-v5")
     d.add_argument("--pairs", help=".npy of [2, obs_dim] or [n, 2, obs_dim] (state, subgoal)")
+    d.add_argument("--run-id", help="use this run's CVAE (its models/cvae artifact) on the run's dataset")
     d.add_argument("--env", help="Hopper-v5, Walker2d-v5, HalfCheetah-v5 or a dataset name (default: --dataset)")
-    d.add_argument("--index", type=int, nargs="+", help="with --cvae: dataset transitions to render")
-    d.add_argument("--width", type=int, default=320)
-    d.add_argument("--height", type=int, default=320)
-    d.add_argument("--out", default="fig3.png")
-    d = figs.add_parser("fig4", help="PCA of observations and subgoals: a run's artifact, or redrawn from a CVAE")
-    d.add_argument("--run-id", help="copy this run's subgoal_projection.png")
-    d.add_argument("--out", default="fig4.png")
-    for d in (figs.choices["fig2"], figs.choices["fig4"]):
-        d.add_argument("--tracking-uri", default="", help="default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db")
+    d.add_argument("--index", type=int, nargs="+", help="with --run-id or --cvae: dataset transitions to render")
+    d.add_argument("--width", type=_positive_int, default=320, help="pixels per image")
+    d.add_argument("--height", type=_positive_int, default=320, help="pixels per image")
+    d.add_argument("--out", default="fig3.png", help="output file; its extension picks the format")
+    d = _parser(figs, "fig4", "PCA of observations and subgoals: a run's artifact, or redrawn from a CVAE",
+                "spot figures fig4 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --out fig4.pdf")
+    d.add_argument("--run-id", help="this run's subgoal_projection.png, written in --out's format")
+    d.add_argument("--out", default="fig4.png", help="output file; its extension picks the format")
+    for d in figs.choices.values():
+        d.add_argument("--tracking-uri", help=_URI_HELP)
     for d in (figs.choices["fig3"], figs.choices["fig4"]):
         d.add_argument("--cvae", help="a CVAE stage-cache entry ($SPOT_CACHE_DIR/cvae-<hash>.npz)")
-        d.add_argument("--dataset", help="with --cvae: registered dataset name or file")
-        d.add_argument("--size", default="small", choices=("tiny", "small", "paper"))
-        d.add_argument("--data-seed", type=int, default=0, help="dataset build seed")
+        d.add_argument("--dataset", help="with --cvae (or to override the run's): registered dataset name or file")
+        d.add_argument("--size", default="small", choices=_SIZES, help="with --dataset: its size")
+        _data_seed(d)
     for d in figs.choices.values():
         d.set_defaults(fn=_figures)
     return p
@@ -468,6 +624,10 @@ def main(argv: list[str] | None = None) -> int:
     from spot import runtime
 
     runtime.configure()  # XLA flag and MUJOCO_GL, before anything imports jax or mujoco
+    from spot.tracking.record import COMMAND_ENV
+
+    # the command line, recorded as each run's mlflow.source.name (sweep trials inherit it)
+    os.environ[COMMAND_ENV] = shlex.join(["spot", *(sys.argv[1:] if argv is None else argv)])
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     # KEY=VALUE overrides may come after options (`spot labels make NAME --size tiny labels.seed=1`).

@@ -22,13 +22,13 @@ FINISHED run. A trial that raises is marked FAILED with its ``failure_reason``, 
 and the summary lists it.
 """
 
-from spot.sweep.launch import DEFAULT_STORAGE, prebuild_datasets, run_sweep
+from spot.sweep.launch import DEFAULT_STORAGE, Interrupted, prebuild_datasets, run_sweep
 from spot.sweep.spec import Sweep, Trial, config_key, load, run_key, tag_value
 from spot.sweep.summary import Row, format_summary, paper_table, summarize
 from spot.sweep.trial import SweepContext, configure_process, cpu_slots, run_trial
 
 __all__ = [
-    "DEFAULT_STORAGE", "Row", "Sweep", "SweepContext", "Trial", "config_key", "configure_process", "cpu_slots",
+    "DEFAULT_STORAGE", "Interrupted", "Row", "Sweep", "SweepContext", "Trial", "config_key", "configure_process", "cpu_slots",
     "format_summary", "load", "paper_table", "prebuild_datasets", "run_key", "run_sweep", "run_trial",
     "summarize", "tag_value",
 ]

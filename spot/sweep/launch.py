@@ -14,6 +14,9 @@ import json
 import logging
 import os
 import secrets
+import signal
+import sys
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -57,6 +60,7 @@ class _Store:
     uri: str
     how_to_open: str
     wait_ready: Callable[[], None]
+    stop: Callable[[], None] = lambda: None
 
 
 @contextlib.contextmanager
@@ -84,13 +88,38 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     server.start(wait=False)
     try:
         yield _Store(server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
-                     server.wait_ready)
+                     server.wait_ready, server.stop)
     finally:
         server.stop()
 
 
+LOOPBACK = "127.0.0.1"
+
+
+def _local_ray_env() -> dict[str, str]:
+    """Environment of a local Ray cluster bound to loopback, with token authentication.
+
+    Ray 2.60 replaces a loopback ``_node_ip_address`` by the host's routable address (and its
+    servers then listen on every interface) unless ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, which
+    makes the node address 127.0.0.1: GCS, raylet, object manager, workers, the runtime-env agent
+    and the autoscaler monitor then listen on loopback only. Token authentication
+    (``RAY_AUTH_MODE=token``) with a fresh random token per launch, passed in the environment (so
+    nothing is written to ``~/.ray``), keeps other local users off the cluster too; a
+    ``RAY_AUTH_MODE`` or token the user set is kept.
+    """
+    env = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+    if "RAY_AUTH_MODE" not in os.environ:
+        env["RAY_AUTH_MODE"] = "token"
+        if not (os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")):
+            env["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
+    return env
+
+
 def _init_ray(address: str | None) -> bool:
-    """Start local Ray (all CPUs, no dashboard) or connect to ``address``; False if already up."""
+    """Start local Ray on loopback (all CPUs, no dashboard) or connect to ``address``; False if Ray
+    is already up in this process."""
+    if not address:
+        os.environ.update(_local_ray_env())  # before Ray starts: its processes inherit it
     import ray
 
     if ray.is_initialized():
@@ -99,11 +128,23 @@ def _init_ray(address: str | None) -> bool:
                 "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true"}  # no "View run" lines in the progress view
     env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
     if address:
-        ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
-    else:
-        os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # loopback-only local cluster, no token
-        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, runtime_env={"env_vars": env_vars},
-                 logging_level=logging.WARNING)
+        try:
+            ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise SpotError(f"cannot connect to the Ray cluster at --address {address}: {e}") from e
+        return True
+    from ray._private import ray_constants, services
+
+    # The constant is read when ray is imported; a process that imported ray before the
+    # environment was set still gets the loopback node address.
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    ray.init(num_cpus=os.cpu_count(), include_dashboard=False, _node_ip_address=LOOPBACK,
+             runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
+    node_ip = services.get_node_ip_address()
+    if node_ip != LOOPBACK:
+        ray.shutdown()
+        raise SpotError(f"local Ray came up on {node_ip}, not on loopback; refusing to run a sweep on a "
+                        "cluster other hosts can reach (see docs/sweeps.md, 'What is exposed')")
     return True
 
 
@@ -206,6 +247,7 @@ def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) ->
 def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, Any], *, resume: bool) -> str:
     """Create the launch's parent run (recorded in ``state``), or reopen it on resume."""
     from spot import tracking
+    from spot.tracking.processes import process_tags
 
     if resume:
         parent_id = state["parent_run_id"]
@@ -215,10 +257,12 @@ def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str,
               flush=True)
         client.update_run(parent_id, status="RUNNING")
         client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
+        for key, value in process_tags().items():  # this driver owns the reopened run now
+            client.set_tag(parent_id, key, value)
         return parent_id
     parent = client.create_run(experiment_id, run_name=f"sweep {state['sweep_id']}", tags={
         "sweep_id": state["sweep_id"], "sweep_name": sweep.name, "spot.role": "sweep", "smoke": str(sweep.smoke),
-        "sweep_file": str(sweep.path.resolve()), "git_commit": tracking.git_commit()})
+        "sweep_file": str(sweep.path.resolve()), "git_commit": tracking.git_commit(), **process_tags()})
     parent_id = parent.info.run_id
     client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")
     client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
@@ -252,6 +296,62 @@ def _close_parent(client: Any, ctx: SweepContext, rows: list[Row], table: str, *
                           "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED")
 
 
+# --------------------------------------------------------------------------- signals
+class Interrupted(Exception):  # noqa: N818 - a stop, not an error
+    """The launch was stopped by SIGTERM or SIGINT; its runs are closed (KILLED) and Ray is shut down.
+
+    ``exit_code`` is the shell's convention, 128 + the signal number (143 for SIGTERM, 130 for SIGINT).
+    """
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        self.exit_code = 128 + signum
+        super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
+
+
+@contextlib.contextmanager
+def _on_sigterm(stop: Callable[[], None]) -> Iterator[None]:
+    """Within the block, SIGTERM runs ``stop()`` and ends the process with exit code 143.
+
+    A SIGTERM to the sweep's process group (``timeout``, a batch scheduler) reaches Ray's GCS,
+    raylet and workers too, and Tune's own cleanup would then wait forever on the dead cluster;
+    so the driver does not unwind through Tune: ``stop()`` kills what is left of Ray, closes the
+    runs in MLflow (the server runs in its own session and survives the signal) and stops the
+    server, and the process exits at once. Further SIGTERMs are ignored meanwhile. Ray's driver
+    handler (installed by ``ray.init``) is restored after the block.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def handler(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            stop()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _kill_local_ray() -> None:
+    """Stop the processes of the local Ray node this driver started, without talking to them (the
+    GCS may already be gone, and ``ray.shutdown()`` would wait for it)."""
+    import ray
+
+    node = getattr(ray._private.worker, "_global_node", None)
+    if node is not None:
+        with contextlib.suppress(Exception):
+            node.kill_all_processes(check_alive=False, allow_graceful=True)
+
+
 # --------------------------------------------------------------------------- the launch
 def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool,
                 retry_errored: bool, address: str | None, max_concurrent: int | None,
@@ -264,38 +364,64 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
     from mlflow.tracking import MlflowClient
 
     from spot import tracking
+    from spot.tracking.processes import close_dead_runs
 
     sweep_id = state["sweep_id"]
-    started_ray = _init_ray(address)
+    started_ray = _init_ray(address)  # a SIGTERM while Ray starts takes Ray's own handler (exit)
     client = ctx = None
-    crashed = True
-    try:
-        _check_gpus(sweep)
-        store.wait_ready()
-        client = MlflowClient(store.uri)
-        exp_id = tracking.experiment_id(sweep.experiment, store.uri)
-        parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
-        ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
-        if not resume:
-            state_file.parent.mkdir(parents=True, exist_ok=True)
-            state_file.write_text(json.dumps(state, indent=2))
-        print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
-              f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}", flush=True)
-        errors, interrupted = _fit(sweep, ctx, state_file.parent / sweep_id, resume=resume,
-                                   retry_errored=retry_errored, max_concurrent=max_concurrent, run_fn=run_fn)
-        crashed = False
-    finally:
-        if started_ray:
-            import ray
 
-            ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
-        if crashed and ctx is not None:
-            tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id}, "launch interrupted",
-                                   keep=(ctx.parent_run_id,))
-            client.set_terminated(ctx.parent_run_id, "KILLED")
-    tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id},
-                           "launch interrupted" if interrupted else "trial process ended without closing its run",
-                           keep=(ctx.parent_run_id,))
+    def close(reason: str) -> None:
+        """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``."""
+        if ctx is None:
+            return
+        mine = MlflowClient(store.uri)  # not the main thread's client: the signal may interrupt it
+        tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": sweep_id}, reason, keep=(ctx.parent_run_id,))
+        mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
+        mine.set_terminated(ctx.parent_run_id, "KILLED")
+        print(f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
+              f"to continue: {resume_command}", file=sys.stderr, flush=True)
+
+    def on_sigterm() -> None:
+        print("SIGTERM: stopping Ray, closing the runs", file=sys.stderr, flush=True)
+        if started_ray:
+            _kill_local_ray()
+        try:
+            close("launch stopped by SIGTERM")
+        finally:
+            store.stop()
+
+    reason = "launch crashed"
+    with _on_sigterm(on_sigterm):
+        try:
+            _check_gpus(sweep)
+            store.wait_ready()
+            client = MlflowClient(store.uri)
+            exp_id = tracking.experiment_id(sweep.experiment, store.uri)
+            close_dead_runs(client, [exp_id])
+            parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
+            ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri,
+                               sweep.axis_keys)
+            if not resume:
+                state_file.parent.mkdir(parents=True, exist_ok=True)
+                state_file.write_text(json.dumps(state, indent=2))
+            print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+                  f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}", flush=True)
+            errors, interrupted = _fit(sweep, ctx, state_file.parent / sweep_id, resume=resume,
+                                       retry_errored=retry_errored, max_concurrent=max_concurrent, run_fn=run_fn)
+            reason = ""
+        except KeyboardInterrupt:
+            reason = "launch stopped by SIGINT"
+            raise
+        finally:
+            if started_ray:
+                import ray
+
+                ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
+            if reason:
+                close(reason)
+        tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id},
+                               "launch interrupted" if interrupted else "trial process ended without closing its run",
+                               keep=(ctx.parent_run_id,))
     return client, ctx, errors, interrupted
 
 
@@ -332,6 +458,10 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
     print(f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
           f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
           flush=True)
+    if not address and os.environ.get("RAY_ADDRESS"):
+        address = os.environ["RAY_ADDRESS"]  # Ray's own convention (set inside `ray job submit`)
+        print(f"note: running on the Ray cluster at RAY_ADDRESS={address}; unset RAY_ADDRESS for a local "
+              "sweep", flush=True)
     if address and not tracking.given_uri(tracking_uri):
         print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
               "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
@@ -352,4 +482,6 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
           f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{missing}", flush=True)
     if paper:
         print(f"\n{paper}", flush=True)
+    if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished
+        raise Interrupted(signal.SIGINT)
     return rows

@@ -97,7 +97,8 @@ def configure_process(cpus: int, gpus: float) -> None:
 
     One CPU: ``--xla_cpu_multi_thread_eigen=false`` (jax #4290). A fractional GPU: memory fraction
     ``0.9 * gpu`` (JAX preallocates 75% otherwise, so two trials on one GPU would run out).
-    ``JAX_COMPILATION_CACHE_DIR`` defaults to a node-local cache shared by the node's trials.
+    ``JAX_COMPILATION_CACHE_DIR`` defaults to a cache shared by the node's trials:
+    ``$SPOT_CACHE_DIR/jax`` when ``SPOT_CACHE_DIR`` is set, else ``~/.cache/spot/jax``.
     """
     if "jax" in sys.modules:
         warnings.warn("jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
@@ -109,7 +110,9 @@ def configure_process(cpus: int, gpus: float) -> None:
         fraction = f"{0.9 * gpus:.3f}"
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", fraction)
         os.environ.setdefault("XLA_CLIENT_MEM_FRACTION", fraction)
-    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(Path.home() / ".cache" / "spot" / "jax"))
+    cache_root = Path(os.environ["SPOT_CACHE_DIR"]).expanduser() if os.environ.get("SPOT_CACHE_DIR") else (
+        Path.home() / ".cache" / "spot")
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(cache_root / "jax"))
 
 
 # --------------------------------------------------------------------------- the runs of a trial
@@ -156,6 +159,7 @@ def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx
     from mlflow.tracking import MlflowClient
 
     from spot import tracking
+    from spot.tracking.processes import process_tags
 
     if run_fn is None:
         from spot import pipeline
@@ -170,7 +174,8 @@ def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx
         key = run_key(overrides, seed)
         done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
         tags = {"sweep_id": ctx.sweep_id, "sweep_name": ctx.sweep_name, "trial_id": trial_id,
-                "trial_key": key, "config_key": config_key(overrides), "attempt": uuid.uuid4().hex, **axis_tags}
+                "trial_key": key, "config_key": config_key(overrides), "attempt": uuid.uuid4().hex, **axis_tags,
+                **process_tags()}  # this worker's host and pid: a later command closes the run if it dies
         try:
             final = _finished(done, seed) if done is not None else _run_seed(
                 client, overrides, seed, ctx, tags, report, run_fn)

@@ -1,0 +1,71 @@
+"""Which process owns a RUNNING run, and closing the runs whose process is gone.
+
+Every run spot opens is tagged with the host, pid and pid start time of the process that opened it
+(:func:`process_tags`). A run left RUNNING by a process that died without closing it (``kill -9``,
+out of memory, a node crash) is found by the next ``spot run``, ``spot sweep`` or ``spot tables``
+on that store from the same host and marked KILLED with a ``failure_reason``
+(:func:`close_dead_runs`). Runs of other hosts are left alone: their processes cannot be checked
+from here.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+HOST_TAG = "spot.host"
+PID_TAG = "spot.pid"
+STARTED_TAG = "spot.pid_started"
+
+
+def _start_ticks(pid: int) -> str:
+    """The process's start time in clock ticks since boot (``/proc/<pid>/stat`` field 22), "" if
+    unknown; with the pid it names a process even after the pid is reused."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return ""
+
+
+def process_tags() -> dict[str, str]:
+    """``spot.host``, ``spot.pid`` and ``spot.pid_started`` of this process."""
+    pid = os.getpid()
+    return {HOST_TAG: socket.gethostname(), PID_TAG: str(pid), STARTED_TAG: _start_ticks(pid)}
+
+
+def alive(pid: int, started: str = "") -> bool:
+    """Whether process ``pid`` of this host still runs (and, if ``started`` is given, is the same
+    process, not a later one that got the pid)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process: it exists
+        pass
+    now = _start_ticks(pid)
+    return not (started and now and now != started)
+
+
+def close_dead_runs(client: Any, experiment_ids: Sequence[str], *, report: bool = True) -> list[str]:
+    """Mark KILLED the RUNNING runs of the experiments that a process of this host opened and that
+    process is gone; return their ids (and print one line about them on stderr if ``report``)."""
+    from spot.tracking.queries import search_runs, tag_filter
+
+    host = socket.gethostname()
+    closed = []
+    for run in search_runs(client, list(experiment_ids), tag_filter({HOST_TAG: host}, "RUNNING")):
+        pid = run.data.tags.get(PID_TAG, "")
+        if not pid.isdigit() or alive(int(pid), run.data.tags.get(STARTED_TAG, "")):
+            continue
+        client.set_tag(run.info.run_id, "failure_reason",
+                       f"process {pid} on {host} ended without closing the run (closed by a later command)")
+        client.set_terminated(run.info.run_id, "KILLED")
+        closed.append(run.info.run_id)
+    if closed and report:
+        print(f"note: {len(closed)} run(s) left RUNNING by dead processes on {host} marked KILLED: "
+              f"{', '.join(closed)}", file=sys.stderr, flush=True)
+    return closed

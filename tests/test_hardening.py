@@ -1,0 +1,151 @@
+"""Hardening of sweeps and stores (issue 15): what a local sweep exposes, signals, dead processes'
+runs, the MLflow server's identity, concurrent launches and store creation.
+
+The sweep tests run the real ``spot sweep`` CLI (Ray, Tune, the MLflow server) with a stand-in for
+the pipeline (tests/sweep_driver.py), so a launch takes seconds of training-free work.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from spot.mlflow_server import sqlite_uri
+
+HERE = Path(__file__).resolve().parent
+GATED_SWEEP = """
+name: gated
+base: {method: oracle, budget: tiny, data.name: drawer-open}
+grid:
+  iql.lr: [0.0003, 0.001]
+seeds: [0, 1]
+resources: {cpu: 1, gpu: 0}
+max_concurrent: 2
+"""
+
+
+def _env(root: Path) -> dict[str, str]:
+    env = {**os.environ, "SPOT_DATA_DIR": str(root / "data"), "SPOT_CACHE_DIR": str(root / "cache"),
+           "PYTHONUNBUFFERED": "1"}
+    for key in ("MLFLOW_TRACKING_URI", "RAY_ADDRESS", "RAY_AUTH_MODE", "RAY_AUTH_TOKEN"):
+        env.pop(key, None)
+    return env
+
+
+def _listening(root_pid: int) -> list[tuple[int, str, str, int]]:
+    """``(pid, name, ip, port)`` of every listening TCP socket of the process and its descendants."""
+    import psutil
+
+    top = psutil.Process(root_pid)
+    out = []
+    for proc in [top, *top.children(recursive=True)]:
+        try:
+            conns = proc.net_connections(kind="inet")
+            name = proc.name()
+        except psutil.Error:  # ended meanwhile
+            continue
+        out += [(proc.pid, name, c.laddr.ip, c.laddr.port) for c in conns if c.status == psutil.CONN_LISTEN]
+    return out
+
+
+def _is_loopback(ip: str) -> bool:
+    addr = ipaddress.ip_address(ip.split("%")[0])
+    mapped = getattr(addr, "ipv4_mapped", None)
+    return (mapped or addr).is_loopback
+
+
+def test_loopback_check_itself():
+    assert _is_loopback("127.0.0.1") and _is_loopback("::1") and _is_loopback("::ffff:127.0.0.1")
+    assert not _is_loopback("0.0.0.0") and not _is_loopback("::") and not _is_loopback("192.0.2.2")
+
+
+def _wait_for(predicate, timeout: float, proc: subprocess.Popen, log: Path, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert proc.poll() is None, f"sweep ended before {what}:\n{log.read_text()[-4000:]}"
+        assert time.monotonic() < deadline, f"no {what} in {timeout:.0f} s:\n{log.read_text()[-4000:]}"
+        time.sleep(0.3)
+
+
+def _runs(db: Path, experiment: str = "gated") -> list:
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(sqlite_uri(db))
+    exp = client.get_experiment_by_name(experiment)
+    return client.search_runs([exp.experiment_id], max_results=1000)
+
+
+@pytest.fixture(scope="module")
+def sigtermed(tmp_path_factory):
+    """A gated sweep: its listening sockets while both trials run, then SIGTERM to its process
+    group, then ``--resume`` with the gate open."""
+    root = tmp_path_factory.mktemp("gated")
+    gate = root / "gate"
+    gate.mkdir()
+    (gate / "hold").touch()
+    (root / "gated.yaml").write_text(GATED_SWEEP)
+    cmd = [sys.executable, str(HERE / "sweep_driver.py"), str(gate), "gated.yaml"]
+    log = root / "launch.log"
+    with open(log, "wb") as out:
+        proc = subprocess.Popen(cmd, cwd=root, env=_env(root), stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        try:
+            _wait_for(lambda: len(list(gate.glob("started-*"))) >= 2, 300, proc, log, "two running trials")
+            sockets = _listening(proc.pid)
+            os.killpg(proc.pid, signal.SIGTERM)
+            rc = proc.wait(120)
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait()
+    killed_runs = _runs(root / "spot_runs" / "mlflow.db")
+    (gate / "hold").unlink()
+    resumed = subprocess.run([*cmd, "--resume"], cwd=root, env=_env(root), capture_output=True, text=True,
+                             timeout=400)
+    return {"root": root, "rc": rc, "log": log.read_text(), "sockets": sockets, "killed_runs": killed_runs,
+            "resumed": resumed, "final_runs": _runs(root / "spot_runs" / "mlflow.db")}
+
+
+@pytest.mark.slow
+def test_local_sweep_listens_on_loopback_only(sigtermed):
+    sockets = sigtermed["sockets"]
+    names = {name for _, name, _, _ in sockets}
+    # The MLflow server, Ray's GCS and raylet, and the trials' workers all listen; none beyond loopback.
+    assert {"gcs_server", "raylet"} <= names and len(sockets) >= 5, sockets
+    exposed = [s for s in sockets if not _is_loopback(s[2])]
+    assert not exposed, f"listening beyond loopback: {exposed}"
+
+
+@pytest.mark.slow
+def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
+    assert sigtermed["rc"] == 143, sigtermed["log"][-4000:]
+    runs = sigtermed["killed_runs"]
+    assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
+    (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
+    assert parent.info.status == "KILLED" and parent.data.tags["failure_reason"] == "launch stopped by SIGTERM"
+    children = [r for r in runs if "trial_key" in r.data.tags]
+    assert len(children) >= 2 and all(r.info.status == "KILLED" for r in children)
+    assert all(r.data.tags["failure_reason"] == "launch stopped by SIGTERM" for r in children)
+    # Each run names the host and process that opened it.
+    for r in [parent, *children]:
+        assert r.data.tags["spot.host"] == socket.gethostname() and r.data.tags["spot.pid"].isdigit()
+    assert "launch stopped by SIGTERM" in sigtermed["log"] and "--resume" in sigtermed["log"]
+
+
+@pytest.mark.slow
+def test_resume_after_sigterm_finishes_one_run_per_config_and_seed(sigtermed):
+    out = sigtermed["resumed"]
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    runs = sigtermed["final_runs"]
+    assert not [r for r in runs if r.info.status == "RUNNING"]
+    finished = [r.data.tags["trial_key"] for r in runs if "trial_key" in r.data.tags and r.info.status == "FINISHED"]
+    assert len(finished) == 4 and len(set(finished)) == 4
+    assert "4/4 runs finished" in out.stdout
