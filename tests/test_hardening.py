@@ -149,3 +149,72 @@ def test_resume_after_sigterm_finishes_one_run_per_config_and_seed(sigtermed):
     finished = [r.data.tags["trial_key"] for r in runs if "trial_key" in r.data.tags and r.info.status == "FINISHED"]
     assert len(finished) == 4 and len(set(finished)) == 4
     assert "4/4 runs finished" in out.stdout
+
+
+# --------------------------------------------------------------------------- runs of dead processes
+def _dead_pid() -> int:
+    proc = subprocess.Popen(["true"])
+    proc.wait()
+    return proc.pid
+
+
+def _store_with_runs(db: Path) -> tuple:
+    from mlflow.tracking import MlflowClient
+
+    from spot.tracking.processes import process_tags
+
+    client = MlflowClient(sqlite_uri(db))
+    exp = client.create_experiment("e")
+    mine = process_tags()
+    runs = {
+        "dead": {**mine, "spot.pid": str(_dead_pid())},
+        "alive": mine,
+        "reused_pid": {**mine, "spot.pid_started": "1"},  # our pid, but a process started earlier
+        "other_host": {**mine, "spot.host": "elsewhere", "spot.pid": str(_dead_pid())},
+        "other_container": {**mine, "spot.pid_ns": "pid:[1]", "spot.pid": str(_dead_pid())},
+        "untagged": {},
+    }
+    ids = {name: client.create_run(exp, run_name=name, tags=tags).info.run_id for name, tags in runs.items()}
+    done = client.create_run(exp, run_name="finished", tags={**mine, "spot.pid": str(_dead_pid())}).info.run_id
+    client.set_terminated(done, "FINISHED")
+    return client, exp, ids, done
+
+
+def test_close_dead_runs_closes_only_runs_of_dead_processes_of_this_host(tmp_path):
+    from spot.tracking.processes import close_dead_runs
+
+    client, exp, ids, done = _store_with_runs(tmp_path / "m.db")
+    closed = close_dead_runs(client, [exp], report=False)
+    assert sorted(closed) == sorted([ids["dead"], ids["reused_pid"]])
+    for name, run_id in ids.items():
+        run = client.get_run(run_id)
+        if name in ("dead", "reused_pid"):
+            assert run.info.status == "KILLED"
+            assert run.data.tags["failure_reason"].startswith(f"process {run.data.tags['spot.pid']} on ")
+        else:
+            assert run.info.status == "RUNNING", name
+    assert client.get_run(done).info.status == "FINISHED"
+    assert close_dead_runs(client, [exp], report=False) == []
+
+
+def test_spot_tables_closes_and_reports_dead_runs(tmp_path):
+    from conftest import run_cli
+
+    client, exp, ids, _ = _store_with_runs(tmp_path / "m.db")
+    out = run_cli("tables", "--table", "1", "--experiment", "e", "--tracking-uri", sqlite_uri(tmp_path / "m.db"),
+                  cwd=tmp_path)
+    assert "2 run(s) left RUNNING by dead processes" in out.stderr and ids["dead"] in out.stderr, out.stderr
+    assert client.get_run(ids["dead"]).info.status == "KILLED"
+    assert client.get_run(ids["alive"]).info.status == "RUNNING"
+
+
+def test_a_new_run_closes_dead_runs_and_records_its_process(tmp_path):
+    from spot import config, tracking
+
+    client, exp, ids, _ = _store_with_runs(tmp_path / "m.db")
+    cfg = config.resolve({"tracking.uri": sqlite_uri(tmp_path / "m.db"), "tracking.experiment": "e"})
+    with tracking.start_run(cfg, {"name": "x"}, system_metrics=False) as tracker:
+        run_id = tracker.run_id
+    assert client.get_run(ids["dead"]).info.status == "KILLED"
+    tags = client.get_run(run_id).data.tags
+    assert tags["spot.pid"] == str(os.getpid()) and tags["spot.host"] == socket.gethostname()
