@@ -258,6 +258,9 @@ def _tables(args: argparse.Namespace) -> None:
             runs = runs[runs["experiment"].isin(args.experiment)]
     else:
         experiments = args.experiment or tables.default_experiments(args.table, args.tracking_uri)
+        from spot.tracking.processes import close_dead_runs_in
+
+        close_dead_runs_in(args.tracking_uri, experiments)  # runs of dead processes are not "running"
         runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
     table = tables.build_table(runs, args.table, args.metric, ddof=args.ddof, allow_mixed=args.allow_mixed)
     text = tables.format_table(table, args.format)

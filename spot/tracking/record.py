@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
+from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
 
 PACKAGES = ("spot-pbrl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium",
@@ -427,7 +428,8 @@ def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_nam
     uri = resolve_uri(cfg.tracking.uri)
     client = MlflowClient(uri)
     exp_id = experiment_id(cfg.tracking.experiment, uri)
-    tags = run_tags(cfg, card, extra_tags)
+    close_dead_runs(client, [exp_id])  # runs left RUNNING by dead processes of this host
+    tags = {**run_tags(cfg, card, extra_tags), **process_tags()}
     digest = dataset.fingerprint() if dataset is not None else None
     if digest:
         tags["data_digest"] = digest
