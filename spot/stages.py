@@ -6,7 +6,9 @@ A run is ``labels -> reward -> relabel -> [subgoals -> cvae -> shaping -> diagno
 stages (:class:`Labelled`, :class:`RewardModel`, :class:`Rewards`, :class:`Subgoals`,
 :class:`Policy`). :meth:`Context.stage` wraps every stage the same way: it times it
 (``time/<stage>_s``) and the stage's expensive part goes through :meth:`Context.cached`, which
-logs ``cache/<stage>_hit``. Which functions fill the reward, relabel and policy slots is read from
+tags the run ``cache.<stage> = hit | miss``. The trained models are saved as run artifacts
+(:func:`save_model`: ``models/reward_model``, ``models/cvae``, ``models/policy``, data only, with a
+JSON header), so a run can be evaluated again (``spot eval``) without the stage cache. Which functions fill the reward, relabel and policy slots is read from
 :data:`REWARD_KINDS` by ``reward.kind`` (set by the method preset); adding a method is one
 :func:`register` call plus the module with its stage functions.
 
@@ -128,10 +130,29 @@ class Context:
 
     def cached(self, name: str, deps: dict[str, Any], compute: Callable[[], Any]) -> tuple[Any, str]:
         """``(value, key)`` of stage ``name`` from the stage cache (computed and stored on a miss);
-        logs ``cache/<name>_hit``."""
+        tags the run ``cache.<name>`` = ``hit`` or ``miss`` (a tag, not a metric: it is a fact
+        about the run, not a measurement)."""
         value, hit, key = cache.cached(name, deps, compute)
-        self.log({f"cache/{name}_hit": float(hit)})
+        self.tracker.set_tags({f"cache.{name}": "hit" if hit else "miss"})
         return value, key
+
+
+def save_model(ctx: Context, name: str, what: str, value: Any, sections: tuple[str, ...], **extra: Any) -> None:
+    """Save a trained model as the run's ``models/<name>`` artifacts (:mod:`spot.tracking.models`),
+    its header naming the config ``sections`` it was built with."""
+    from spot import tracking
+
+    cfg = config_lib.to_flat(ctx.cfg)
+    section_cfg = {s: {k.split(".", 1)[1]: v for k, v in cfg.items() if k.startswith(f"{s}.")} for s in sections}
+    tracking.save_model(ctx.tracker, ctx.artifacts / "models", name, what, value,
+                        {"method": ctx.cfg.method, **section_cfg}, dataset=ctx.card.get("name", ctx.cfg.data.name),
+                        **extra)
+
+
+def eval_seed(cfg: ExperimentConfig) -> int:
+    """The base seed of a run's evaluation episodes (episode ``i`` is seeded ``eval_seed + i``; the
+    same episodes at every evaluation, and in ``spot eval``)."""
+    return 10_000 * (cfg.seed + 1)
 
 
 def untimed(fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -217,6 +238,8 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     for name in names:
         ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
+    save_model(ctx, "reward_model", f"{model.kind.upper()} reward model (best held-out checkpoint)", out["params"],
+               ("reward", model.kind), kind=model.kind, cache_key=key)
     return RewardModel(model.kind, out["params"], key)
 
 
@@ -248,6 +271,8 @@ def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
             ctx.tracker.log_series(f"reward/{k}", h["reward_step"][:n], h[k][:n])
     # Table 8: HPL's two pretraining phases, as measured when it was trained
     ctx.log({f"time/hpl_{name}": h[name] for name in ("vae_s", "reward_s") if name in h})
+    save_model(ctx, "reward_model", "HPL hindsight VAE, prior and reward r(s, a, z)", out["params"],
+               ("reward", "hpl"), kind="hpl", cache_key=key)
     return RewardModel("hpl", out["params"], key)
 
 
@@ -349,6 +374,8 @@ def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
     ctx.tracker.set_tags({"cache.cvae_key": key, "cache.reward_key": rewards.source.cache_key})
     for row in out["history"]:
         ctx.log({k: v for k, v in row.items() if k != "step"}, step=int(row["step"]))
+    save_model(ctx, "cvae", "CVAE G(s, a) -> subgoal (spot.subgoal.cvae.CVAEParams)", out["params"],
+               ("subgoal", "cvae"), cache_key=key)
     return Subgoals(triplets, states, out["params"])
 
 
@@ -416,7 +443,7 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
 
     def evaluate(actor_params: Any, step: int) -> dict[str, float]:
         res = envs.evaluate(lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)), ctx.env_name,
-                            cfg.eval.episodes, seed=10_000 * (cfg.seed + 1))
+                            cfg.eval.episodes, seed=eval_seed(cfg))
         ctx.log({"eval/score": res["score_mean"], "eval/score_std": res["score_std"],
                  "eval/return": res["return_mean"]}, step=step)
         if ctx.on_eval is not None:
@@ -428,7 +455,8 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
 
 def _train_policy(ctx: Context, state: Any, train_chunk: Callable, args: Callable[[Any], tuple]) -> Policy:
     """:func:`spot.policy.iql.train`: ``iql.steps`` updates, chunk metrics logged, the policy
-    evaluated in the env every ``eval.every`` updates and at the end; chunk ``c`` gets the key
+    evaluated in the env before the first update, at every multiple of ``eval.every`` and after the
+    last (:func:`spot.policy.iql.eval_steps`); chunk ``c`` gets the key
     ``fold_in(train_key, c)`` (``args(key)``: the chunk's arguments after ``(state, n)``)."""
     import jax
 
@@ -559,9 +587,19 @@ def finish(ctx: Context, policy: Policy, t_start: float) -> dict[str, Any]:
     png = plot_curve(policy.steps, policy.scores, ctx.artifacts / "learning_curve.png",
                                  f"{ctx.cfg.method} on {ctx.env_name} (seed {ctx.cfg.seed})")
     ctx.tracker.log_artifact(png)
+    st = policy.state
+    save_model(ctx, "policy", "IQL actor (Gaussian, mean tanh(MLP(s)); spot.policy.iql.act), critics, value "
+               "and target critics after the last update",
+               {"actor": st.actor.params, "critic": st.critic.params, "value": st.value.params,
+                "target_critic": st.target_critic_params},
+               ("iql", "eval", *(("ipl",) if ctx.cfg.reward.kind == "ipl" else ())),
+               env=ctx.env_name, eval_seed=eval_seed(ctx.cfg), steps=int(policy.steps[-1]),
+               score_final=policy.scores[-1], obs_dim=int(ctx.ds.obs_dim), act_dim=int(ctx.ds.act_dim))
     ctx.times["time/eval_s"] = policy.eval_s
     ctx.times["time/iql_s"] = ctx.times.get("time/iql_s", 0.0) - policy.eval_s
     ctx.times["time/total_s"] = time.perf_counter() - t_start
-    final = {"eval/score_final": policy.scores[-1], "eval/score_best": max(policy.scores), **ctx.times}
+    # best over the trained policies: the evaluation at step 0 (the untrained policy) is the baseline
+    trained = [score for step, score in zip(policy.steps, policy.scores, strict=True) if step > 0]
+    final = {"eval/score_final": policy.scores[-1], "eval/score_best": max(trained), **ctx.times}
     ctx.log(final)
     return {"run_id": ctx.tracker.run_id, **final}

@@ -61,7 +61,8 @@ TIME_COLUMNS = ("reward_model_s", "offline_rl_s", "total_s", "wall_s")
 REWARD_MODEL_STAGES = ("reward", "relabel")
 SUBGOAL_STAGES = ("subgoals", "cvae", "shaping")  # reward-model time only where shaping is on
 OFFLINE_RL_STAGES = ("iql", "eval")
-CACHE_HIT_METRICS = ("cache/reward_hit", "cache/relabel_hit", "cache/cvae_hit")
+CACHE_HIT_TAGS = ("cache.reward", "cache.relabel", "cache.cvae")  # "hit" | "miss"
+CACHE_HIT_METRICS = ("cache/reward_hit", "cache/relabel_hit", "cache/cvae_hit")  # runs logged before the tags
 BEST_FRACTION = 0.95
 # The MLflow experiment each table's sweep writes (sweeps/<name>.yaml; `--smoke` adds "-smoke").
 SWEEP_EXPERIMENTS = {1: "table1", 2: "table2_topk", 3: "table3_shaping", 4: "table4_queries",
@@ -542,12 +543,16 @@ def _standard_notes(spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, wi
                      "on the Fig. 2 diagnostics only); offline RL = time/{" + ",".join(OFFLINE_RL_STAGES)
                      + "}_s; total = the two; wall = time/total_s (everything, data loading and diagnostics "
                      "included). Paper: one GTX 1080 Ti")
-        hits = [m for m in CACHE_HIT_METRICS if f"metrics.{m}" in used]
-        if hits:
-            n_hit = int((used[[f"metrics.{m}" for m in hits]].astype(float) > 0).any(axis=1).sum())
-            if n_hit:
-                notes.append(f"{n_hit} of {len(used)} runs reused a cached reward model, relabelling or CVAE: "
-                             "their reward-model time leaves out that training")
+        hit = pd.Series(False, index=used.index)
+        for t in CACHE_HIT_TAGS:
+            if f"tags.{t}" in used:
+                hit |= used[f"tags.{t}"] == "hit"
+        for m in CACHE_HIT_METRICS:
+            if f"metrics.{m}" in used:
+                hit |= used[f"metrics.{m}"].astype(float) > 0
+        if hit.any():
+            notes.append(f"{int(hit.sum())} of {len(used)} runs reused a cached reward model, relabelling or CVAE: "
+                         "their reward-model time leaves out that training")
     return notes
 
 

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mlflow.tracking import MlflowClient
 
 from tests.conftest import run_cli
 
@@ -114,3 +115,115 @@ def test_config_show_resolves_presets(tmp_path):
     assert "kind: cosine" in out.stdout and "weight: 0.5" in out.stdout
     keys = run_cli("config", "keys")
     assert "iql.expectile" in keys.stdout and "one of ['top', 'top_next', 'bottom_next', 'bottom']" in keys.stdout
+
+
+# --------------------------------------------------------------------------- help, version, flags
+def _leaf_parsers(parser, path=()):
+    import argparse
+
+    subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subs:
+        yield path, parser
+    for action in subs:
+        for name, child in action.choices.items():
+            yield from _leaf_parsers(child, (*path, name))
+
+
+def test_every_command_has_an_example_and_shows_defaults():
+    from spot import cli
+
+    leaves = dict(_leaf_parsers(cli.build_parser()))
+    assert len(leaves) >= 18 and ("eval",) in leaves
+    for path, parser in leaves.items():
+        text = parser.format_help()
+        assert "example" in text and f"spot {' '.join(path)}" in text.split("example")[-1], path
+    text = leaves[("data", "build")].format_help()
+    assert "(default: small)" in text and "(default: 0)" in text
+    assert "(default: spot_runs/ray)" in leaves[("sweep",)].format_help()
+
+
+def test_version(capsys):
+    from importlib.metadata import version
+
+    from spot import cli
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == f"spot {version('spot-pbrl')}"
+
+
+def test_one_name_per_concept_across_commands():
+    from spot import cli
+
+    p = cli.build_parser()
+    for argv in (["run"], ["eval", "r"], ["sweep", "f"], ["tables", "--table", "1"], ["report"],
+                 ["results", "export", "--experiment", "e", "--out", "o"], ["figures", "fig2"],
+                 ["figures", "fig3"], ["figures", "fig4"]):
+        assert p.parse_args([*argv, "--tracking-uri", "http://h:1"]).tracking_uri == "http://h:1", argv
+    for argv in (["data", "build", "x"], ["data", "info", "x"], ["labels", "info", "p"],
+                 ["labels", "make", "d", "--out", "o"], ["figures", "fig3"], ["figures", "fig4"]):
+        assert p.parse_args([*argv, "--data-seed", "3"]).data_seed == 3, argv
+        assert p.parse_args([*argv, "--seed", "4"]).data_seed == 4, argv  # the old name
+    for argv in (["run"], ["data", "build", "x"], ["data", "info", "x"], ["data", "fetch"], ["labels", "info", "p"],
+                 ["labels", "make", "d", "--out", "o"]):
+        assert p.parse_args([*argv, "--quiet"]).quiet is True, argv
+
+
+@pytest.mark.parametrize("argv", [["sweep", "f.yaml", "--max-concurrent", "0"], ["sweep", "f.yaml", "--max-concurrent", "x"],
+                                  ["eval", "r", "--episodes", "0"], ["bench", "iql", "--seeds", "-1"]])
+def test_counts_must_be_positive(argv, capsys):
+    from spot import cli
+
+    with pytest.raises(SystemExit) as e:
+        cli.build_parser().parse_args(argv)
+    assert e.value.code == 2 and "expected a positive integer" in capsys.readouterr().err
+
+
+def test_run_takes_tracking_uri_and_says_where_it_logged(tmp_path, monkeypatch, capsys):
+    """`spot run --tracking-uri` is the override tracking.uri=; the run's end names the store, the
+    lean mlflow ui command and links to the run and the runs table (pipeline.run stubbed: an empty
+    MLflow run)."""
+    from spot import cli, pipeline, tracking
+
+    seen = {}
+
+    def fake_run(cfg, progress):
+        seen["cfg"] = cfg
+        with tracking.start_run(cfg, {"name": "x"}, system_metrics=False) as tr:
+            return {"run_id": tr.run_id, "eval/score_final": 1.0}
+
+    monkeypatch.setattr(pipeline, "run", fake_run)
+    uri = f"sqlite:///{tmp_path / 'm.db'}"
+    assert cli.main(["run", "method=pt", "tracking.experiment=cli", "--tracking-uri", uri, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert seen["cfg"].tracking.uri == uri and seen["cfg"].method == "pt"
+    run_id = out.split()[1].rstrip(":")
+    exp_id = MlflowClient(uri).get_experiment_by_name("cli").experiment_id
+    assert f"logged to {uri} (experiment id {exp_id}, run {run_id})" in out
+    assert (f"open the runs with: MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri {uri} "
+            f"--artifacts-destination {tmp_path / 'artifacts'} --workers 1") in out
+    assert f"then: http://127.0.0.1:5000/#/experiments/{exp_id}/runs/{run_id}" in out
+    assert f"runs table: http://127.0.0.1:5000/#/experiments/{exp_id}/runs?workflowType=machine_learning" in out
+
+
+def test_fig4_honours_the_output_extension(tmp_path, capsys):
+    from matplotlib.figure import Figure
+
+    from spot import cli, config, tracking
+
+    png = tmp_path / "subgoal_projection.png"
+    fig = Figure(figsize=(2, 1.5), dpi=50)
+    fig.subplots().plot([0, 1], [1, 0])
+    fig.savefig(png)
+    uri = f"sqlite:///{tmp_path / 'm.db'}"
+    with tracking.start_run(config.load(None, [f"tracking.uri={uri}"]), {"name": "x"}, system_metrics=False) as tr:
+        tr.log_artifact(png)
+    magic = {"png": b"\x89PNG", "pdf": b"%PDF", "svg": b"<?xml", "jpg": b"\xff\xd8\xff"}
+    for ext, head in magic.items():
+        out = tmp_path / f"fig4.{ext}"
+        assert cli.main(["figures", "fig4", "--run-id", tr.run_id, "--out", str(out), "--tracking-uri", uri]) == 0
+        assert out.read_bytes().startswith(head), ext
+    assert (tmp_path / "fig4.png").read_bytes() == png.read_bytes()  # a PNG is copied as is
+    assert cli.main(["figures", "fig4", "--run-id", tr.run_id, "--out", str(tmp_path / "f.xyz"),
+                     "--tracking-uri", uri]) == 2
+    assert "unknown figure format 'xyz'" in capsys.readouterr().err

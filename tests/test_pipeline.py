@@ -41,20 +41,25 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
     # metrics of every stage
     for key in ("reward/best_eval_acc", "subgoal/num_subgoals", "subgoal/precision", "subgoal/recall",
                 "cvae/loss", "shaping/r_shape_mean", "iql/critic_loss", "eval/score", "eval/score_final",
-                "eval/score_best", "diag/extrapolation_error_ood", "time/reward_s", "time/cvae_s", "time/iql_s",
-                "cache/reward_hit", "cache/cvae_hit"):
+                "eval/score_best", "diag/extrapolation_error_ood", "time/reward_s", "time/cvae_s", "time/iql_s"):
         assert key in d.metrics, key
-    assert d.metrics["cache/reward_hit"] == 0 and d.metrics["cache/cvae_hit"] == 0
+    # cache hits are tags, not metrics
+    assert not any(k.startswith("cache/") for k in d.metrics)
+    assert (d.tags["cache.reward"], d.tags["cache.relabel"], d.tags["cache.cvae"]) == ("miss", "miss", "miss")
     client = mlflow.tracking.MlflowClient()
-    assert [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")] == [100, 200]
+    # evaluated before the first update and at every multiple of eval.every
+    assert [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")] == [0, 100, 200]
     names = {a.path for a in client.list_artifacts(run.info.run_id)}
     assert {"config.yaml", "dataset_card.json", "learning_curve.png", "subgoal_projection.png",
-            "extrapolation_error.png", "extrapolation_error.json"} <= names
+            "extrapolation_error.png", "extrapolation_error.json", "environment.json", "requirements.txt",
+            "models"} <= names
+    assert {a.path for a in client.list_artifacts(run.info.run_id, "models")} == {
+        f"models/{m}.{ext}" for m in ("reward_model", "cvae", "policy") for ext in ("npz", "json")}
 
     # Only lambda changes: the reward model, relabelling and CVAE come from the cache.
     again = _run(config.replace(cfg, **{"shaping.weight": 0.5}))
-    m = again.data.metrics
-    assert m["cache/reward_hit"] == 1 and m["cache/relabel_hit"] == 1 and m["cache/cvae_hit"] == 1
+    m, t = again.data.metrics, again.data.tags
+    assert (t["cache.reward"], t["cache.relabel"], t["cache.cvae"]) == ("hit", "hit", "hit")
     assert m["shaping/r_final_mean"] != d.metrics["shaping/r_final_mean"]
 
 
@@ -117,7 +122,7 @@ def test_baselines_run_end_to_end(method, tmp_path, spot_dirs, tiny_drawer, fres
         assert "iql/critic_loss" not in m
     else:
         # HPL's two pretraining phases are timed (Table 8) and the relabelled reward is cached
-        assert {"time/hpl_vae_s", "time/hpl_reward_s", "time/reward_s", "cache/reward_hit"} <= set(m)
-        assert m["cache/reward_hit"] == 0
+        assert {"time/hpl_vae_s", "time/hpl_reward_s", "time/reward_s"} <= set(m)
+        assert run.data.tags["cache.reward"] == "miss"
         again = _run(_cfg(tmp_path, f"method={method}", "iql.steps=100"))
-        assert again.data.metrics["cache/reward_hit"] == 1 and again.data.metrics["cache/relabel_hit"] == 1
+        assert again.data.tags["cache.reward"] == "hit" and again.data.tags["cache.relabel"] == "hit"

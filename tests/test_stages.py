@@ -57,7 +57,9 @@ def test_run_with_a_memory_tracker_writes_no_store(tmp_path, spot_dirs, tiny_dra
     monkeypatch.chdir(tmp_path)
     tr = tracking.MemoryTracker()
     out = pipeline.run(config.load(None, [*TINY, "method=oracle"]), progress=False, tracker=tr)
-    assert [s for s, _ in tr.metrics["eval/score"]] == [100, 200]
+    assert [s for s, _ in tr.metrics["eval/score"]] == [0, 100, 200]
+    assert {"models/policy.npz", "models/policy.json"} <= set(tr.artifacts)  # the Oracle saves only its policy
+    assert not any(k.startswith(("models/reward_model", "models/cvae")) for k in tr.artifacts)
     assert out["eval/score_final"] == tr.metrics["eval/score"][-1][1] == tr.last("eval/score_final")
     assert "learning_curve.png" in tr.artifacts and out["run_id"] == "memory"
     assert "time/iql_s" in tr.metrics and "time/reward_s" not in tr.metrics  # the Oracle trains no reward model

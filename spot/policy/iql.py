@@ -44,7 +44,8 @@ inside jit (STYLE.md rules 4 and 7), exactly ``IQLConfig.steps`` updates in all 
 shorter when ``steps`` is not a multiple of ``chunk``, so the actor's cosine schedule ends at the
 last update); several seeds can run as a vmap axis in one program
 (:func:`make_vmapped_train_chunk`). :func:`train` is the run: chunks, the NaN/inf check
-(:class:`spot.NonFiniteError` at a chunk boundary) and the evaluation schedule.
+(:class:`spot.NonFiniteError` at a chunk boundary) and the evaluation schedule (:func:`eval_steps`:
+step 0, every multiple of ``eval.every``, the last step).
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from spot import loop
+from spot import NonFiniteError, SpotError, loop
 from spot.batches import Transitions
 from spot.config import IQL_ORDERS, IQLConfig
 from spot.nets import MLP, Params, create_train_state, orthogonal_init
@@ -317,11 +318,22 @@ class Curve:
     eval_s: float  # wall seconds spent evaluating
 
 
+def eval_steps(steps: int, every: int) -> list[int]:
+    """The update counts at which a run of ``steps`` updates is evaluated: 0 (the initial policy),
+    every multiple of ``every`` up to ``steps``, and ``steps`` itself
+    (``eval_steps(1500, 1000) == [0, 1000, 1500]``)."""
+    if steps < 1 or every < 1:
+        raise SpotError(f"iql.steps={steps} and eval.every={every} must both be >= 1")
+    return sorted({0, *range(every, steps + 1, every), steps})
+
+
 def train(chunk: Callable, state: Any, args: Callable[[int], tuple], cfg: IQLConfig, eval_every: int,
           evaluate: Callable[[Params, int], float],
           log: Callable[[dict[str, float], int], None] | None = None) -> Curve:
-    """Exactly ``cfg.steps`` updates in chunks of ``cfg.chunk`` (the last shorter if need be), with
-    ``evaluate(actor_params, steps_done) -> score`` every ``eval_every`` updates and after the last.
+    """Exactly ``cfg.steps`` updates with ``evaluate(actor_params, steps_done) -> score`` at exactly
+    :func:`eval_steps`: before the first update, at every multiple of ``eval_every`` and after the
+    last. Between two evaluations the updates run in chunks of ``cfg.chunk`` (the last one shorter
+    where an evaluation falls inside a chunk); chunks are numbered through the run.
 
     Args:
       chunk: :func:`make_train_chunk` or IPL's; ``args(c)``: its arguments after ``(state, n)`` for
@@ -332,21 +344,30 @@ def train(chunk: Callable, state: Any, args: Callable[[int], tuple], cfg: IQLCon
       NonFiniteError: a ``*loss`` metric is NaN/inf (the step is the chunk's end).
     """
     curve = Curve(state, [], [], 0.0)
-    next_eval = min(eval_every, cfg.steps)
 
-    def on_chunk(row: dict[str, Any], state: Any) -> None:
-        nonlocal next_eval
-        done = row["step"]
-        if log is not None:
-            log({k: v for k, v in row.items() if k != "step"}, done)
-        if done >= next_eval or done == cfg.steps:
-            t0 = time.perf_counter()
-            curve.scores.append(float(evaluate(state.actor.params, done)))
-            curve.eval_s += time.perf_counter() - t0
-            curve.steps.append(done)
-            next_eval += eval_every
+    def run_eval(done: int) -> None:
+        t0 = time.perf_counter()
+        curve.scores.append(float(evaluate(curve.state.actor.params, done)))
+        curve.eval_s += time.perf_counter() - t0
+        curve.steps.append(done)
 
-    curve.state = loop.run(chunk, state, args, steps=cfg.steps, length=cfg.chunk, on_chunk=on_chunk).state
+    run_eval(0)
+    done, chunks = 0, 0
+    for stop in eval_steps(cfg.steps, eval_every)[1:]:
+        n, first_chunk, offset = stop - done, chunks, done
+
+        def on_chunk(row: dict[str, Any], state: Any, offset: int = offset) -> None:
+            if log is not None:
+                log({k: v for k, v in row.items() if k != "step"}, offset + row["step"])
+
+        try:
+            curve.state = loop.run(chunk, curve.state, lambda c, first=first_chunk: args(first + c), steps=n,
+                                   length=cfg.chunk, on_chunk=on_chunk).state
+        except NonFiniteError as e:  # the loop counts from this stretch's start
+            raise NonFiniteError(offset + e.step, e.loss_name, e.value) from None
+        chunks += len(loop.chunk_sizes(n, cfg.chunk))
+        done = stop
+        run_eval(done)
     return curve
 
 

@@ -1,0 +1,127 @@
+"""Self-contained runs: the evaluation schedule, models saved as run artifacts, `spot eval`."""
+
+import json
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from spot import NonFiniteError, SpotError, config, pipeline, tracking
+from spot.policy import iql
+
+
+# --------------------------------------------------------------------------- the evaluation schedule
+def test_eval_steps_by_hand():
+    assert iql.eval_steps(200, 100) == [0, 100, 200]
+    assert iql.eval_steps(250, 100) == [0, 100, 200, 250]
+    assert iql.eval_steps(10000, 2500) == [0, 2500, 5000, 7500, 10000]
+    assert iql.eval_steps(50, 100) == [0, 50]
+    with pytest.raises(SpotError):
+        iql.eval_steps(100, 0)
+
+
+class _Counter:
+    """A fake train chunk: the state counts updates; records each call's (n, chunk index)."""
+
+    def __init__(self, nan_at_call=None):
+        self.calls, self.nan_at_call = [], nan_at_call
+
+    def __call__(self, state, n, c):
+        self.calls.append((int(n), c))
+        loss = np.nan if len(self.calls) == self.nan_at_call else 1.0
+        done = state.actor.params + int(n)
+        return SimpleNamespace(actor=SimpleNamespace(params=done)), {"loss": jnp.float32(loss)}
+
+
+def _train(chunk, steps=250, every=100, length=60):
+    cfg = config.IQLConfig(steps=steps, chunk=length)
+    seen, logged = [], []
+    state = SimpleNamespace(actor=SimpleNamespace(params=0))
+    curve = iql.train(chunk, state, lambda c: (c,), cfg, every,
+                      lambda params, step: (seen.append((params, step)), float(step))[1],
+                      log=lambda metrics, step: logged.append(step))
+    return curve, seen, logged
+
+
+def test_train_evaluates_at_zero_and_exactly_at_multiples_of_every():
+    chunk = _Counter()
+    curve, seen, logged = _train(chunk)
+    # evaluations see exactly the updates done so far: 0, 100, 200, 250
+    assert seen == [(0, 0), (100, 100), (200, 200), (250, 250)]
+    assert curve.steps == [0, 100, 200, 250] and curve.scores == [0.0, 100.0, 200.0, 250.0]
+    # chunks of 60 cut at each evaluation, numbered through the run; 250 updates in all
+    assert chunk.calls == [(60, 0), (40, 1), (60, 2), (40, 3), (50, 4)]
+    assert logged == [60, 100, 160, 200, 250] and curve.state.actor.params == 250
+
+
+def test_non_finite_loss_names_the_step_of_the_run():
+    with pytest.raises(NonFiniteError, match="at step 160"):
+        _train(_Counter(nan_at_call=3))  # the third chunk ends at update 160
+
+
+# --------------------------------------------------------------------------- saved models
+def _uri(tmp_path):
+    return f"sqlite:///{tmp_path / 'mlflow.db'}"
+
+
+def test_saved_model_round_trip_and_cvae_from_run(tmp_path):
+    from spot import figures
+    from spot.subgoal import cvae
+
+    cfg = config.load(None, ["method=spot", "budget=tiny", f"tracking.uri={_uri(tmp_path)}", "tracking.experiment=m"])
+    params = cvae.init(jax.random.key(0), 5, 2, cfg.cvae, (np.arange(5.0), np.ones(5))).params
+    with tracking.start_run(cfg, {"name": "hopper-medium-replay"}, system_metrics=False) as tr:
+        head = tracking.save_model(tr, tmp_path / "out", "cvae", "a CVAE", params, {"cvae": {"latent_dim": 4}},
+                                   score=float("nan"))
+    assert head["shapes"][".obs_mean"] == [5] and head["score"] is None  # JSON-safe header
+    got, cfg_back = figures.cvae_from_run(tr.run_id, _uri(tmp_path))
+    assert isinstance(got, cvae.CVAEParams) and (got.hidden, got.latent_dim) == (params.hidden, params.latent_dim)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(params), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert cfg_back == cfg
+    header = json.loads(next((tmp_path / "artifacts").rglob("models/cvae.json")).read_text())
+    assert header["name"] == "cvae" and header["config"] == {"cvae": {"latent_dim": 4}} and "spot.cache" in header["format"]
+    with pytest.raises(SpotError, match="has no saved model models/policy"):
+        tracking.load_model(tr.run_id, "policy", _uri(tmp_path))
+
+
+def test_a_tampered_model_is_refused(tmp_path):
+    with tracking.start_run(config.load(None, [f"tracking.uri={_uri(tmp_path)}"]), {"name": "x"},
+                            system_metrics=False) as tr:
+        tracking.save_model(tr, tmp_path / "out", "policy", "p", {"w": np.ones(3)}, {})
+    npz = next((tmp_path / "artifacts").rglob("models/policy.npz"))
+    data = bytearray(npz.read_bytes())
+    data[-30] ^= 0xFF
+    npz.write_bytes(bytes(data))
+    with pytest.raises(SpotError, match="not a readable saved model"):
+        tracking.load_model(tr.run_id, "policy", _uri(tmp_path))
+
+
+# --------------------------------------------------------------------------- spot eval
+@pytest.mark.slow
+def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_drawer, monkeypatch, capsys):
+    from spot import cli
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+    uri = _uri(tmp_path)
+    cfg = config.load(None, ["method=oracle", "budget=tiny", "data.name=drawer-open", "iql.steps=200",
+                             "eval.every=100", "eval.episodes=2", f"tracking.uri={uri}", "tracking.experiment=e"])
+    out = pipeline.run(cfg, progress=False)
+    run_id = out["run_id"]
+    client = MlflowClient(uri)
+    logged_return = [m for m in client.get_metric_history(run_id, "eval/return") if m.step == 200][0].value
+
+    res = pipeline.evaluate_run(run_id, uri)
+    assert (res["episodes"], res["steps"], res["env"]) == (2, 200, "drawer-open")
+    # same policy, same env seeds: the same episodes, so the same score and return
+    assert res["score_mean"] == pytest.approx(out["eval/score_final"], rel=1e-9, abs=1e-12)
+    assert res["score_mean"] == pytest.approx(res["logged_score_final"], rel=1e-9, abs=1e-12)
+    assert res["return_mean"] == pytest.approx(logged_return, rel=1e-6)
+
+    assert cli.main(["eval", run_id, "--tracking-uri", uri]) == 0
+    printed = capsys.readouterr().out
+    assert f"run {run_id}" in printed and "reproduces the logged eval/score_final" in printed
+    assert cli.main(["eval", "0" * 32, "--tracking-uri", uri]) == 2
