@@ -314,11 +314,11 @@ def hpl_rewards(ctx: Context, model: RewardModel) -> Rewards:
     """HPL: the reward marginalised over the prior's latents; cached."""
     import jax
 
-    from spot.reward import hpl
+    from spot.reward import relabel
 
     _, relabel_key = jax.random.split(ctx.keys["reward"])
     rel, _ = ctx.cached("relabel", {"hpl": model.cache_key, "seed": ctx.cfg.seed, "data": dataset_deps(ctx.ds)},
-                        lambda: {"rewards": hpl.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)})
+                        lambda: {"rewards": relabel.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)})
     return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
 
 

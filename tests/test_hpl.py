@@ -22,7 +22,7 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import NonFiniteError, SpotError
 from spot.config import HPLConfig
 from spot.data import labels, registry
-from spot.reward import hpl, hpl_nets, train
+from spot.reward import hpl, hpl_nets, relabel, train
 from tests.conftest import make_dataset
 
 OBS, ACT = 4, 2
@@ -206,7 +206,7 @@ def test_relabel_is_the_average_over_prior_samples():
     params["reward"]["params"]["Dense_0"]["kernel"] = jnp.asarray(w)
     params["reward"]["params"]["Dense_0"]["bias"] = jnp.array([0.3])
     key = jax.random.key(4)
-    relabelled = hpl.relabel_hpl(params, ds, cfg, key, batch_size=8)
+    relabelled = relabel.relabel_hpl(params, ds, cfg, key, batch_size=8)
     assert relabelled.shape == (5,) and relabelled.dtype == np.float32
 
     # By hand: the same latents (batch 0 uses fold_in(key, 0); its 8 rows are the 5 padded with the last).
@@ -242,7 +242,7 @@ def test_each_phase_compiles_once_and_history():
         assert len(history[name]) == 3 and np.all(np.isfinite(history[name])), name
     assert history["vae_s"] > 0 and history["reward_s"] > 0 and history["steps_per_s"] > 0
     assert set(params) == {"encoder", "prior", "decoder", "reward"}
-    r = hpl.relabel_hpl(params, ds, TINY, jax.random.key(1), batch_size=32)
+    r = relabel.relabel_hpl(params, ds, TINY, jax.random.key(1), batch_size=32)
     assert r.shape == (len(ds),) and np.all((r > 0) & (r < 1))  # sigmoid reward head
 
     # Same config and shapes (another seed, no eval batch): nothing compiled again.
@@ -280,7 +280,7 @@ def test_hpl_ranks_held_out_segments_of_local_hopper(spot_dirs):
     params, history = hpl.train_hpl(jax.random.key(0), ds, labels.segment_batch(ds, train_q),
                                     labels.segment_batch(ds, held_q), cfg)
     assert history["vae_recon"][-1] < history["vae_recon"][0]
-    r = hpl.relabel_hpl(params, ds, cfg, jax.random.key(1))
+    r = relabel.relabel_hpl(params, ds, cfg, jax.random.key(1))
     window = np.arange(held_q.segment_length)
     ret_1 = r[held_q.starts_1[:, None] + window].sum(1)
     ret_2 = r[held_q.starts_2[:, None] + window].sum(1)

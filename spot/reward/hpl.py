@@ -21,7 +21,8 @@ Phase 2, reward on labelled pairs (y = 1: segment 2 preferred; WiseRL ``update_r
 over ``extra_batch`` unlabelled transitions x_j, each with ``prior_samples`` prior draws.
 
 Relabelling: r_hat(s, a) = (1/N) sum_i r(s, a, z_i), z_i ~ p(z | s, a), N = ``prior_samples``
-(:func:`spot.reward.hpl_nets.prior_marginal_reward`).
+(:func:`spot.reward.hpl_nets.prior_marginal_reward`, run over a dataset by
+:func:`spot.reward.relabel.relabel_hpl`).
 
 Reference facts followed [typoverflow/WiseRL : wiserl/algorithm/hpl/hpl.py] (reference/algorithms.md
 §4; the networks' are listed in :mod:`spot.reward.hpl_nets`): the decoder gets the clipped D;
@@ -65,7 +66,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from tqdm.auto import tqdm
 
 from spot import SpotError, loop
 from spot.config import HPLConfig
@@ -388,31 +388,3 @@ def train_hpl(key: jax.Array, ds: Any, train_batch: Mapping[str, np.ndarray],
     history.update(vae_steps_per_s=cfg.vae_steps / vae_loop_s, reward_steps_per_s=cfg.reward_steps / reward_loop_s,
                    steps_per_s=(cfg.vae_steps + cfg.reward_steps) / (vae_loop_s + reward_loop_s))
     return params, history
-
-
-@functools.lru_cache(maxsize=8)
-def _relabel_program(cfg: HPLConfig) -> Callable:
-    @jax.jit
-    def program(p: Params, x_all: jax.Array, rows: jax.Array, key: jax.Array) -> jax.Array:
-        return prior_marginal_reward(p, cfg, x_all[rows], key)
-
-    return program
-
-
-def relabel_hpl(params: Params, ds: Any, cfg: HPLConfig, key: jax.Array, batch_size: int = 4096,
-                progress: bool = False) -> np.ndarray:
-    """``r_hat(s, a)`` of every transition of ``ds``: :func:`prior_marginal_reward` in jitted batches
-    of ``batch_size`` rows (the last padded); batch i uses ``fold_in(key, i)``.
-
-    Returns:
-      ``[N]`` float32 (not normalised; see ``relabel.normalize``, HPL's is ``wiserl``).
-    """
-    x_all = unlabelled(ds).x
-    n = x_all.shape[0]
-    n_batches = max(-(-n // batch_size), 1)
-    rows = np.minimum(np.arange(n_batches * batch_size), n - 1).astype(np.int32).reshape(n_batches, batch_size)
-    sub = {"prior": params["prior"], "reward": params["reward"]}
-    program = _relabel_program(cfg)
-    out = [jax.device_get(program(sub, x_all, rows[i], jax.random.fold_in(key, i)))
-           for i in tqdm(range(n_batches), desc="relabel (hpl)", disable=not progress, leave=False)]
-    return np.concatenate(out)[:n].astype(np.float32)

@@ -17,6 +17,8 @@ relabelled by the reward model. Trajectories are the episodes of the ``qlearning
   (full windows ``1..window``). The last block only computes that last position.
 * MR: ``r_phi(s, a)`` of each transition (``reward_from_preference``); ``window`` is unused except
   to size batches.
+* HPL (:func:`relabel_hpl`): the reward marginalised over ``hpl.prior_samples`` latents of the
+  prior, per transition.
 
 Every mode runs one jitted program with fixed shapes (the last batch is padded), compiled once
 per model, window and batch size in a process (jit's own cache).
@@ -40,10 +42,10 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from spot import SpotError, loop
-from spot.config import MRConfig, PTConfig, RelabelConfig
+from spot.config import HPLConfig, MRConfig, PTConfig, RelabelConfig
 from spot.data.dataset import Dataset
 from spot.nets import Params
-from spot.reward import mr, pt
+from spot.reward import hpl_nets, mr, pt
 from spot.reward.models import RewardModel
 
 NORMALIZE_MODES = ("pt", "iql", "wiserl", "minmax", "none")
@@ -189,6 +191,36 @@ def _relabel_pt(cfg: PTConfig, params: Params, ds: Dataset, relabel_cfg: Relabel
             batch, progress, "relabel (pt, sliding)")
         return rewards, None, compile_s
     raise SpotError(f"relabel.mode '{relabel_cfg.mode}' is not one of 'chunked', 'sliding'")
+
+
+@functools.lru_cache(maxsize=8)
+def _hpl_program(cfg: HPLConfig) -> Callable:
+    @jax.jit
+    def program(p: Params, x_all: jax.Array, rows: jax.Array, key: jax.Array) -> jax.Array:
+        return hpl_nets.prior_marginal_reward(p, cfg, x_all[rows], key)
+
+    return program
+
+
+def relabel_hpl(params: Params, ds: Dataset, cfg: HPLConfig, key: jax.Array, batch_size: int = 4096,
+                progress: bool = False) -> np.ndarray:
+    """HPL's ``r_hat(s, a)`` of every transition of ``ds``:
+    :func:`spot.reward.hpl_nets.prior_marginal_reward` of the trained ``params``
+    (:func:`spot.reward.hpl.train_hpl`) in jitted batches of ``batch_size`` rows (the last padded);
+    batch i uses ``fold_in(key, i)``.
+
+    Returns:
+      ``[N]`` float32 (not normalised; see ``relabel.normalize``, HPL's is ``wiserl``).
+    """
+    x_all = jnp.asarray(np.concatenate([ds.observations, ds.actions], axis=-1).astype(np.float32))
+    n = x_all.shape[0]
+    n_batches = max(-(-n // batch_size), 1)
+    rows = np.minimum(np.arange(n_batches * batch_size), n - 1).astype(np.int32).reshape(n_batches, batch_size)
+    sub = {"prior": params["prior"], "reward": params["reward"]}
+    program = _hpl_program(cfg)
+    out = [jax.device_get(program(sub, x_all, rows[i], jax.random.fold_in(key, i)))
+           for i in tqdm(range(n_batches), desc="relabel (hpl)", disable=not progress, leave=False)]
+    return np.concatenate(out)[:n].astype(np.float32)
 
 
 def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
