@@ -3,12 +3,14 @@
 :func:`run` is the paper's data flow; the stages, their typed outputs and the per-method table are
 in :mod:`spot.stages`. The expensive stages (reward model, relabelling, CVAE) go through the stage
 cache, keyed by everything they depend on, so a run that changes only ``shaping.weight`` or
-``shaping.kind`` reuses the reward model and the CVAE of an earlier run (``cache/<stage>_hit = 1``).
+``shaping.kind`` reuses the reward model and the CVAE of an earlier run (tag ``cache.<stage> = hit``).
+The trained models are saved as the run's ``models/*`` artifacts; :func:`evaluate_run` evaluates a
+logged run's policy again (``spot eval``).
 
 Metrics: ``labels/*``, ``reward/*`` (reward-model training), ``hpl/*``, ``ipl/*``, ``subgoal/*``
 (extraction, quality), ``cvae/*``, ``shaping/*``, ``iql/*``, ``eval/score`` over policy updates,
 ``eval/score_final``, ``eval/score_best``, ``diag/*`` (extrapolation error, Fig. 2),
-``cache/<stage>_hit`` and ``time/<stage>_s``.
+``time/<stage>_s`` and MLflow's ``system/*``.
 """
 
 from __future__ import annotations
