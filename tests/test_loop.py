@@ -110,7 +110,7 @@ def test_run_names_the_failing_update():
 # --------------------------------------------------------------------------- the step rule
 def test_iql_runs_exactly_steps_when_not_a_multiple_of_the_chunk():
     """iql.steps=15, iql.chunk=10 (as 1500 / 1000): 15 updates, not 20; the actor's cosine schedule
-    reaches 0 at the last update; evaluations after 10 updates and at the end."""
+    reaches 0 at the last update; evaluations before the first update, after 10 and at the end."""
     cfg = IQLConfig(hidden=(8,), batch_size=16, steps=15, chunk=10)
     rng = np.random.default_rng(0)
     data = Transitions(*(jnp.asarray(rng.normal(size=shape).astype(np.float32))
@@ -120,7 +120,7 @@ def test_iql_runs_exactly_steps_when_not_a_multiple_of_the_chunk():
     curve = iql.train(iql.make_train_chunk(cfg), state, lambda c: (data, jax.random.key(c)), cfg, 10,
                       lambda params, step: float(step), log=lambda metrics, step: logged.append(step))
     assert int(curve.state.step) == 15 and int(curve.state.actor.step) == 15
-    assert logged == [10, 15] and curve.steps == [10, 15] and curve.scores == [10.0, 15.0]
+    assert logged == [10, 15] and curve.steps == [0, 10, 15] and curve.scores == [0.0, 10.0, 15.0]
     actor_lr = optax.cosine_decay_schedule(cfg.lr, cfg.steps)
     assert float(actor_lr(15)) == 0.0 and float(actor_lr(14)) > 0.0  # the last update used the last lr > 0
     assert iql.make_train_chunk(cfg)._cache_size() == 1  # the 5-update chunk reused the program
