@@ -218,3 +218,101 @@ def test_a_new_run_closes_dead_runs_and_records_its_process(tmp_path):
     assert client.get_run(ids["dead"]).info.status == "KILLED"
     tags = client.get_run(run_id).data.tags
     assert tags["spot.pid"] == str(os.getpid()) and tags["spot.host"] == socket.gethostname()
+
+
+# --------------------------------------------------------------------------- the MLflow server's identity
+class _Squatter:
+    """A process-local HTTP server on a loopback port that answers every GET with 200 (so
+    ``/health`` looks fine) and records every request."""
+
+    def __init__(self) -> None:
+        import http.server
+        import threading
+
+        seen = self.requests = []
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def _answer(self) -> None:
+                seen.append(f"{self.command} {self.path}")
+                body = b'{"experiment": {"experiment_id": "0", "tags": []}}'
+                self.send_response(200)
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            do_GET = do_POST = _answer
+
+            def log_message(self, *args) -> None:
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.server.server_address[1]
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+@pytest.fixture
+def squatter():
+    s = _Squatter()
+    yield s
+    s.close()
+
+
+@pytest.mark.slow
+def test_a_squatted_port_gets_no_run_and_the_server_moves(tmp_path, squatter, capsys):
+    from mlflow.tracking import MlflowClient
+
+    from spot.mlflow_server import MlflowServer
+
+    db = tmp_path / "m.db"
+    server = MlflowServer(sqlite_uri(db), tmp_path / "artifacts", port=squatter.port)  # the port was taken
+    server.start()
+    try:
+        assert server.port != squatter.port and server.healthy()
+        assert f"port {squatter.port}" in capsys.readouterr().err
+        # The server spot started runs MLflow with telemetry off.
+        environ = Path(f"/proc/{server._proc.pid}/environ").read_bytes().split(b"\0")
+        assert b"MLFLOW_DISABLE_TELEMETRY=true" in environ
+        client = MlflowClient(server.uri)
+        exp = client.create_experiment("e")
+        run_id = client.create_run(exp, tags={"git_commit": "secret-ish"}).info.run_id
+    finally:
+        server.stop()
+    assert all(r.startswith("GET /health") or "experiments/get" in r for r in squatter.requests), squatter.requests
+    assert MlflowClient(sqlite_uri(db)).get_run(run_id).data.tags["git_commit"] == "secret-ish"
+    # The nonce tag is removed once checked.
+    assert not [k for k in MlflowClient(sqlite_uri(db)).get_experiment("0").tags if k.startswith("spot.server_nonce")]
+
+
+def test_a_port_squatted_every_time_is_a_clear_error(tmp_path, squatter, monkeypatch):
+    from spot import SpotError, mlflow_server
+
+    monkeypatch.setattr(mlflow_server, "free_port", lambda host="127.0.0.1": squatter.port)
+    server = mlflow_server.MlflowServer(sqlite_uri(tmp_path / "m.db"), tmp_path / "artifacts")
+    with pytest.raises(SpotError, match=f"could not start the mlflow server on a port of its own: port {squatter.port} "):
+        server.start()
+    assert server._proc is None
+    assert not [r for r in squatter.requests if "runs" in r]
+
+
+def test_server_telemetry_off_unless_the_user_turns_it_on(tmp_path, monkeypatch):
+    from spot.mlflow_server import MlflowServer
+
+    server = MlflowServer("sqlite:///x.db", tmp_path, port=1)
+    monkeypatch.delenv("MLFLOW_DISABLE_TELEMETRY", raising=False)
+    assert server.server_env()["MLFLOW_DISABLE_TELEMETRY"] == "true"
+    monkeypatch.setenv("MLFLOW_DISABLE_TELEMETRY", "false")
+    assert server.server_env()["MLFLOW_DISABLE_TELEMETRY"] == "false"
+
+
+def test_an_unreachable_tracking_server_is_a_clear_error_at_once():
+    from spot import SpotError
+    from spot.mlflow_server import check_reachable, free_port
+
+    start = time.monotonic()
+    with pytest.raises(SpotError, match=r"tracking server http://127.0.0.1:\d+ does not answer"):
+        check_reachable(f"http://127.0.0.1:{free_port()}")
+    assert time.monotonic() - start < 15

@@ -57,10 +57,18 @@ def prebuild_datasets(sweep: Sweep) -> list[Path]:
 # --------------------------------------------------------------------------- store and Ray
 @dataclass(frozen=True)
 class _Store:
-    uri: str
+    """The launch's store: ``uri()`` (a served store's port may change while it starts, see
+    :meth:`spot.mlflow_server.MlflowServer.wait_ready`), how to open it, and its server's
+    ``wait_ready``/``stop``."""
+
+    get_uri: Callable[[], str]
     how_to_open: str
     wait_ready: Callable[[], None]
     stop: Callable[[], None] = lambda: None
+
+    @property
+    def uri(self) -> str:
+        return self.get_uri()
 
 
 @contextlib.contextmanager
@@ -77,7 +85,7 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
         raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
                         "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
     if uri and not uri.startswith("sqlite:"):
-        yield _Store(uri, f"MLflow: {uri}", lambda: None)
+        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: mlflow_server.check_reachable(uri))
         return
     db = tracking.sqlite_path(uri) if uri else root / "mlflow.db"
     db.parent.mkdir(parents=True, exist_ok=True)
@@ -87,7 +95,7 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
     server.start(wait=False)
     try:
-        yield _Store(server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
+        yield _Store(lambda: server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
                      server.wait_ready, server.stop)
     finally:
         server.stop()

@@ -74,6 +74,9 @@ def experiment_id(name: str, uri: str) -> str:
     """Get or create the experiment (with an explicit artifact location for local stores)."""
     from mlflow.tracking import MlflowClient
 
+    from spot.tracking.locking import prepare_store
+
+    prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name(name)
     if exp is not None:
