@@ -150,7 +150,7 @@ class IQLConfig:
     lr: float = F(3e-4, "Adam learning rate (actor uses a cosine schedule)", range=(0.0, 1.0))
     batch_size: int = F(256, "transitions per update", range=(1, None))
     steps: int = F(1_000_000, "gradient updates", range=(1, None))
-    chunk: int = F(1000, "updates per jitted lax.scan chunk", range=(1, None))
+    chunk: int = F(1000, "updates per jitted lax.scan chunk (a run does exactly iql.steps: the last chunk is shorter when iql.steps is not a multiple)", range=(1, None))
     order: str = F("parallel", "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; faster), 'sequential' the just-updated one (ikostrikov/PT repo)", choices=IQL_ORDERS)
 
 
@@ -196,7 +196,7 @@ class HPLConfig:
     reg_coef: float = F(1e-4, "Huber regulariser of r(s,a,z_prior) toward 0 (hopper 1e-4, walker2d 0)", range=(0.0, None))
     prior_samples: int = F(20, "prior samples averaged when relabelling", range=(1, None))
     lr: float = F(3e-4, "Adam learning rate (VAE and reward)", range=(0.0, 1.0))
-    chunk: int = F(500, "gradient steps per jitted lax.scan chunk", range=(1, None))
+    chunk: int = F(500, "gradient steps per jitted lax.scan chunk (each phase does exactly its steps: the last chunk is shorter when they are not a multiple)", range=(1, None))
 
 
 @dataclass(frozen=True)
