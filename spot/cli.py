@@ -328,13 +328,13 @@ def _figures(args: argparse.Namespace) -> None:
         elif args.run_id and args.index:  # the run's CVAE on the run's dataset (or --dataset)
             from spot.data import registry
 
-            params, cfg = figures.cvae_from_run(args.run_id, args.tracking_uri)
+            params, cfg, head = figures.cvae_from_run(args.run_id, args.tracking_uri)
             if args.dataset:
                 ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
             else:
                 ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
                                       progress=False)
-                args.dataset = args.dataset or cfg.data.name
+                args.dataset = head.get("dataset") or cfg.data.name
             obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
         elif args.cvae and args.index:
             obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)

@@ -242,15 +242,16 @@ def fetch_artifact(run_id: str, artifact_path: str, out: str | Path, tracking_ur
     return out
 
 
-def cvae_from_run(run_id: str, tracking_uri: str | None = None) -> tuple[Any, Any]:
-    """``(CVAE params, run config)`` of a run that saved its CVAE (``models/cvae``: SPOT runs, and
-    PT runs with the Fig. 2 diagnostics)."""
+def cvae_from_run(run_id: str, tracking_uri: str | None = None) -> tuple[Any, Any, dict[str, Any]]:
+    """``(CVAE params, run config, the model's header)`` of a run that saved its CVAE
+    (``models/cvae``: SPOT runs, and PT runs with the Fig. 2 diagnostics); the header's
+    ``dataset`` is the run's dataset name (its evaluation env)."""
     from spot.subgoal import cvae as cvae_lib
 
-    params, _ = tracking.load_model(run_id, "cvae", tracking_uri)
+    params, head = tracking.load_model(run_id, "cvae", tracking_uri)
     if not isinstance(params, cvae_lib.CVAEParams):
         raise SpotError(f"run {run_id}: models/cvae holds {type(params).__name__}, not CVAE params")
-    return params, tracking.run_config(run_id, tracking_uri)
+    return params, tracking.run_config(run_id, tracking_uri), head
 
 
 def load_cvae(path: str | Path) -> Any:

@@ -77,7 +77,7 @@ def test_saved_model_round_trip_and_cvae_from_run(tmp_path):
         head = tracking.save_model(tr, tmp_path / "out", "cvae", "a CVAE", params, {"cvae": {"latent_dim": 4}},
                                    score=float("nan"))
     assert head["shapes"][".obs_mean"] == [5] and head["score"] is None  # JSON-safe header
-    got, cfg_back = figures.cvae_from_run(tr.run_id, _uri(tmp_path))
+    got, cfg_back, head = figures.cvae_from_run(tr.run_id, _uri(tmp_path))
     assert isinstance(got, cvae.CVAEParams) and (got.hidden, got.latent_dim) == (params.hidden, params.latent_dim)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(params), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -125,3 +125,30 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
     printed = capsys.readouterr().out
     assert f"run {run_id}" in printed and "reproduces the logged eval/score_final" in printed
     assert cli.main(["eval", "0" * 32, "--tracking-uri", uri]) == 2
+
+
+def test_fig3_uses_the_runs_cvae_on_the_runs_dataset(tmp_path):
+    """`spot figures fig3 --run-id`: the run's saved CVAE, its dataset (a D4RL-layout file here) and
+    its env (Hopper), rendered headless in a fresh process."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from spot.subgoal import cvae
+    from tests.conftest import run_cli
+
+    root = Path(__file__).resolve().parents[1]
+    data = tmp_path / "hopper-medium-replay-v2.hdf5"
+    made = subprocess.run([sys.executable, str(root / "scripts" / "make_synthetic_d4rl.py"), str(data),
+                           "--transitions", "2000", "--episode-length", "100"], capture_output=True, text=True)
+    assert made.returncode == 0, made.stderr
+    cfg = config.load(None, ["method=spot", "budget=tiny", f"data.name={data}", "data.source=file",
+                             f"tracking.uri={_uri(tmp_path)}"])
+    params = cvae.init(jax.random.key(1), 11, 3, cfg.cvae, (np.zeros(11), np.ones(11))).params
+    with tracking.start_run(cfg, {"name": "hopper-medium-replay"}, system_metrics=False) as tr:
+        tracking.save_model(tr, tmp_path / "out", "cvae", "a CVAE", params, {}, dataset="hopper-medium-replay")
+    out = tmp_path / "fig3.png"
+    got = run_cli("figures", "fig3", "--run-id", tr.run_id, "--index", "0", "7", "--width", "48", "--height", "48",
+                  "--tracking-uri", _uri(tmp_path), "--out", str(out), timeout=300)
+    assert got.returncode == 0, got.stderr[-2000:]
+    assert out.read_bytes()[:4] == b"\x89PNG" and f"wrote {out}" in got.stdout
