@@ -316,3 +316,82 @@ def test_an_unreachable_tracking_server_is_a_clear_error_at_once():
     with pytest.raises(SpotError, match=r"tracking server http://127.0.0.1:\d+ does not answer"):
         check_reachable(f"http://127.0.0.1:{free_port()}")
     assert time.monotonic() - start < 15
+
+
+# --------------------------------------------------------------------------- concurrent launches and stores
+def test_a_second_launch_of_a_running_sweep_refuses(tmp_path):
+    from conftest import run_cli
+
+    (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
+    state_file = tmp_path / "spot_runs" / "ray" / "gated.json"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time; from pathlib import Path; from spot.sweep import launch\n"
+         f"with launch._launch_lock(Path({str(state_file)!r}), 'gated'):\n"
+         "    print('held', flush=True); time.sleep(120)"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for extra in ([], ["--resume"]):
+            out = run_cli("sweep", "gated.yaml", *extra, cwd=tmp_path, env=_env(tmp_path))
+            assert out.returncode == 2, out.stdout + out.stderr
+            (line,) = out.stderr.strip().splitlines()
+            assert line.startswith("error: sweep 'gated' is already running with storage ")
+            assert f"pid {holder.pid} on {socket.gethostname()}" in line and "Traceback" not in out.stderr
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not state_file.exists()
+
+
+@pytest.mark.parametrize("content", ["", "{not json", '{"sweep_id": "x"}', "[1, 2]", "\udcff"])
+def test_a_damaged_launch_record_is_a_clear_error(tmp_path, content):
+    from conftest import run_cli
+
+    (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
+    record = tmp_path / "spot_runs" / "ray" / "gated.json"
+    record.parent.mkdir(parents=True)
+    record.write_bytes(content.encode("utf-8", "surrogateescape"))
+    out = run_cli("sweep", "gated.yaml", "--resume", cwd=tmp_path, env=_env(tmp_path))
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.startswith(f"error: launch record {record} is damaged")
+
+
+def test_max_concurrent_and_storage_are_checked(tmp_path):
+    from conftest import run_cli
+
+    from spot import SpotError, sweep
+
+    (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
+    for bad in (0, -1):
+        with pytest.raises(SpotError, match=f"--max-concurrent {bad}: expected a positive"):
+            sweep.run_sweep(tmp_path / "gated.yaml", max_concurrent=bad, storage=tmp_path / "ray")
+    (tmp_path / "afile").write_text("x")
+    out = run_cli("sweep", "gated.yaml", "--storage", "afile", cwd=tmp_path, env=_env(tmp_path))
+    assert out.returncode == 2 and out.stderr.startswith(f"error: --storage {tmp_path / 'afile'}: cannot keep"), out.stderr
+
+
+CONCURRENT_RUN = """
+import sys, time
+from pathlib import Path
+from spot import config, tracking
+go = Path(sys.argv[2])
+while not go.exists():
+    time.sleep(0.01)
+cfg = config.resolve({"tracking.uri": sys.argv[1], "tracking.experiment": "two-at-once"})
+with tracking.start_run(cfg, {"name": "x"}, system_metrics=False) as tracker:
+    tracker.log_metrics({"m": 1.0}, step=0)
+"""
+
+
+@pytest.mark.slow
+def test_runs_started_at_once_on_a_new_store_all_land(tmp_path):
+    db = tmp_path / "new" / "mlflow.db"
+    go = tmp_path / "go"
+    procs = [subprocess.Popen([sys.executable, "-c", CONCURRENT_RUN, sqlite_uri(db), str(go)],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(3)]
+    time.sleep(8)  # every process imported spot and waits at the gate
+    go.touch()
+    outs = [p.communicate(timeout=300)[0] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(outs)
+    runs = _runs(db, "two-at-once")
+    assert len(runs) == 3 and all(r.info.status == "FINISHED" for r in runs)

@@ -10,11 +10,13 @@ summary. ``--resume`` restores the Ray experiment recorded in ``<storage>/<exper
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
 import os
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -245,7 +247,14 @@ def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) ->
     if not state_file.is_file():
         raise SpotError(f"nothing to resume: no launch of sweep '{sweep.experiment}' under {state_file.parent}; "
                         "start it without --resume")
-    state = json.loads(state_file.read_text())
+    try:
+        state = json.loads(state_file.read_text())
+        if not (isinstance(state, dict) and all(isinstance(state.get(k), str) and state[k]
+                                                for k in ("sweep_id", "spec_hash", "parent_run_id"))):
+            raise ValueError("expected an object with sweep_id, spec_hash and parent_run_id")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise SpotError(f"launch record {state_file} is damaged ({e}); it cannot be resumed: start a new "
+                        "launch without --resume") from None
     if state["spec_hash"] != sweep.spec_hash():
         raise SpotError(f"sweep file '{path}' expands to other trials than the launch {state['sweep_id']} "
                         "being resumed; Ray cannot change a sweep's trials: start a new launch without --resume")
@@ -410,8 +419,9 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
             ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri,
                                sweep.axis_keys)
             if not resume:
-                state_file.parent.mkdir(parents=True, exist_ok=True)
-                state_file.write_text(json.dumps(state, indent=2))
+                tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
+                tmp.write_text(json.dumps(state, indent=2))
+                tmp.replace(state_file)  # whole or not at all
             print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
                   f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}", flush=True)
             errors, interrupted = _fit(sweep, ctx, state_file.parent / sweep_id, resume=resume,
@@ -456,10 +466,52 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
 
     if retry_errored and not resume:
         raise SpotError("--retry-errored goes with --resume")
+    if max_concurrent is not None and (isinstance(max_concurrent, bool) or max_concurrent < 1):
+        raise SpotError(f"--max-concurrent {max_concurrent}: expected a positive number of trials")
     sweep = load(path, smoke=smoke)
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
     state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
+    with _launch_lock(state_file, sweep.experiment):
+        return _launch(sweep, path, state_file, root, smoke=smoke, resume=resume, retry_errored=retry_errored,
+                       address=address, max_concurrent=max_concurrent, tracking_uri=tracking_uri, run_fn=run_fn)
+
+
+@contextlib.contextmanager
+def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``<storage>/<experiment>.lock`` for the launch: a second
+    launch (or ``--resume``) of the same sweep with the same storage refuses while one runs, so
+    no launch overwrites another's record. The lock dies with the process, however it ends."""
+    lock_path = state_file.with_name(f"{experiment}.lock")
+    try:
+        state_file.parent.mkdir(parents=True, exist_ok=True)
+        f = open(lock_path, "a+")
+    except OSError as e:
+        raise SpotError(f"--storage {state_file.parent}: cannot keep the launch record there ({e.strerror})") from None
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise SpotError(f"sweep '{experiment}' is already running with storage {state_file.parent} "
+                            f"({holder}); wait for it to end, or give this launch another --storage") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        f.flush()
+        yield
+
+
+def _launch(sweep: Sweep, path: str | Path, state_file: Path, root: Path, *, smoke: bool, resume: bool,
+            retry_errored: bool, address: str | None, max_concurrent: int | None, tracking_uri: str | None,
+            run_fn: RunFn | None) -> list[Row]:
+    """:func:`run_sweep` once the launch holds its lock."""
+    from spot import tracking
+
     state = _state(sweep, path, state_file, resume=resume)
+    if resume:
+        print(f"resuming launch {state['sweep_id']} (parent run {state['parent_run_id']}, record {state_file})",
+              flush=True)
     if resume and max_concurrent is not None:
         print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
     command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
+from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
 
@@ -426,6 +427,7 @@ def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_nam
     from mlflow.tracking import MlflowClient
 
     uri = resolve_uri(cfg.tracking.uri)
+    prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time
     client = MlflowClient(uri)
     exp_id = experiment_id(cfg.tracking.experiment, uri)
     close_dead_runs(client, [exp_id])  # runs left RUNNING by dead processes of this host
