@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -441,6 +442,26 @@ def _type_name(tp: Any) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+MAX_INT = 2**31 - 1
+"""Largest integer a config value may take (seeds, steps, sizes): beyond it JAX's int32 and
+PRNG seeds overflow."""
+
+
+def _to_int(value: Any) -> int:
+    """An exact integer from an int, an integral float or a decimal/scientific string; ValueError
+    or OverflowError otherwise (bools, fractions, NaN, infinities)."""
+    if isinstance(value, bool):
+        raise ValueError
+    if isinstance(value, float) and not value.is_integer():
+        raise ValueError
+    if isinstance(value, str) and "e" in value.lower():
+        number = float(value)
+        if not number.is_integer():
+            raise ValueError
+        return int(number)
+    return int(value)
+
+
 def _coerce(key: str, value: Any) -> Any:
     """Convert ``value`` to the field's type (strings from the CLI or MLflow included) and validate."""
     tp, meta = field_info(key)
@@ -453,7 +474,10 @@ def _coerce(key: str, value: Any) -> Any:
                 value = [v for v in (p.strip() for p in text.split(",")) if v]
             if not isinstance(value, (list, tuple)):
                 raise ValueError
-            out = tuple(inner(v) for v in value)
+            out = tuple(_to_int(v) if inner is int else inner(v) for v in value)
+            if inner is int and (not out or min(out) < 1 or max(out) > MAX_INT):
+                raise SpotError(f"config key '{key}': value {value!r}: expected one or more layer sizes, "
+                                f"each 1 <= size <= {MAX_INT}")
         elif tp is bool:
             if isinstance(value, str):
                 if value.lower() in ("true", "1", "yes", "on"):
@@ -467,27 +491,27 @@ def _coerce(key: str, value: Any) -> Any:
             else:
                 raise ValueError
         elif tp is int:
-            if isinstance(value, bool):
-                raise ValueError
-            if isinstance(value, float) and not value.is_integer():
-                raise ValueError
-            out = int(float(value)) if isinstance(value, str) and "e" in value.lower() else int(value)
+            out = _to_int(value)
         elif tp is float:
             if isinstance(value, bool):
                 raise ValueError
             out = float(value)
+            if not math.isfinite(out):
+                raise SpotError(f"config key '{key}': value {value!r} is not a finite number")
         elif tp is str:
             if not isinstance(value, (str, int, float)) or isinstance(value, bool):
                 raise ValueError
             out = str(value)
         else:  # pragma: no cover - every field has one of the types above
             raise TypeError(f"unsupported field type {tp}")
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, OverflowError):
         expected = f"a tuple of {_type_name(typing.get_args(tp)[0])}" if origin is tuple else _type_name(tp)
         raise SpotError(f"config key '{key}': value {value!r} is not {expected}") from None
     choices = _REGISTERED_CHOICES[key]() if key in _REGISTERED_CHOICES else meta.get("choices")
     if choices and out not in choices:
         raise SpotError(f"config key '{key}': value {out!r} is not one of {', '.join(map(repr, choices))}")
+    if tp is int and abs(out) > MAX_INT:
+        raise SpotError(f"config key '{key}': value {value!r} is too large; expected at most {MAX_INT}")
     rng = meta.get("range")
     if rng is not None:
         lo, hi = rng
@@ -517,15 +541,68 @@ flatten_yaml = _flatten_yaml
 check_keys = _check_keys
 
 
+MAX_YAML_BYTES = 1 << 20
+"""Largest YAML file (run config, sweep file) spot reads."""
+
+
+class StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses aliases (``*name``: an alias bomb expands a few lines into
+    billions of keys) and duplicate mapping keys (PyYAML silently keeps the last one)."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f"alias '*{event.anchor}' found: spot's YAML files take "
+                                              "no aliases; write the value out", event.start_mark)
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            seen: set[Any] = set()
+            for key_node, _ in node.value:
+                key = self.construct_object(key_node, deep=True)
+                if isinstance(key, typing.Hashable):
+                    if key in seen:
+                        raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}",
+                                                                key_node.start_mark)
+                    seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: str | Path, where: str) -> Any:
+    """Parse a YAML file with :class:`StrictLoader`: at most :data:`MAX_YAML_BYTES`, UTF-8, no
+    aliases, no duplicate keys. Raises SpotError starting with ``where`` (e.g. ``config file 'x'``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpotError(f"{where} does not exist")
+    size = path.stat().st_size
+    if size > MAX_YAML_BYTES:
+        raise SpotError(f"{where}: {size} bytes; expected a YAML file of at most {MAX_YAML_BYTES} bytes")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise SpotError(f"{where}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
+    except OSError as e:
+        raise SpotError(f"{where}: cannot be read ({e.strerror})") from None
+    try:
+        return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as e:
+        raise SpotError(f"{where}: not valid YAML: {yaml_problem(e)}") from None
+
+
+def yaml_problem(error: yaml.YAMLError) -> str:
+    """A PyYAML error on one line: the problem and where (PyYAML's own text quotes the source)."""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    context = getattr(error, "context", None)
+    mark = getattr(error, "problem_mark", None)
+    where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+    return f"{context + ': ' if context else ''}{problem}{where}"
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML run config into a flat dict (keys checked, values not yet coerced)."""
     path = Path(path)
-    if not path.is_file():
-        raise SpotError(f"config file '{path}' does not exist")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise SpotError(f"config file '{path}': not valid YAML ({e})") from None
+    data = read_yaml(path, f"config file '{path}'") or {}
     return _check_keys(_flatten_yaml(data, f"config file '{path}'"), f"config file '{path}'")
 
 
@@ -537,7 +614,7 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
             raise SpotError(f"override '{item}': expected KEY=VALUE, e.g. iql.steps=1000")
         key, text = item.split("=", 1)
         try:
-            value = yaml.safe_load(text) if text.strip() else ""
+            value = yaml.load(text, Loader=StrictLoader) if text.strip() else ""  # noqa: S506
         except yaml.YAMLError:
             value = text
         flat[key.strip()] = value if value is not None else ""
@@ -570,6 +647,7 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
     """Rules between fields, checked when a config is resolved (so `spot sweep` rejects a bad
     trial before launch). Returns ``cfg``; raises :class:`spot.SpotError` naming the keys."""
     kind = cfg.reward.kind
+    _rule(bool(cfg.tracking.experiment.strip()), "tracking.experiment is empty; expected an MLflow experiment name")
     _rule(cfg.shaping.kind == "none" or kind == "pt",
           f"shaping.kind={cfg.shaping.kind!r} needs reward.kind=pt (subgoals come from PT attention); "
           f"got reward.kind={kind!r}")

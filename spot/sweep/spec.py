@@ -19,8 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from spot import SpotError
 from spot import config as config_lib
 
@@ -206,12 +204,7 @@ def _table(value: Any, where: str) -> int | None:
 
 
 def _read(path: Path, where: str) -> dict[str, Any]:
-    if not path.is_file():
-        raise SpotError(f"{where} does not exist")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise SpotError(f"{where}: not valid YAML ({e})") from None
+    data = config_lib.read_yaml(path, where)  # size-bounded, UTF-8, no aliases, no duplicate keys
     if not isinstance(data, dict):
         raise SpotError(f"{where}: expected a mapping with keys {', '.join(SWEEP_KEYS)}")
     _check_known(data, SWEEP_KEYS, where, "")
