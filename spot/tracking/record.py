@@ -404,6 +404,8 @@ def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> No
 def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[str, str]:
     """MLflow's own run fields as tags: description, source name and type, git commit."""
     command = command_line()
+    if COMMAND_ENV not in os.environ and Path(sys.argv[0]).name == "default_worker.py" and tags.get("sweep_name"):
+        command = f"spot sweep (a trial of sweep {tags['sweep_name']}; Ray worker)"  # a cluster's worker
     out = {"mlflow.note.content": description(cfg, tags, command), "mlflow.source.name": command,
            "mlflow.source.type": "LOCAL"}
     commit = commit_hash()
