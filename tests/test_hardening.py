@@ -83,35 +83,50 @@ def _runs(db: Path, experiment: str = "gated") -> list:
     return client.search_runs([exp.experiment_id], max_results=1000)
 
 
-@pytest.fixture(scope="module")
-def sigtermed(tmp_path_factory):
-    """A gated sweep: its listening sockets while both trials run, then SIGTERM to its process
-    group, then ``--resume`` with the gate open."""
-    root = tmp_path_factory.mktemp("gated")
+def _gated_launch(root: Path, cmd: list[str], log: Path, stop: int, to_group: bool) -> tuple[int, list]:
+    """Launch, wait until two trials hold at the gate, list the sockets, send ``stop``; return
+    the exit code and the sockets."""
     gate = root / "gate"
-    gate.mkdir()
-    (gate / "hold").touch()
-    (root / "gated.yaml").write_text(GATED_SWEEP)
-    cmd = [sys.executable, str(HERE / "sweep_driver.py"), str(gate), "gated.yaml"]
-    log = root / "launch.log"
+    for old in gate.glob("started-*"):
+        old.unlink()
     with open(log, "wb") as out:
         proc = subprocess.Popen(cmd, cwd=root, env=_env(root), stdout=out, stderr=subprocess.STDOUT,
                                 start_new_session=True)
         try:
             _wait_for(lambda: len(list(gate.glob("started-*"))) >= 2, 300, proc, log, "two running trials")
             sockets = _listening(proc.pid)
-            os.killpg(proc.pid, signal.SIGTERM)
-            rc = proc.wait(120)
+            if to_group:
+                os.killpg(proc.pid, stop)
+            else:
+                os.kill(proc.pid, stop)
+            return proc.wait(120), sockets
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
-    killed_runs = _runs(root / "spot_runs" / "mlflow.db")
-    (gate / "hold").unlink()
+
+
+@pytest.fixture(scope="module")
+def sigtermed(tmp_path_factory):
+    """A gated sweep: its listening sockets while both trials run, then SIGTERM to its process
+    group; ``--resume`` with the gate still closed, stopped by SIGINT (Ctrl-C) to the driver; then
+    ``--resume`` with the gate open."""
+    root = tmp_path_factory.mktemp("gated")
+    (root / "gate").mkdir()
+    (root / "gate" / "hold").touch()
+    (root / "gated.yaml").write_text(GATED_SWEEP)
+    cmd = [sys.executable, str(HERE / "sweep_driver.py"), str(root / "gate"), "gated.yaml"]
+    db = root / "spot_runs" / "mlflow.db"
+    rc, sockets = _gated_launch(root, cmd, root / "launch.log", signal.SIGTERM, to_group=True)
+    killed_runs = _runs(db)
+    rc_int, _ = _gated_launch(root, [*cmd, "--resume"], root / "resume1.log", signal.SIGINT, to_group=False)
+    interrupted_runs = _runs(db)
+    (root / "gate" / "hold").unlink()
     resumed = subprocess.run([*cmd, "--resume"], cwd=root, env=_env(root), capture_output=True, text=True,
                              timeout=400)
-    return {"root": root, "rc": rc, "log": log.read_text(), "sockets": sockets, "killed_runs": killed_runs,
-            "resumed": resumed, "final_runs": _runs(root / "spot_runs" / "mlflow.db")}
+    return {"root": root, "rc": rc, "log": (root / "launch.log").read_text(), "sockets": sockets,
+            "killed_runs": killed_runs, "rc_int": rc_int, "log_int": (root / "resume1.log").read_text(),
+            "interrupted_runs": interrupted_runs, "resumed": resumed, "final_runs": _runs(db)}
 
 
 @pytest.mark.slow
@@ -138,6 +153,18 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
     for r in [parent, *children]:
         assert r.data.tags["spot.host"] == socket.gethostname() and r.data.tags["spot.pid"].isdigit()
     assert "launch stopped by SIGTERM" in sigtermed["log"] and "--resume" in sigtermed["log"]
+
+
+@pytest.mark.slow
+def test_sigint_closes_runs_killed_and_exits_130(sigtermed):
+    assert sigtermed["rc_int"] == 130, sigtermed["log_int"][-4000:]
+    assert "resuming launch gated-" in sigtermed["log_int"]
+    runs = sigtermed["interrupted_runs"]
+    assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
+    (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
+    assert parent.info.status == "KILLED"
+    cut = [r for r in runs if "trial_key" in r.data.tags and r.data.tags.get("failure_reason") == "launch interrupted"]
+    assert len(cut) >= 2 and all(r.info.status == "KILLED" for r in cut)
 
 
 @pytest.mark.slow
