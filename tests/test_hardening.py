@@ -422,3 +422,35 @@ def test_runs_started_at_once_on_a_new_store_all_land(tmp_path):
     assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(outs)
     runs = _runs(db, "two-at-once")
     assert len(runs) == 3 and all(r.info.status == "FINISHED" for r in runs)
+
+
+HANGING_RUN = """
+import sys, time
+from spot import config, tracking
+cfg = config.resolve({"tracking.uri": sys.argv[1], "tracking.experiment": "e"})
+with tracking.start_run(cfg, {"name": "x"}, system_metrics=False) as tracker:
+    print(tracker.run_id, flush=True)
+    time.sleep(300)
+"""
+
+
+def test_a_run_whose_process_was_killed_is_closed_by_the_next_run(tmp_path):
+    """kill -9 of a process inside an open run (as of `spot run`), then a new run on the store."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import config, tracking
+
+    uri = sqlite_uri(tmp_path / "m.db")
+    proc = subprocess.Popen([sys.executable, "-c", HANGING_RUN, uri], stdout=subprocess.PIPE, text=True)
+    orphan = proc.stdout.readline().strip()
+    proc.kill()
+    proc.wait()
+    client = MlflowClient(uri)
+    assert client.get_run(orphan).info.status == "RUNNING"
+    cfg = config.resolve({"tracking.uri": uri, "tracking.experiment": "e"})
+    with tracking.start_run(cfg, {"name": "x"}, system_metrics=False):
+        pass
+    run = client.get_run(orphan)
+    assert run.info.status == "KILLED"
+    assert run.data.tags["failure_reason"] == (f"process {proc.pid} on {socket.gethostname()} ended without "
+                                               "closing the run (closed by a later command)")
