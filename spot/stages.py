@@ -476,7 +476,7 @@ def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Polic
 
     from spot.policy import iql
 
-    data = iql.transitions_from(ctx.ds, shaped.reward)
+    data = jax.device_put(ctx.ds.transitions(shaped.reward))
     init_key, _ = jax.random.split(ctx.keys["policy"])
     state = iql.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, ctx.cfg.iql)
     return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), lambda key: (data, key))
@@ -486,10 +486,10 @@ def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
     """IPL: the critic's implied reward is trained on the preferences (no reward model)."""
     import jax
 
-    from spot.policy import ipl, iql
+    from spot.policy import ipl
 
     cfg = ctx.cfg
-    data = iql.transitions_from(ctx.ds, shaped.reward)
+    data = jax.device_put(ctx.ds.transitions(shaped.reward))
     init_key, _ = jax.random.split(ctx.keys["policy"])
     feedback = ipl.feedback_from(labelled.train_batch)
     state = ipl.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, cfg.iql)

@@ -235,7 +235,7 @@ def test_implied_reward_ranks_held_out_segments_of_local_hopper(spot_dirs):
     ipl_cfg = IPLConfig(subsample=16, feedback_batch=8)
     init = ipl.evaluate_preferences(ipl.init_state(jax.random.key(0), ds.obs_dim, ds.act_dim, iql_cfg),
                                     held, iql_cfg, ipl_cfg)
-    state, history = ipl.train_ipl(jax.random.key(0), iql.transitions_from(ds), feedback, iql_cfg, ipl_cfg)
+    state, history = ipl.train_ipl(jax.random.key(0), jax.device_put(ds.transitions()), feedback, iql_cfg, ipl_cfg)
     assert ipl.make_train_chunk(iql_cfg, ipl_cfg)._cache_size() == 1  # two chunks with replay, one program
     final = ipl.evaluate_preferences(state, held, iql_cfg, ipl_cfg)
     assert len(held_q) == 60 and len(history) == 2

@@ -16,7 +16,6 @@ import pytest
 
 from spot import NonFiniteError, loop
 from spot.config import IQLConfig
-from spot.data.dataset import raw_from_episodes
 from spot.policy import iql
 
 CFG = IQLConfig(hidden=(32, 32), batch_size=128, steps=1200, chunk=400, discount=0.9,
@@ -111,22 +110,6 @@ def test_check_finite_raises_with_step_and_name():
         loop.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)
     assert err.value.step == 400 and err.value.loss_name == "iql/critic_loss"
     assert loop.check_finite({"iql/value_loss": jnp.float32(1.0), "iql/adv_max": jnp.inf}, 1)
-
-
-def test_transitions_from_dataset():
-    episode = {
-        "observations": np.arange(6, dtype=np.float64).reshape(3, 2), "actions": np.ones((3, 1)),
-        "rewards": np.array([1.0, 2.0, 3.0]), "next_observations": np.arange(2, 8).reshape(3, 2),
-        "terminals": np.array([False, False, True]), "timeouts": np.zeros(3, bool),
-    }
-    ds = raw_from_episodes([episode, episode], "hand").qlearning()  # 5 rows: the last is dropped
-    data = iql.transitions_from(ds, rewards=-ds.rewards)
-    assert all(x.dtype == jnp.float32 for x in data)
-    np.testing.assert_array_equal(data.mask, [1, 1, 0, 1, 1])
-    np.testing.assert_array_equal(data.rew, [-1, -2, -3, -1, -2])
-    np.testing.assert_array_equal(iql.transitions_from(ds).rew, ds.rewards)
-    with pytest.raises(ValueError, match="rewards"):
-        iql.transitions_from(ds, rewards=np.zeros(3))
 
 
 # --------------------------------------------------------------------------- update and chunk

@@ -37,7 +37,7 @@ def test_reward_models_rank_held_out_segments_of_local_hopper(kind, spot_dirs):
 def test_iql_beats_random_policy_on_local_hopper(spot_dirs):
     ds, _ = registry.load("hopper-medium-replay", "small", 0, progress=False)
     cfg = config.load(None, ["iql.steps=10000", "iql.chunk=500", "iql.hidden=[128,128]"]).iql
-    data = iql.transitions_from(ds, normalize_rewards(ds.rewards, ds, "iql"))
+    data = jax.device_put(ds.transitions(normalize_rewards(ds.rewards, ds, "iql")))
     state = iql.init_state(jax.random.key(1), ds.obs_dim, ds.act_dim, cfg)
     chunk = iql.make_train_chunk(cfg)
     for c in range(cfg.steps // cfg.chunk):

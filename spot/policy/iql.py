@@ -60,7 +60,6 @@ from typing import Any, NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
@@ -377,22 +376,3 @@ def act(actor_params: Params, obs: jax.Array, cfg: IQLConfig) -> jax.Array:
     act_dim = actor_params["params"]["log_std"].shape[-1]
     mean, _ = Actor(tuple(cfg.hidden), act_dim).apply(actor_params, jnp.asarray(obs, jnp.float32))
     return mean
-
-
-def transitions_from(ds: Any, rewards: np.ndarray | None = None) -> Transitions:
-    """Move a dataset's transitions to the device once, as float32.
-
-    Args:
-      ds: the ``qlearning`` view (:class:`spot.data.dataset.Dataset`).
-      rewards: ``[N]`` rewards to train on (e.g. relabelled); default the dataset's true reward.
-    """
-    rew = ds.rewards if rewards is None else np.asarray(rewards)
-    if rew.shape != (len(ds),):
-        raise ValueError(f"rewards have shape {rew.shape}; expected ({len(ds)},) like the dataset")
-    return Transitions(
-        obs=jnp.asarray(ds.observations, jnp.float32),
-        act=jnp.asarray(ds.actions, jnp.float32),
-        rew=jnp.asarray(rew, jnp.float32),
-        next_obs=jnp.asarray(ds.next_observations, jnp.float32),
-        mask=jnp.asarray(1.0 - ds.terminals.astype(np.float32), jnp.float32),
-    )
