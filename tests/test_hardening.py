@@ -454,3 +454,35 @@ def test_a_run_whose_process_was_killed_is_closed_by_the_next_run(tmp_path):
     assert run.info.status == "KILLED"
     assert run.data.tags["failure_reason"] == (f"process {proc.pid} on {socket.gethostname()} ended without "
                                                "closing the run (closed by a later command)")
+
+
+# --------------------------------------------------------------------------- unreachable services, resources
+def test_unreachable_tracking_server_and_ray_address_are_clear_errors(tmp_path, squatter):
+    from conftest import run_cli
+
+    from spot.mlflow_server import free_port
+
+    (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
+    dead = f"http://127.0.0.1:{free_port()}"
+    out = run_cli("sweep", "gated.yaml", "--tracking-uri", dead, cwd=tmp_path, env=_env(tmp_path), timeout=60)
+    assert out.returncode == 2 and out.stderr.strip().splitlines() == [
+        f"error: tracking server {dead} does not answer ([Errno 111] Connection refused); start it, or pass "
+        "another --tracking-uri"], out.stderr
+    env = {**_env(tmp_path), "RAY_ADDRESS": f"127.0.0.1:{free_port()}"}
+    out = run_cli("sweep", "gated.yaml", "--tracking-uri", f"http://127.0.0.1:{squatter.port}", cwd=tmp_path,
+                  env=env, timeout=60)
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert out.stderr.strip().splitlines()[-1].startswith(f"error: nothing answers at the Ray address {env['RAY_ADDRESS']}")
+    assert not [r for r in squatter.requests if "runs" in r]
+
+
+def test_more_cpus_per_trial_than_the_cluster_has_is_refused_before_any_run(tmp_path, squatter):
+    from conftest import run_cli
+
+    (tmp_path / "big.yaml").write_text(GATED_SWEEP.replace("resources: {cpu: 1, gpu: 0}", "resources: {cpu: 512, gpu: 0}"))
+    out = run_cli("sweep", "big.yaml", "--tracking-uri", f"http://127.0.0.1:{squatter.port}", cwd=tmp_path,
+                  env=_env(tmp_path), timeout=300)
+    assert out.returncode == 2, out.stdout[-2000:] + out.stderr[-2000:]
+    assert out.stderr.strip().splitlines()[-1].startswith(
+        "error: sweep file 'big.yaml': resources.cpu = 512 per trial, but the largest node of the Ray cluster has")
+    assert [r for r in squatter.requests if "runs" in r] == []

@@ -87,7 +87,9 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
         raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
                         "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
     if uri and not uri.startswith("sqlite:"):
-        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: mlflow_server.check_reachable(uri))
+        if uri.startswith(("http://", "https://")):
+            mlflow_server.check_reachable(uri)  # before Ray starts: a clear error within seconds
+        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: None)
         return
     db = tracking.sqlite_path(uri) if uri else root / "mlflow.db"
     db.parent.mkdir(parents=True, exist_ok=True)
@@ -138,6 +140,7 @@ def _init_ray(address: str | None) -> bool:
                 "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true"}  # no "View run" lines in the progress view
     env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
     if address:
+        _check_ray_address(address)
         try:
             ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
         except (ConnectionError, RuntimeError, ValueError) as e:
@@ -158,16 +161,36 @@ def _init_ray(address: str | None) -> bool:
     return True
 
 
+def _check_ray_address(address: str) -> None:
+    """A ``host:port`` address must accept a TCP connection within 5 s (``ray.init`` would retry
+    for minutes); ``auto`` and ``ray://`` addresses are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if "://" in address or not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as e:
+        raise SpotError(f"nothing answers at the Ray address {address} ({e.strerror or e}); start the cluster, "
+                        "or check --address / RAY_ADDRESS") from None
+
+
 def _check_gpus(sweep: Sweep) -> None:
-    """Stop before any run is opened if trials ask for a GPU the Ray cluster does not have
-    (Tune would otherwise wait for it forever)."""
+    """Stop before any run is opened if trials ask for more GPUs or CPUs than the Ray cluster has
+    (Tune would otherwise wait for them forever)."""
     import ray
 
-    if sweep.resources["gpu"] > 0 and float(ray.cluster_resources().get("GPU", 0.0)) == 0:
+    have = ray.cluster_resources()
+    if sweep.resources["gpu"] > 0 and float(have.get("GPU", 0.0)) == 0:
         raise SpotError(
             f"sweep file '{sweep.path}': resources.gpu = {sweep.resources['gpu']:g} per trial, but the Ray "
             "cluster has no GPU; set resources: {gpu: 0} (--smoke uses no GPU unless its block asks), or "
             "give --address of a cluster with GPUs")
+    nodes_cpus = [float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes() if n.get("Alive")]
+    most = max(nodes_cpus, default=float(have.get("CPU", 0.0)))
+    if sweep.resources["cpu"] > most:
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the largest "
+            f"node of the Ray cluster has {most:g} CPUs; ask for at most {most:g}")
 
 
 # --------------------------------------------------------------------------- Tune
@@ -525,9 +548,12 @@ def _launch(sweep: Sweep, path: str | Path, state_file: Path, root: Path, *, smo
     if address and not tracking.given_uri(tracking_uri):
         print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
               "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
-    if run_fn is None:
-        prebuild_datasets(sweep)
-    with _tracking_store(tracking_uri, root) as store:
+    if not address and sweep.resources["cpu"] > (os.cpu_count() or 1):  # before datasets are built
+        raise SpotError(f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the "
+                        f"largest node of the Ray cluster has {os.cpu_count()} CPUs; ask for at most {os.cpu_count()}")
+    with _tracking_store(tracking_uri, root) as store:  # a served store starts while datasets build
+        if run_fn is None:
+            prebuild_datasets(sweep)
         client, ctx, errors, interrupted = _run_launch(
             sweep, store, state, state_file, resume=resume, retry_errored=retry_errored, address=address,
             max_concurrent=max_concurrent or sweep.max_concurrent, run_fn=run_fn, resume_command=command)
