@@ -58,6 +58,10 @@ CASES = [
      "config key 'iql.lr': value nan is not a finite number"),
     ("sweep-empty-layers", ["sweep", "s.yaml"], {"s.yaml": SWEEP + "grid: {iql.hidden: [[], [64]]}\n"},
      "config key 'iql.hidden': value []: expected one or more layer sizes"),
+    ("sweep-ftp-store", ["sweep", "s.yaml", "--tracking-uri", "ftp://host/x"], {"s.yaml": SWEEP + "grid: {iql.lr: [0.1]}\n"},
+     "tracking URI 'ftp://host/x': a sweep logs to sqlite:///path.db"),
+    ("sweep-sqlite-two-slashes", ["sweep", "s.yaml", "--tracking-uri", "sqlite://x.db"],
+     {"s.yaml": SWEEP + "grid: {iql.lr: [0.1]}\n"}, "tracking URI 'sqlite://x.db': a sweep logs to"),
     ("sweep-huge-seed", ["sweep", "s.yaml"], {"s.yaml": SWEEP + "grid: {iql.lr: [0.1]}\nseeds: [1.0e+30]\n"},
      "sweep file 's.yaml'"),
 ]

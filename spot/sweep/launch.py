@@ -73,6 +73,24 @@ class _Store:
         return self.get_uri()
 
 
+_SWEEP_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks", "databricks-uc")
+
+
+def _check_tracking_uri(uri: str) -> str:
+    """``uri`` if a sweep can log there (``""``: the default store); SpotError otherwise."""
+    from spot import mlflow_server, tracking
+
+    if uri and mlflow_server.is_local_store(uri) and not uri.startswith("sqlite:"):
+        raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
+                        "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
+    scheme = uri.split("://", 1)[0].split("+", 1)[0].lower() if "://" in uri else ""
+    if uri and (scheme not in _SWEEP_SCHEMES or (scheme == "sqlite" and tracking.sqlite_path(uri) is None)):
+        raise SpotError(f"tracking URI '{uri}': a sweep logs to sqlite:///path.db (spot serves it), an "
+                        "http(s)://host:port tracking server, or a database MLflow supports "
+                        "(postgresql://, mysql://, mssql://) or databricks://")
+    return uri
+
+
 @contextlib.contextmanager
 def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     """The tracking store of a launch; a SQLite store is served by a loopback server.
@@ -82,10 +100,7 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     """
     from spot import mlflow_server, tracking
 
-    uri = tracking.given_uri(uri)
-    if uri and mlflow_server.is_local_store(uri) and not uri.startswith("sqlite:"):
-        raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
-                        "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
+    uri = _check_tracking_uri(tracking.given_uri(uri))
     if uri and not uri.startswith("sqlite:"):
         if uri.startswith(("http://", "https://")):
             mlflow_server.check_reachable(uri)  # before Ray starts: a clear error within seconds
@@ -492,6 +507,7 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
     if max_concurrent is not None and (isinstance(max_concurrent, bool) or max_concurrent < 1):
         raise SpotError(f"--max-concurrent {max_concurrent}: expected a positive number of trials")
     sweep = load(path, smoke=smoke)
+    _check_tracking_uri(tracking.given_uri(tracking_uri))  # before anything is written
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
     state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
     with _launch_lock(state_file, sweep.experiment):
