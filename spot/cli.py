@@ -18,12 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from spot import NonFiniteError, SpotError
+from spot.data import registry
 
 
 # --------------------------------------------------------------------------- data
 def _data_list(args: argparse.Namespace) -> None:
-    from spot.data import registry
-
     print(f"{'name':28s} {'family':11s} description")
     for e in registry.REGISTRY.values():
         print(f"{e.name:28s} {e.family:11s} {e.description}")
@@ -36,8 +35,6 @@ def _data_list(args: argparse.Namespace) -> None:
 
 
 def _data_build(args: argparse.Namespace) -> None:
-    from spot.data import registry
-
     path = registry.build(args.name, args.size, args.data_seed, force=args.force, progress=not args.quiet)
     card = registry.read_card(path)
     print(f"built {path}")
@@ -45,8 +42,6 @@ def _data_build(args: argparse.Namespace) -> None:
 
 
 def _data_info(args: argparse.Namespace) -> None:
-    from spot.data import registry
-
     as_path = Path(args.name)
     if not as_path.exists():
         registry.entry(args.name)  # unknown names fail here, before any build
@@ -123,8 +118,6 @@ def _labels_make(args: argparse.Namespace) -> None:
     """The queries `spot run` would make with the same config: the labels settings are resolved like
     a run's (defaults < method < budget < suite preset < --config file < overrides and flags)."""
     from spot import config, stages
-    from spot.data import registry
-
     flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
     cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])
     ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
@@ -316,8 +309,6 @@ def _figures(args: argparse.Namespace) -> None:
     if args.cvae:
         if not args.dataset:
             raise SpotError("--cvae needs --dataset (the transitions to generate subgoals for)")
-        from spot.data import registry
-
         params = figures.load_cvae(args.cvae)
         ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
     if args.figure == "fig3":
@@ -326,8 +317,6 @@ def _figures(args: argparse.Namespace) -> None:
                 raise SpotError("--pairs needs --env (e.g. Hopper-v5 or hopper-medium-expert)")
             obs, goal = figures.pairs_from_file(args.pairs)
         elif args.run_id and args.index:  # the run's CVAE on the run's dataset (or --dataset)
-            from spot.data import registry
-
             params, cfg, head = figures.cvae_from_run(args.run_id, args.tracking_uri)
             if args.dataset:
                 ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
@@ -402,7 +391,7 @@ def _quiet(d: argparse.ArgumentParser) -> None:
 
 
 _URI_HELP = "MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db)"
-_SIZES = ("tiny", "small", "paper")
+_SIZES = registry.SIZES
 
 
 def _version() -> str:
@@ -417,8 +406,6 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from spot.config import IQL_ORDERS, IQLConfig
-
     p = argparse.ArgumentParser(
         prog="spot", description="Offline preference-based RL: SPOT and baselines.", formatter_class=_Formatter,
         epilog="examples:\n  spot sweep sweeps/quickstart.yaml --smoke\n  spot run configs/quickstart.yaml method=pt\n"
@@ -426,6 +413,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+    for add in (_add_data, _add_labels, _add_run, _add_sweep, _add_tables, _add_figures):
+        add(sub)
+    return p
+
+
+def _add_data(sub: Any) -> None:
+    """The data: list, build, info, fetch commands."""
     data = sub.add_parser("data", help="list, build, inspect and fetch datasets").add_subparsers(
         dest="sub", required=True, metavar="SUB")
     d = _parser(data, "list", "registered datasets and what is built", "spot data list")
@@ -463,6 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
     _quiet(d)
     d.set_defaults(fn=_data_fetch)
 
+
+def _add_labels(sub: Any) -> None:
+    """The labels: make, info commands."""
     lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(
         dest="sub", required=True, metavar="SUB")
     d = _parser(lab, "make", "the preference queries `spot run` would make on a dataset -> .npz",
@@ -497,6 +494,11 @@ def build_parser() -> argparse.ArgumentParser:
     _quiet(d)
     d.set_defaults(fn=_labels_info)
 
+
+def _add_run(sub: Any) -> None:
+    """The run, eval, bench commands."""
+    from spot.config import IQL_ORDERS, IQLConfig
+
     d = _parser(sub, "run", "one run (one seed) end to end, logged to MLflow",
                 "spot run configs/quickstart.yaml method=spot seed=1\n"
                 "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000",
@@ -529,6 +531,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
     d.set_defaults(fn=_bench)
 
+
+def _add_sweep(sub: Any) -> None:
+    """The sweep, config commands."""
     d = _parser(sub, "sweep", "run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
                 "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/table1.yaml --address auto --max-concurrent 8",
                 description="Run a sweep file with Ray Tune, one MLflow run per (config, seed). Exit code 0 "
@@ -552,15 +557,20 @@ def build_parser() -> argparse.ArgumentParser:
     d = _parser(cfg, "keys", "every config key with type, help and valid values", "spot config keys | grep '^iql'")
     d.set_defaults(fn=_config_keys)
 
+
+def _add_tables(sub: Any) -> None:
+    """The tables, results, report commands."""
+    from spot import tables
+
     d = _parser(sub, "tables", "a paper table from the MLflow runs, the paper's numbers beside ours",
                 "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex")
-    d.add_argument("--table", type=int, required=True, choices=(1, 2, 3, 4, 7, 8), help="paper table")
+    d.add_argument("--table", type=int, required=True, choices=tables.TABLES, help="paper table")
     d.add_argument("--experiment", action="append",
                    help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
-    d.add_argument("--format", default="md", choices=("md", "latex", "csv"), help="output format")
+    d.add_argument("--format", default="md", choices=tables.FORMATS, help="output format")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
     d.add_argument("--allow-mixed", action="store_true", help="average cells whose runs differ in more than the seed")
     d.add_argument("--out", help="write the table to this file instead of printing it")
@@ -587,6 +597,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", help="write the report (Markdown) to this file instead of printing it")
     d.set_defaults(fn=_report)
 
+
+def _add_figures(sub: Any) -> None:
+    """The figures: fig2, fig3, fig4 commands."""
     figs = sub.add_parser("figures", help="the paper's figures 2, 3 and 4 from runs").add_subparsers(
         dest="figure", required=True, metavar="FIGURE")
     d = _parser(figs, "fig2", "extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD",
@@ -620,7 +633,6 @@ def build_parser() -> argparse.ArgumentParser:
         _data_seed(d)
     for d in figs.choices.values():
         d.set_defaults(fn=_figures)
-    return p
 
 
 def main(argv: list[str] | None = None) -> int:
