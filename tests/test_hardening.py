@@ -402,6 +402,7 @@ import sys, time
 from pathlib import Path
 from spot import config, tracking
 go = Path(sys.argv[2])
+print("ready", flush=True)
 while not go.exists():
     time.sleep(0.01)
 cfg = config.resolve({"tracking.uri": sys.argv[1], "tracking.experiment": "two-at-once"})
@@ -415,13 +416,13 @@ def test_runs_started_at_once_on_a_new_store_all_land(tmp_path):
     db = tmp_path / "new" / "mlflow.db"
     go = tmp_path / "go"
     procs = [subprocess.Popen([sys.executable, "-c", CONCURRENT_RUN, sqlite_uri(db), str(go)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(3)]
-    time.sleep(8)  # every process imported spot and waits at the gate
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+    assert [p.stdout.readline().strip() for p in procs] == ["ready", "ready"]  # both wait at the gate
     go.touch()
     outs = [p.communicate(timeout=300)[0] for p in procs]
-    assert [p.returncode for p in procs] == [0, 0, 0], "\n".join(outs)
+    assert [p.returncode for p in procs] == [0, 0], "\n".join(outs)
     runs = _runs(db, "two-at-once")
-    assert len(runs) == 3 and all(r.info.status == "FINISHED" for r in runs)
+    assert len(runs) == 2 and all(r.info.status == "FINISHED" for r in runs)
 
 
 HANGING_RUN = """
