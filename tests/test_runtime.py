@@ -62,3 +62,66 @@ def test_configure_after_jax_started_without_the_flag_is_an_error():
 def test_the_test_session_is_configured():
     """conftest.py's ``pytest_configure`` ran ``configure()`` before the tests imported jax."""
     assert runtime.YNN_FLAG in os.environ["XLA_FLAGS"].split()
+
+
+# --------------------------------------------------------------------------- JAX compilation cache
+_TRAIN_AND_COUNT = """
+import json, os
+from spot import runtime
+settings = runtime.configure()
+import jax, numpy as np
+hits = []
+jax.monitoring.register_event_listener(lambda name, **kw: hits.append(name) if name.endswith("cache_hits") else None)
+from spot.batches import Transitions
+from spot.config import IQLConfig
+from spot.policy import iql
+cfg = IQLConfig(hidden=(16, 16), batch_size=8, steps=20, chunk=10)
+rng = np.random.default_rng(0)
+data = Transitions(*(rng.normal(size=s).astype(np.float32) for s in ((64, 3), (64, 2), (64,), (64, 3))),
+                   np.ones(64, np.float32))
+state = iql.init_state(jax.random.key(1), 3, 2, cfg)
+state, metrics = iql.make_train_chunk(cfg)(state, 10, data, jax.random.key(2))
+print(json.dumps({"settings": settings, "hits": len(hits), "critic_loss": float(metrics["iql/critic_loss"]),
+                  "q": np.asarray(iql.act(state.actor.params, np.ones((1, 3)), cfg)).tolist()}))
+"""
+
+
+def _cache_env(tmp_path: Path, **extra: str) -> dict[str, str]:
+    env = {k: v for k, v in _clean_env().items() if not k.startswith("JAX_") and k != runtime.JAX_CACHE_SWITCH}
+    return {**env, "SPOT_CACHE_DIR": str(tmp_path / "cache"), **extra}
+
+
+def test_a_second_process_loads_the_programs_the_first_compiled(tmp_path):
+    """The persistent compilation cache under $SPOT_CACHE_DIR/jax/jax-<version>: the first process
+    writes its programs there, the second finds them (jax's cache-hit events) and computes the same
+    numbers. The min compile time is the user's 0 here (kept over spot's default), so that every
+    program of this tiny run is cached."""
+    env = _cache_env(tmp_path, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
+    first = _python(_TRAIN_AND_COUNT, env)
+    assert first.returncode == 0, first.stderr[-3000:]
+    a = json.loads(first.stdout.strip().splitlines()[-1])
+    folder = Path(a["settings"]["JAX_COMPILATION_CACHE_DIR"])
+    assert folder.parent == tmp_path / "cache" / "jax" and folder.name.startswith("jax-")
+    assert a["settings"]["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "0"
+    written = sorted(p.name for p in folder.iterdir())
+    assert written and a["hits"] == 0
+    second = _python(_TRAIN_AND_COUNT, env)
+    assert second.returncode == 0, second.stderr[-3000:]
+    b = json.loads(second.stdout.strip().splitlines()[-1])
+    assert b["hits"] >= 3  # the three network inits, the train chunk and act at least
+    assert (b["critic_loss"], b["q"]) == (a["critic_loss"], a["q"])
+    assert sorted(p.name for p in folder.iterdir()) == written  # nothing new to compile
+
+
+def test_the_compilation_cache_switch(tmp_path):
+    code = "import json, os\nfrom spot import runtime\nprint(json.dumps(runtime.configure()))"
+    on = json.loads(_python(code, _cache_env(tmp_path)).stdout.strip().splitlines()[-1])
+    assert on["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == runtime.MIN_COMPILE_S
+    assert on["JAX_COMPILATION_CACHE_DIR"].startswith(str(tmp_path / "cache" / "jax" / "jax-"))
+    mine = json.loads(_python(code, _cache_env(tmp_path, JAX_COMPILATION_CACHE_DIR="/tmp/mine")).stdout.strip()
+                      .splitlines()[-1])
+    assert mine["JAX_COMPILATION_CACHE_DIR"] == "/tmp/mine"  # the user's folder is kept
+    off = json.loads(_python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="0")).stdout.strip().splitlines()[-1])
+    assert "JAX_COMPILATION_CACHE_DIR" not in off and set(off) == {"XLA_FLAGS", "MUJOCO_GL"}
+    bad = _python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="maybe"))
+    assert bad.returncode != 0 and "SPOT_JAX_CACHE='maybe': expected 1 or 0" in bad.stderr

@@ -97,8 +97,8 @@ def configure_process(cpus: int, gpus: float) -> None:
 
     One CPU: ``--xla_cpu_multi_thread_eigen=false`` (jax #4290). A fractional GPU: memory fraction
     ``0.9 * gpu`` (JAX preallocates 75% otherwise, so two trials on one GPU would run out).
-    ``JAX_COMPILATION_CACHE_DIR`` defaults to a cache shared by the node's trials:
-    ``$SPOT_CACHE_DIR/jax`` when ``SPOT_CACHE_DIR`` is set, else ``~/.cache/spot/jax``.
+    The persistent compilation cache the node's trials share is set by
+    :func:`spot.runtime.configure`, called just before.
     """
     if "jax" in sys.modules:
         warnings.warn("jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
@@ -110,9 +110,6 @@ def configure_process(cpus: int, gpus: float) -> None:
         fraction = f"{0.9 * gpus:.3f}"
         os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", fraction)
         os.environ.setdefault("XLA_CLIENT_MEM_FRACTION", fraction)
-    cache_root = Path(os.environ["SPOT_CACHE_DIR"]).expanduser() if os.environ.get("SPOT_CACHE_DIR") else (
-        Path.home() / ".cache" / "spot")
-    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(cache_root / "jax"))
 
 
 # --------------------------------------------------------------------------- the runs of a trial
