@@ -76,8 +76,9 @@ def check_reachable(uri: str, timeout: float = 10.0) -> None:
         return  # it answers (behind authentication, or a proxy without /health)
     except (urllib.error.URLError, OSError, ValueError) as e:
         reason = getattr(e, "reason", e)
-        raise SpotError(f"tracking server {uri} does not answer ({reason}); start it, or pass another "
-                        "--tracking-uri") from None
+        raise SpotError(
+            f"tracking server {uri} does not answer ({reason}); start it, or pass another --tracking-uri"
+        ) from None
 
 
 def ui_command(backend_uri: str, artifacts: Path) -> str:
@@ -102,8 +103,15 @@ class MlflowServer:
       log_path: file for the server's stdout/stderr (default ``<artifacts>/../mlflow-server.log``).
     """
 
-    def __init__(self, backend_uri: str, artifacts: Path, *, host: str = "127.0.0.1",
-                 port: int | None = None, log_path: Path | None = None) -> None:
+    def __init__(
+        self,
+        backend_uri: str,
+        artifacts: Path,
+        *,
+        host: str = "127.0.0.1",
+        port: int | None = None,
+        log_path: Path | None = None,
+    ) -> None:
         self.backend_uri = backend_uri
         self.artifacts = artifacts.resolve()
         self.host = host
@@ -146,13 +154,32 @@ class MlflowServer:
         MlflowClient(self.backend_uri).set_experiment_tag("0", NONCE_TAG + self.nonce, self.nonce)
 
     def _spawn(self) -> None:
-        cmd = [sys.executable, "-m", "mlflow", "server", "--host", self.host, "--port", str(self.port),
-               "--workers", "1", "--backend-store-uri", self.backend_uri,
-               "--artifacts-destination", str(self.artifacts)]
+        cmd = [
+            sys.executable,
+            "-m",
+            "mlflow",
+            "server",
+            "--host",
+            self.host,
+            "--port",
+            str(self.port),
+            "--workers",
+            "1",
+            "--backend-store-uri",
+            self.backend_uri,
+            "--artifacts-destination",
+            str(self.artifacts),
+        ]
         self._log_start = self.log_path.stat().st_size if self.log_path.exists() else 0
         with open(self.log_path, "ab") as log:
-            self._proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=self.server_env(),
-                                          start_new_session=True, preexec_fn=_die_with_parent)
+            self._proc = subprocess.Popen(
+                cmd,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=self.server_env(),
+                start_new_session=True,
+                preexec_fn=_die_with_parent,
+            )
 
     def wait_ready(self, timeout: float = 120.0) -> None:
         """Wait until the server answers ``/health`` and knows this start's nonce.
@@ -173,8 +200,7 @@ class MlflowServer:
             taken.append(problem)
             self.stop()
             self.port = free_port(self.host)
-            print(f"note: {problem}; starting the mlflow server again on port {self.port}",
-                  file=sys.stderr, flush=True)
+            print(f"note: {problem}; starting the mlflow server again on port {self.port}", file=sys.stderr, flush=True)
             self._spawn()
         self.stop()
         raise SpotError("could not start the mlflow server on a port of its own: " + "; ".join(taken))
@@ -188,17 +214,23 @@ class MlflowServer:
                 tail = self._log_tail(since=self._log_start)
                 if "address already in use" in tail.lower():
                     return f"port {self.port} was taken by another process before the server bound it"
-                raise SpotError(f"mlflow server exited with code {self._proc.returncode} before it was "
-                                f"ready; its log ({self.log_path}) ends with:\n{tail}")
+                raise SpotError(
+                    f"mlflow server exited with code {self._proc.returncode} before it was "
+                    f"ready; its log ({self.log_path}) ends with:\n{tail}"
+                )
             if self.healthy():
                 if self.served_nonce() == self.nonce:
                     return None
-                return (f"port {self.port} answers /health but not as the server spot started (it does not "
-                        "know this start's nonce)")
+                return (
+                    f"port {self.port} answers /health but not as the server spot started (it does not "
+                    "know this start's nonce)"
+                )
             time.sleep(0.5)
         self.stop()
-        raise SpotError(f"mlflow server on {self.uri} did not answer /health within {timeout:.0f} s; "
-                        f"its log ({self.log_path}) ends with:\n{self._log_tail()}")
+        raise SpotError(
+            f"mlflow server on {self.uri} did not answer /health within {timeout:.0f} s; "
+            f"its log ({self.log_path}) ends with:\n{self._log_tail()}"
+        )
 
     def served_nonce(self) -> str | None:
         """The nonce tag of experiment 0 as the process on :attr:`uri` reports it (None if it
@@ -254,6 +286,7 @@ class MlflowServer:
         self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
         self.stop()

@@ -18,13 +18,15 @@ from pathlib import Path
 from typing import Any
 
 
-def stand_in_run(cfg: Any, *, progress: bool, parent_run_id: str | None, extra_tags: dict[str, str],
-                 on_eval: Any, gate: str = "") -> dict[str, Any]:
+def stand_in_run(
+    cfg: Any, *, progress: bool, parent_run_id: str | None, extra_tags: dict[str, str], on_eval: Any, gate: str = ""
+) -> dict[str, Any]:
     from spot import tracking
 
     folder = Path(gate)
-    with tracking.start_run(cfg, {"name": cfg.data.name}, extra_tags=extra_tags,
-                            parent_run_id=parent_run_id) as tracker:
+    with tracking.start_run(
+        cfg, {"name": cfg.data.name}, extra_tags=extra_tags, parent_run_id=parent_run_id
+    ) as tracker:
         (folder / f"started-{os.getpid()}-{extra_tags['trial_key']}").touch()
         deadline = time.monotonic() + 300
         while (folder / "hold").exists() and time.monotonic() < deadline:
@@ -39,6 +41,5 @@ if __name__ == "__main__":
     from spot import cli, sweep
 
     gate_dir, *argv = sys.argv[1:]
-    sweep.run_sweep = functools.partial(sweep.run_sweep,
-                                        run_fn=functools.partial(stand_in_run, gate=gate_dir))
+    sweep.run_sweep = functools.partial(sweep.run_sweep, run_fn=functools.partial(stand_in_run, gate=gate_dir))
     sys.exit(cli.main(["sweep", *argv]))

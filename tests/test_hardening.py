@@ -33,8 +33,12 @@ max_concurrent: 2
 
 
 def _env(root: Path) -> dict[str, str]:
-    env = {**os.environ, "SPOT_DATA_DIR": str(root / "data"), "SPOT_CACHE_DIR": str(root / "cache"),
-           "PYTHONUNBUFFERED": "1"}
+    env = {
+        **os.environ,
+        "SPOT_DATA_DIR": str(root / "data"),
+        "SPOT_CACHE_DIR": str(root / "cache"),
+        "PYTHONUNBUFFERED": "1",
+    }
     for key in ("MLFLOW_TRACKING_URI", "RAY_ADDRESS", "RAY_AUTH_MODE", "RAY_AUTH_TOKEN"):
         env.pop(key, None)
     return env
@@ -90,11 +94,15 @@ def _gated_launch(root: Path, cmd: list[str], log: Path, stop: int, to_group: bo
     for old in gate.glob("started-*"):
         old.unlink()
     with open(log, "wb") as out:
-        proc = subprocess.Popen(cmd, cwd=root, env=_env(root), stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
+        proc = subprocess.Popen(
+            cmd, cwd=root, env=_env(root), stdout=out, stderr=subprocess.STDOUT, start_new_session=True
+        )
         try:
             _wait_for(lambda: len(list(gate.glob("started-*"))) >= 2, 300, proc, log, "two running trials")
             sockets = _listening(proc.pid)
+            gcs = [pid for pid, name, _, _ in sockets if name == "gcs_server"]
+            environ = Path(f"/proc/{gcs[0]}/environ").read_bytes().split(b"\0") if gcs else []
+            sockets.append(("gcs environ", [e for e in environ if e.startswith(b"RAY_AUTH")]))
             if to_group:
                 os.killpg(proc.pid, stop)
             else:
@@ -122,17 +130,27 @@ def sigtermed(tmp_path_factory):
     rc_int, _ = _gated_launch(root, [*cmd, "--resume"], root / "resume1.log", signal.SIGINT, to_group=False)
     interrupted_runs = _runs(db)
     (root / "gate" / "hold").unlink()
-    resumed = subprocess.run([*cmd, "--resume"], cwd=root, env=_env(root), capture_output=True, text=True,
-                             timeout=400)
-    return {"root": root, "rc": rc, "log": (root / "launch.log").read_text(), "sockets": sockets,
-            "killed_runs": killed_runs, "rc_int": rc_int, "log_int": (root / "resume1.log").read_text(),
-            "interrupted_runs": interrupted_runs, "resumed": resumed, "final_runs": _runs(db)}
+    resumed = subprocess.run([*cmd, "--resume"], cwd=root, env=_env(root), capture_output=True, text=True, timeout=400)
+    return {
+        "root": root,
+        "rc": rc,
+        "log": (root / "launch.log").read_text(),
+        "sockets": sockets,
+        "killed_runs": killed_runs,
+        "rc_int": rc_int,
+        "log_int": (root / "resume1.log").read_text(),
+        "interrupted_runs": interrupted_runs,
+        "resumed": resumed,
+        "final_runs": _runs(db),
+    }
 
 
 @pytest.mark.slow
 def test_local_sweep_listens_on_loopback_only(sigtermed):
-    sockets = sigtermed["sockets"]
+    *sockets, (_, auth) = sigtermed["sockets"]
     names = {name for _, name, _, _ in sockets}
+    # Ray runs with token authentication, the token given in the environment (nothing in ~/.ray).
+    assert b"RAY_AUTH_MODE=token" in auth and any(e.startswith(b"RAY_AUTH_TOKEN=") and len(e) == 15 + 64 for e in auth)
     # The MLflow server, Ray's GCS and raylet, and the trials' workers all listen; none beyond loopback.
     assert {"gcs_server", "raylet"} <= names and len(sockets) >= 5, sockets
     exposed = [s for s in sockets if not _is_loopback(s[2])]
@@ -228,8 +246,9 @@ def test_spot_tables_closes_and_reports_dead_runs(tmp_path):
     from conftest import run_cli
 
     client, exp, ids, _ = _store_with_runs(tmp_path / "m.db")
-    out = run_cli("tables", "--table", "1", "--experiment", "e", "--tracking-uri", sqlite_uri(tmp_path / "m.db"),
-                  cwd=tmp_path)
+    out = run_cli(
+        "tables", "--table", "1", "--experiment", "e", "--tracking-uri", sqlite_uri(tmp_path / "m.db"), cwd=tmp_path
+    )
     assert "2 run(s) left RUNNING by dead processes" in out.stderr and ids["dead"] in out.stderr, out.stderr
     assert client.get_run(ids["dead"]).info.status == "KILLED"
     assert client.get_run(ids["alive"]).info.status == "RUNNING"
@@ -319,7 +338,8 @@ def test_a_port_squatted_every_time_is_a_clear_error(tmp_path, squatter, monkeyp
 
     monkeypatch.setattr(mlflow_server, "free_port", lambda host="127.0.0.1": squatter.port)
     server = mlflow_server.MlflowServer(sqlite_uri(tmp_path / "m.db"), tmp_path / "artifacts")
-    with pytest.raises(SpotError, match=f"could not start the mlflow server on a port of its own: port {squatter.port} "):
+    expected = f"could not start the mlflow server on a port of its own: port {squatter.port} "
+    with pytest.raises(SpotError, match=expected):
         server.start()
     assert server._proc is None
     assert not [r for r in squatter.requests if "runs" in r]
@@ -352,10 +372,16 @@ def test_a_second_launch_of_a_running_sweep_refuses(tmp_path):
     (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
     state_file = tmp_path / "spot_runs" / "ray" / "gated.json"
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from pathlib import Path; from spot.sweep import launch\n"
-         f"with launch._launch_lock(Path({str(state_file)!r}), 'gated'):\n"
-         "    print('held', flush=True); time.sleep(120)"],
-        stdout=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pathlib import Path; from spot.sweep import launch\n"
+            f"with launch._launch_lock(Path({str(state_file)!r}), 'gated'):\n"
+            "    print('held', flush=True); time.sleep(120)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         for extra in ([], ["--resume"]):
@@ -394,7 +420,8 @@ def test_max_concurrent_and_storage_are_checked(tmp_path):
             sweep.run_sweep(tmp_path / "gated.yaml", max_concurrent=bad, storage=tmp_path / "ray")
     (tmp_path / "afile").write_text("x")
     out = run_cli("sweep", "gated.yaml", "--storage", "afile", cwd=tmp_path, env=_env(tmp_path))
-    assert out.returncode == 2 and out.stderr.startswith(f"error: --storage {tmp_path / 'afile'}: cannot keep"), out.stderr
+    assert out.returncode == 2, out.stderr
+    assert out.stderr.startswith(f"error: --storage {tmp_path / 'afile'}: cannot keep"), out.stderr
 
 
 CONCURRENT_RUN = """
@@ -415,8 +442,15 @@ with tracking.start_run(cfg, {"name": "x"}, system_metrics=False) as tracker:
 def test_runs_started_at_once_on_a_new_store_all_land(tmp_path):
     db = tmp_path / "new" / "mlflow.db"
     go = tmp_path / "go"
-    procs = [subprocess.Popen([sys.executable, "-c", CONCURRENT_RUN, sqlite_uri(db), str(go)],
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for _ in range(2)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", CONCURRENT_RUN, sqlite_uri(db), str(go)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for _ in range(2)
+    ]
     assert [p.stdout.readline().strip() for p in procs] == ["ready", "ready"]  # both wait at the gate
     go.touch()
     outs = [p.communicate(timeout=300)[0] for p in procs]
@@ -453,8 +487,9 @@ def test_a_run_whose_process_was_killed_is_closed_by_the_next_run(tmp_path):
         pass
     run = client.get_run(orphan)
     assert run.info.status == "KILLED"
-    assert run.data.tags["failure_reason"] == (f"process {proc.pid} on {socket.gethostname()} ended without "
-                                               "closing the run (closed by a later command)")
+    assert run.data.tags["failure_reason"] == (
+        f"process {proc.pid} on {socket.gethostname()} ended without closing the run (closed by a later command)"
+    )
 
 
 # --------------------------------------------------------------------------- unreachable services, resources
@@ -468,22 +503,38 @@ def test_unreachable_tracking_server_and_ray_address_are_clear_errors(tmp_path, 
     out = run_cli("sweep", "gated.yaml", "--tracking-uri", dead, cwd=tmp_path, env=_env(tmp_path), timeout=60)
     assert out.returncode == 2 and out.stderr.strip().splitlines() == [
         f"error: tracking server {dead} does not answer ([Errno 111] Connection refused); start it, or pass "
-        "another --tracking-uri"], out.stderr
+        "another --tracking-uri"
+    ], out.stderr
     env = {**_env(tmp_path), "RAY_ADDRESS": f"127.0.0.1:{free_port()}"}
-    out = run_cli("sweep", "gated.yaml", "--tracking-uri", f"http://127.0.0.1:{squatter.port}", cwd=tmp_path,
-                  env=env, timeout=60)
+    out = run_cli(
+        "sweep", "gated.yaml", "--tracking-uri", f"http://127.0.0.1:{squatter.port}", cwd=tmp_path, env=env, timeout=60
+    )
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
-    assert out.stderr.strip().splitlines()[-1].startswith(f"error: nothing answers at the Ray address {env['RAY_ADDRESS']}")
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: nothing answers at the Ray address {env['RAY_ADDRESS']}")
     assert not [r for r in squatter.requests if "runs" in r]
 
 
 def test_more_cpus_per_trial_than_the_cluster_has_is_refused_before_any_run(tmp_path, squatter):
     from conftest import run_cli
 
-    (tmp_path / "big.yaml").write_text(GATED_SWEEP.replace("resources: {cpu: 1, gpu: 0}", "resources: {cpu: 512, gpu: 0}"))
-    out = run_cli("sweep", "big.yaml", "--tracking-uri", f"http://127.0.0.1:{squatter.port}", cwd=tmp_path,
-                  env=_env(tmp_path), timeout=300)
+    big = GATED_SWEEP.replace("resources: {cpu: 1, gpu: 0}", "resources: {cpu: 512, gpu: 0}")
+    (tmp_path / "big.yaml").write_text(big)
+    out = run_cli(
+        "sweep",
+        "big.yaml",
+        "--tracking-uri",
+        f"http://127.0.0.1:{squatter.port}",
+        cwd=tmp_path,
+        env=_env(tmp_path),
+        timeout=300,
+    )
     assert out.returncode == 2, out.stdout[-2000:] + out.stderr[-2000:]
-    assert out.stderr.strip().splitlines()[-1].startswith(
-        "error: sweep file 'big.yaml': resources.cpu = 512 per trial, but the largest node of the Ray cluster has")
+    assert (
+        out.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "error: sweep file 'big.yaml': resources.cpu = 512 per trial, but the largest node of the Ray cluster has"
+        )
+    )
     assert [r for r in squatter.requests if "runs" in r] == []

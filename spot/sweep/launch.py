@@ -81,13 +81,17 @@ def _check_tracking_uri(uri: str) -> str:
     from spot import mlflow_server, tracking
 
     if uri and mlflow_server.is_local_store(uri) and not uri.startswith("sqlite:"):
-        raise SpotError(f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
-                        "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server")
+        raise SpotError(
+            f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
+            "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server"
+        )
     scheme = uri.split("://", 1)[0].split("+", 1)[0].lower() if "://" in uri else ""
     if uri and (scheme not in _SWEEP_SCHEMES or (scheme == "sqlite" and tracking.sqlite_path(uri) is None)):
-        raise SpotError(f"tracking URI '{uri}': a sweep logs to sqlite:///path.db (spot serves it), an "
-                        "http(s)://host:port tracking server, or a database MLflow supports "
-                        "(postgresql://, mysql://, mssql://) or databricks://")
+        raise SpotError(
+            f"tracking URI '{uri}': a sweep logs to sqlite:///path.db (spot serves it), an "
+            "http(s)://host:port tracking server, or a database MLflow supports "
+            "(postgresql://, mysql://, mssql://) or databricks://"
+        )
     return uri
 
 
@@ -114,8 +118,12 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
     server.start(wait=False)
     try:
-        yield _Store(lambda: server.uri, f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
-                     server.wait_ready, server.stop)
+        yield _Store(
+            lambda: server.uri,
+            f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
+            server.wait_ready,
+            server.stop,
+        )
     finally:
         server.stop()
 
@@ -151,8 +159,10 @@ def _init_ray(address: str | None) -> bool:
 
     if ray.is_initialized():
         return False
-    env_vars = {"RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
-                "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true"}  # no "View run" lines in the progress view
+    env_vars = {
+        "RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
+        "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
+    }  # no "View run" lines in the progress view
     env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
     if address:
         _check_ray_address(address)
@@ -166,13 +176,20 @@ def _init_ray(address: str | None) -> bool:
     # The constant is read when ray is imported; a process that imported ray before the
     # environment was set still gets the loopback node address.
     ray_constants.ENABLE_RAY_CLUSTER = False
-    ray.init(num_cpus=os.cpu_count(), include_dashboard=False, _node_ip_address=LOOPBACK,
-             runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
+    ray.init(
+        num_cpus=os.cpu_count(),
+        include_dashboard=False,
+        _node_ip_address=LOOPBACK,
+        runtime_env={"env_vars": env_vars},
+        logging_level=logging.WARNING,
+    )
     node_ip = services.get_node_ip_address()
     if node_ip != LOOPBACK:
         ray.shutdown()
-        raise SpotError(f"local Ray came up on {node_ip}, not on loopback; refusing to run a sweep on a "
-                        "cluster other hosts can reach (see docs/sweeps.md, 'What is exposed')")
+        raise SpotError(
+            f"local Ray came up on {node_ip}, not on loopback; refusing to run a sweep on a "
+            "cluster other hosts can reach (see docs/sweeps.md, 'What is exposed')"
+        )
     return True
 
 
@@ -185,8 +202,10 @@ def _check_ray_address(address: str) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
     except OSError as e:
-        raise SpotError(f"nothing answers at the Ray address {address} ({e.strerror or e}); start the cluster, "
-                        "or check --address / RAY_ADDRESS") from None
+        raise SpotError(
+            f"nothing answers at the Ray address {address} ({e.strerror or e}); start the cluster, "
+            "or check --address / RAY_ADDRESS"
+        ) from None
 
 
 def _check_gpus(sweep: Sweep) -> None:
@@ -199,13 +218,15 @@ def _check_gpus(sweep: Sweep) -> None:
         raise SpotError(
             f"sweep file '{sweep.path}': resources.gpu = {sweep.resources['gpu']:g} per trial, but the Ray "
             "cluster has no GPU; set resources: {gpu: 0} (--smoke uses no GPU unless its block asks), or "
-            "give --address of a cluster with GPUs")
+            "give --address of a cluster with GPUs"
+        )
     nodes_cpus = [float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes() if n.get("Alive")]
     most = max(nodes_cpus, default=float(have.get("CPU", 0.0)))
     if sweep.resources["cpu"] > most:
         raise SpotError(
             f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the largest "
-            f"node of the Ray cluster has {most:g} CPUs; ask for at most {most:g}")
+            f"node of the Ray cluster has {most:g} CPUs; ask for at most {most:g}"
+        )
 
 
 # --------------------------------------------------------------------------- Tune
@@ -213,26 +234,42 @@ def _trial_dirname(trial: Any) -> str:
     return str(trial.trial_id)
 
 
-def _tuner(sweep: Sweep, trainable: Any, exp_dir: Path, *, resume: bool, retry_errored: bool,
-           max_concurrent: int | None) -> Any:
+def _tuner(
+    sweep: Sweep, trainable: Any, exp_dir: Path, *, resume: bool, retry_errored: bool, max_concurrent: int | None
+) -> Any:
     """A new Tune experiment over the sweep's trials, or the restored one with ``resume``."""
     from ray import tune
 
     param_space = {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
     if resume and tune.Tuner.can_restore(str(exp_dir)):
-        return tune.Tuner.restore(str(exp_dir), trainable=trainable, param_space=param_space,
-                                  resume_unfinished=True, resume_errored=False, restart_errored=retry_errored)
+        return tune.Tuner.restore(
+            str(exp_dir),
+            trainable=trainable,
+            param_space=param_space,
+            resume_unfinished=True,
+            resume_errored=False,
+            restart_errored=retry_errored,
+        )
     reporter = tune.CLIReporter(
         parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
         metric_columns={"iql_step": "step", "score": "score", "score_final": "final", "seed": "seed"},
-        max_report_frequency=30, sort_by_metric=False)
+        max_report_frequency=30,
+        sort_by_metric=False,
+    )
     return tune.Tuner(
-        trainable, param_space=param_space,
-        tune_config=tune.TuneConfig(max_concurrent_trials=max_concurrent, reuse_actors=False,
-                                    trial_dirname_creator=_trial_dirname),
-        run_config=tune.RunConfig(name=exp_dir.name, storage_path=str(exp_dir.parent),
-                                  progress_reporter=reporter, verbose=1,
-                                  failure_config=tune.FailureConfig(max_failures=0, fail_fast=False)))
+        trainable,
+        param_space=param_space,
+        tune_config=tune.TuneConfig(
+            max_concurrent_trials=max_concurrent, reuse_actors=False, trial_dirname_creator=_trial_dirname
+        ),
+        run_config=tune.RunConfig(
+            name=exp_dir.name,
+            storage_path=str(exp_dir.parent),
+            progress_reporter=reporter,
+            verbose=1,
+            failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
+        ),
+    )
 
 
 def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
@@ -258,8 +295,16 @@ def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
     return errors, any(t.status not in ("TERMINATED", "ERROR") for t in trials)
 
 
-def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_errored: bool,
-         max_concurrent: int | None, run_fn: RunFn | None) -> tuple[dict[str, str], bool]:
+def _fit(
+    sweep: Sweep,
+    ctx: SweepContext,
+    exp_dir: Path,
+    *,
+    resume: bool,
+    retry_errored: bool,
+    max_concurrent: int | None,
+    run_fn: RunFn | None,
+) -> tuple[dict[str, str], bool]:
     """Run (or restore) the Tune experiment.
 
     Returns ``{run_key: error}`` for each seed of errored trials, and whether the launch was
@@ -269,10 +314,11 @@ def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_
 
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # use the CLIReporter of _tuner
     os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
-    trainable = tune.with_resources(tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
-                                    {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]})
-    _tuner(sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored,
-           max_concurrent=max_concurrent).fit()
+    trainable = tune.with_resources(
+        tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
+        {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]},
+    )
+    _tuner(sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent).fit()
     return _trial_errors(exp_dir)
 
 
@@ -280,22 +326,32 @@ def _fit(sweep: Sweep, ctx: SweepContext, exp_dir: Path, *, resume: bool, retry_
 def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) -> dict[str, Any]:
     """The launch record: a new sweep id, or the one being resumed (checked to expand the same)."""
     if not resume:
-        return {"sweep_id": f"{sweep.experiment}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}",
-                "spec_hash": sweep.spec_hash(), "file": str(Path(path).resolve())}
+        return {
+            "sweep_id": f"{sweep.experiment}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}",
+            "spec_hash": sweep.spec_hash(),
+            "file": str(Path(path).resolve()),
+        }
     if not state_file.is_file():
-        raise SpotError(f"nothing to resume: no launch of sweep '{sweep.experiment}' under {state_file.parent}; "
-                        "start it without --resume")
+        raise SpotError(
+            f"nothing to resume: no launch of sweep '{sweep.experiment}' under {state_file.parent}; "
+            "start it without --resume"
+        )
     try:
         state = json.loads(state_file.read_text())
-        if not (isinstance(state, dict) and all(isinstance(state.get(k), str) and state[k]
-                                                for k in ("sweep_id", "spec_hash", "parent_run_id"))):
+        if not (
+            isinstance(state, dict)
+            and all(isinstance(state.get(k), str) and state[k] for k in ("sweep_id", "spec_hash", "parent_run_id"))
+        ):
             raise ValueError("expected an object with sweep_id, spec_hash and parent_run_id")
     except (ValueError, UnicodeDecodeError) as e:
-        raise SpotError(f"launch record {state_file} is damaged ({e}); it cannot be resumed: start a new "
-                        "launch without --resume") from None
+        raise SpotError(
+            f"launch record {state_file} is damaged ({e}); it cannot be resumed: start a new launch without --resume"
+        ) from None
     if state["spec_hash"] != sweep.spec_hash():
-        raise SpotError(f"sweep file '{path}' expands to other trials than the launch {state['sweep_id']} "
-                        "being resumed; Ray cannot change a sweep's trials: start a new launch without --resume")
+        raise SpotError(
+            f"sweep file '{path}' expands to other trials than the launch {state['sweep_id']} "
+            "being resumed; Ray cannot change a sweep's trials: start a new launch without --resume"
+        )
     return state
 
 
@@ -306,18 +362,34 @@ def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str,
 
     if resume:
         parent_id = state["parent_run_id"]
-        n = tracking.close_orphans(client, experiment_id, {"sweep_id": state["sweep_id"]},
-                                   "process ended during an interrupted launch", keep=(parent_id,))
-        print(f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED",
-              flush=True)
+        n = tracking.close_orphans(
+            client,
+            experiment_id,
+            {"sweep_id": state["sweep_id"]},
+            "process ended during an interrupted launch",
+            keep=(parent_id,),
+        )
+        print(
+            f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED", flush=True
+        )
         client.update_run(parent_id, status="RUNNING")
         client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
         for key, value in process_tags().items():  # this driver owns the reopened run now
             client.set_tag(parent_id, key, value)
         return parent_id
-    parent = client.create_run(experiment_id, run_name=f"sweep {state['sweep_id']}", tags={
-        "sweep_id": state["sweep_id"], "sweep_name": sweep.name, "spot.role": "sweep", "smoke": str(sweep.smoke),
-        "sweep_file": str(sweep.path.resolve()), "git_commit": tracking.git_commit(), **process_tags()})
+    parent = client.create_run(
+        experiment_id,
+        run_name=f"sweep {state['sweep_id']}",
+        tags={
+            "sweep_id": state["sweep_id"],
+            "sweep_name": sweep.name,
+            "spot.role": "sweep",
+            "smoke": str(sweep.smoke),
+            "sweep_file": str(sweep.path.resolve()),
+            "git_commit": tracking.git_commit(),
+            **process_tags(),
+        },
+    )
     parent_id = parent.info.run_id
     client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")
     client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
@@ -329,11 +401,17 @@ def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str,
 def _parent_params(sweep: Sweep) -> list[Any]:
     from mlflow.entities import Param
 
-    params = {"sweep.trials": len(sweep.trials()), "sweep.runs": len(sweep.runs()),
-              "sweep.seeds": list(sweep.seeds), "sweep.seed_mode": sweep.seed_mode,
-              "sweep.cpu": sweep.resources["cpu"], "sweep.gpu": sweep.resources["gpu"],
-              **{f"grid.{k}": v for k, v in sweep.grid.items()}, **{f"zip.{k}": v for k, v in sweep.zip.items()},
-              **{f"base.{k}": v for k, v in sweep.base.items()}}
+    params = {
+        "sweep.trials": len(sweep.trials()),
+        "sweep.runs": len(sweep.runs()),
+        "sweep.seeds": list(sweep.seeds),
+        "sweep.seed_mode": sweep.seed_mode,
+        "sweep.cpu": sweep.resources["cpu"],
+        "sweep.gpu": sweep.resources["gpu"],
+        **{f"grid.{k}": v for k, v in sweep.grid.items()},
+        **{f"zip.{k}": v for k, v in sweep.zip.items()},
+        **{f"base.{k}": v for k, v in sweep.base.items()},
+    }
     return [Param(k, tag_value(v)[:6000]) for k, v in params.items()]
 
 
@@ -344,11 +422,21 @@ def _close_parent(client: Any, ctx: SweepContext, rows: list[Row], table: str, *
 
     n_done = sum(r.status == "FINISHED" for r in rows)
     now = int(time.time() * 1000)
-    client.log_batch(ctx.parent_run_id, metrics=[Metric(k, v, now, 0) for k, v in (
-        ("sweep/runs_total", len(rows)), ("sweep/runs_finished", n_done), ("sweep/runs_failed", len(rows) - n_done))])
+    client.log_batch(
+        ctx.parent_run_id,
+        metrics=[
+            Metric(k, v, now, 0)
+            for k, v in (
+                ("sweep/runs_total", len(rows)),
+                ("sweep/runs_finished", n_done),
+                ("sweep/runs_failed", len(rows) - n_done),
+            )
+        ],
+    )
     client.log_text(ctx.parent_run_id, table + "\n", "summary.txt")
-    client.set_terminated(ctx.parent_run_id,
-                          "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED")
+    client.set_terminated(
+        ctx.parent_run_id, "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED"
+    )
 
 
 # --------------------------------------------------------------------------- signals
@@ -408,9 +496,19 @@ def _kill_local_ray() -> None:
 
 
 # --------------------------------------------------------------------------- the launch
-def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool,
-                retry_errored: bool, address: str | None, max_concurrent: int | None,
-                run_fn: RunFn | None, resume_command: str) -> tuple[Any, SweepContext, dict[str, str], bool]:
+def _run_launch(
+    sweep: Sweep,
+    store: _Store,
+    state: dict[str, Any],
+    state_file: Path,
+    *,
+    resume: bool,
+    retry_errored: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    run_fn: RunFn | None,
+    resume_command: str,
+) -> tuple[Any, SweepContext, dict[str, str], bool]:
     """Ray, the parent run and the Tune experiment; returns ``(client, ctx, ray errors, interrupted)``.
 
     Once the parent run exists, however the launch ends, the runs its trials left RUNNING are
@@ -433,8 +531,12 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
         tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": sweep_id}, reason, keep=(ctx.parent_run_id,))
         mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
         mine.set_terminated(ctx.parent_run_id, "KILLED")
-        print(f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
-              f"to continue: {resume_command}", file=sys.stderr, flush=True)
+        print(
+            f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
+            f"to continue: {resume_command}",
+            file=sys.stderr,
+            flush=True,
+        )
 
     def on_sigterm() -> None:
         print("SIGTERM: stopping Ray, closing the runs", file=sys.stderr, flush=True)
@@ -454,16 +556,25 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
             exp_id = tracking.experiment_id(sweep.experiment, store.uri)
             close_dead_runs(client, [exp_id])
             parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
-            ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri,
-                               sweep.axis_keys)
+            ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
             if not resume:
                 tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
                 tmp.write_text(json.dumps(state, indent=2))
                 tmp.replace(state_file)  # whole or not at all
-            print(f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
-                  f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}", flush=True)
-            errors, interrupted = _fit(sweep, ctx, state_file.parent / sweep_id, resume=resume,
-                                       retry_errored=retry_errored, max_concurrent=max_concurrent, run_fn=run_fn)
+            print(
+                f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+                f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}",
+                flush=True,
+            )
+            errors, interrupted = _fit(
+                sweep,
+                ctx,
+                state_file.parent / sweep_id,
+                resume=resume,
+                retry_errored=retry_errored,
+                max_concurrent=max_concurrent,
+                run_fn=run_fn,
+            )
             reason = ""
         except KeyboardInterrupt:
             reason = "launch stopped by SIGINT"
@@ -475,16 +586,29 @@ def _run_launch(sweep: Sweep, store: _Store, state: dict[str, Any], state_file: 
                 ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
             if reason:
                 close(reason)
-        tracking.close_orphans(client, ctx.experiment_id, {"sweep_id": sweep_id},
-                               "launch interrupted" if interrupted else "trial process ended without closing its run",
-                               keep=(ctx.parent_run_id,))
+        tracking.close_orphans(
+            client,
+            ctx.experiment_id,
+            {"sweep_id": sweep_id},
+            "launch interrupted" if interrupted else "trial process ended without closing its run",
+            keep=(ctx.parent_run_id,),
+        )
     return client, ctx, errors, interrupted
 
 
-def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, retry_errored: bool = False,
-              address: str | None = None, max_concurrent: int | None = None,
-              tracking_uri: str | None = None, storage: str | Path = DEFAULT_STORAGE,
-              workdir: str | Path | None = None, run_fn: RunFn | None = None) -> list[Row]:
+def run_sweep(
+    path: str | Path,
+    *,
+    smoke: bool = False,
+    resume: bool = False,
+    retry_errored: bool = False,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+    tracking_uri: str | None = None,
+    storage: str | Path = DEFAULT_STORAGE,
+    workdir: str | Path | None = None,
+    run_fn: RunFn | None = None,
+) -> list[Row]:
     """Run a sweep file end to end (``spot sweep``); return the summary rows.
 
     Args:
@@ -511,8 +635,19 @@ def run_sweep(path: str | Path, *, smoke: bool = False, resume: bool = False, re
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
     state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
     with _launch_lock(state_file, sweep.experiment):
-        return _launch(sweep, path, state_file, root, smoke=smoke, resume=resume, retry_errored=retry_errored,
-                       address=address, max_concurrent=max_concurrent, tracking_uri=tracking_uri, run_fn=run_fn)
+        return _launch(
+            sweep,
+            path,
+            state_file,
+            root,
+            smoke=smoke,
+            resume=resume,
+            retry_errored=retry_errored,
+            address=address,
+            max_concurrent=max_concurrent,
+            tracking_uri=tracking_uri,
+            run_fn=run_fn,
+        )
 
 
 @contextlib.contextmanager
@@ -532,8 +667,10 @@ def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another process"
-            raise SpotError(f"sweep '{experiment}' is already running with storage {state_file.parent} "
-                            f"({holder}); wait for it to end, or give this launch another --storage") from None
+            raise SpotError(
+                f"sweep '{experiment}' is already running with storage {state_file.parent} "
+                f"({holder}); wait for it to end, or give this launch another --storage"
+            ) from None
         f.seek(0)
         f.truncate()
         f.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
@@ -541,47 +678,84 @@ def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
         yield
 
 
-def _launch(sweep: Sweep, path: str | Path, state_file: Path, root: Path, *, smoke: bool, resume: bool,
-            retry_errored: bool, address: str | None, max_concurrent: int | None, tracking_uri: str | None,
-            run_fn: RunFn | None) -> list[Row]:
+def _launch(
+    sweep: Sweep,
+    path: str | Path,
+    state_file: Path,
+    root: Path,
+    *,
+    smoke: bool,
+    resume: bool,
+    retry_errored: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    tracking_uri: str | None,
+    run_fn: RunFn | None,
+) -> list[Row]:
     """:func:`run_sweep` once the launch holds its lock."""
     from spot import tracking
 
     state = _state(sweep, path, state_file, resume=resume)
     if resume:
-        print(f"resuming launch {state['sweep_id']} (parent run {state['parent_run_id']}, record {state_file})",
-              flush=True)
+        print(
+            f"resuming launch {state['sweep_id']} (parent run {state['parent_run_id']}, record {state_file})",
+            flush=True,
+        )
     if resume and max_concurrent is not None:
         print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
     command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"
-    print(f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
-          f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
-          flush=True)
+    print(
+        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
+        f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
+        flush=True,
+    )
     if not address and os.environ.get("RAY_ADDRESS"):
         address = os.environ["RAY_ADDRESS"]  # Ray's own convention (set inside `ray job submit`)
-        print(f"note: running on the Ray cluster at RAY_ADDRESS={address}; unset RAY_ADDRESS for a local "
-              "sweep", flush=True)
+        print(
+            f"note: running on the Ray cluster at RAY_ADDRESS={address}; unset RAY_ADDRESS for a local sweep",
+            flush=True,
+        )
     if address and not tracking.given_uri(tracking_uri):
-        print("note: trials on other nodes cannot reach the loopback MLflow server; pass "
-              "--tracking-uri http://<host>:<port> of a server every node can reach", flush=True)
+        print(
+            "note: trials on other nodes cannot reach the loopback MLflow server; pass "
+            "--tracking-uri http://<host>:<port> of a server every node can reach",
+            flush=True,
+        )
     if not address and sweep.resources["cpu"] > (os.cpu_count() or 1):  # before datasets are built
-        raise SpotError(f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the "
-                        f"largest node of the Ray cluster has {os.cpu_count()} CPUs; ask for at most {os.cpu_count()}")
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the "
+            f"largest node of the Ray cluster has {os.cpu_count()} CPUs; ask for at most {os.cpu_count()}"
+        )
     with _tracking_store(tracking_uri, root) as store:  # a served store starts while datasets build
         if run_fn is None:
             prebuild_datasets(sweep)
         client, ctx, errors, interrupted = _run_launch(
-            sweep, store, state, state_file, resume=resume, retry_errored=retry_errored, address=address,
-            max_concurrent=max_concurrent or sweep.max_concurrent, run_fn=run_fn, resume_command=command)
+            sweep,
+            store,
+            state,
+            state_file,
+            resume=resume,
+            retry_errored=retry_errored,
+            address=address,
+            max_concurrent=max_concurrent or sweep.max_concurrent,
+            run_fn=run_fn,
+            resume_command=command,
+        )
         rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
         table = format_summary(rows, sweep.axis_keys)
         _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
         paper = paper_table(sweep, store.uri, ctx.sweep_id) if sweep.table and n_done else ""
-    missing = "" if n_done == len(rows) else (f"\nto run what is missing: {command} "
-                                              "(add --retry-errored to run failed trials again)")
-    print(f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
-          f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{missing}", flush=True)
+    missing = (
+        ""
+        if n_done == len(rows)
+        else (f"\nto run what is missing: {command} (add --retry-errored to run failed trials again)")
+    )
+    print(
+        f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
+        f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{missing}",
+        flush=True,
+    )
     if paper:
         print(f"\n{paper}", flush=True)
     if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished

@@ -101,8 +101,12 @@ def configure_process(cpus: int, gpus: float) -> None:
     :func:`spot.runtime.configure`, called just before.
     """
     if "jax" in sys.modules:
-        warnings.warn("jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
-                      "fraction of this trial do not apply", RuntimeWarning, stacklevel=2)
+        warnings.warn(
+            "jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
+            "fraction of this trial do not apply",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     flags = os.environ.get("XLA_FLAGS", "")
     if cpus <= 1 and "xla_cpu_multi_thread_eigen" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_multi_thread_eigen=false".strip()
@@ -115,12 +119,24 @@ def configure_process(cpus: int, gpus: float) -> None:
 # --------------------------------------------------------------------------- the runs of a trial
 def _finished(run: Any, seed: int) -> dict[str, Any]:
     m = run.data.metrics
-    return {"seed": seed, "run_id": run.info.run_id, "skipped": 1,
-            "score_final": m.get("eval/score_final"), "score_best": m.get("eval/score_best")}
+    return {
+        "seed": seed,
+        "run_id": run.info.run_id,
+        "skipped": 1,
+        "score_final": m.get("eval/score_final"),
+        "score_best": m.get("eval/score_best"),
+    }
 
 
-def _run_seed(client: Any, overrides: dict[str, Any], seed: int, ctx: SweepContext, tags: dict[str, str],
-              report: Report, run_fn: RunFn) -> dict[str, Any]:
+def _run_seed(
+    client: Any,
+    overrides: dict[str, Any],
+    seed: int,
+    ctx: SweepContext,
+    tags: dict[str, str],
+    report: Report,
+    run_fn: RunFn,
+) -> dict[str, Any]:
     """Run one seed with ``run_fn``; a failure is recorded as a FAILED run and raised."""
     from spot import tracking
 
@@ -134,12 +150,25 @@ def _run_seed(client: Any, overrides: dict[str, Any], seed: int, ctx: SweepConte
     except Exception as e:
         tracking.record_failure(client, ctx.experiment_id, cfg, tags, e, parent_run_id=ctx.parent_run_id)
         raise
-    return {"seed": seed, "run_id": out["run_id"], "skipped": 0, "score_final": out["eval/score_final"],
-            "score_best": out["eval/score_best"], "run_time_s": out.get("time/total_s")}
+    return {
+        "seed": seed,
+        "run_id": out["run_id"],
+        "skipped": 0,
+        "score_final": out["eval/score_final"],
+        "score_best": out["eval/score_best"],
+        "run_time_s": out.get("time/total_s"),
+    }
 
 
-def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx: SweepContext, *,
-              trial_id: str, report: Report, run_fn: RunFn | None = None) -> list[dict[str, Any]]:
+def run_trial(
+    overrides: dict[str, Any],
+    seeds: list[int] | tuple[int, ...],
+    ctx: SweepContext,
+    *,
+    trial_id: str,
+    report: Report,
+    run_fn: RunFn | None = None,
+) -> list[dict[str, Any]]:
     """Run (or find already finished) each seed of one trial; report scores; raise if any seed failed.
 
     Args:
@@ -170,12 +199,22 @@ def run_trial(overrides: dict[str, Any], seeds: list[int] | tuple[int, ...], ctx
     for seed in seeds:
         key = run_key(overrides, seed)
         done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
-        tags = {"sweep_id": ctx.sweep_id, "sweep_name": ctx.sweep_name, "trial_id": trial_id,
-                "trial_key": key, "config_key": config_key(overrides), "attempt": uuid.uuid4().hex, **axis_tags,
-                **process_tags()}  # this worker's host and pid: a later command closes the run if it dies
+        tags = {
+            "sweep_id": ctx.sweep_id,
+            "sweep_name": ctx.sweep_name,
+            "trial_id": trial_id,
+            "trial_key": key,
+            "config_key": config_key(overrides),
+            "attempt": uuid.uuid4().hex,
+            **axis_tags,
+            **process_tags(),
+        }  # this worker's host and pid: a later command closes the run if it dies
         try:
-            final = _finished(done, seed) if done is not None else _run_seed(
-                client, overrides, seed, ctx, tags, report, run_fn)
+            final = (
+                _finished(done, seed)
+                if done is not None
+                else _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
+            )
         except Exception as e:  # noqa: BLE001 - recorded, reported by Ray after the other seeds ran
             failures.append((seed, e))
             continue
@@ -204,5 +243,11 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
     with cpu_slots(cpus):
         runtime.configure()  # spot's XLA flag and MUJOCO_GL
         configure_process(cpus, float(need.get("GPU", 0.0)))
-        run_trial(config["trial"]["overrides"], config["trial"]["seeds"], ctx, trial_id=context.get_trial_id(),
-                  report=tune.report, run_fn=run_fn)
+        run_trial(
+            config["trial"]["overrides"],
+            config["trial"]["seeds"],
+            ctx,
+            trial_id=context.get_trial_id(),
+            report=tune.report,
+            run_fn=run_fn,
+        )

@@ -43,8 +43,12 @@ def _start_ticks(pid: int) -> str:
 def process_tags() -> dict[str, str]:
     """``spot.host``, ``spot.pid``, ``spot.pid_started`` and ``spot.pid_ns`` of this process."""
     pid = os.getpid()
-    return {HOST_TAG: socket.gethostname(), PID_TAG: str(pid), STARTED_TAG: _start_ticks(pid),
-            PIDNS_TAG: _pid_namespace()}
+    return {
+        HOST_TAG: socket.gethostname(),
+        PID_TAG: str(pid),
+        STARTED_TAG: _start_ticks(pid),
+        PIDNS_TAG: _pid_namespace(),
+    }
 
 
 def alive(pid: int, started: str = "") -> bool:
@@ -73,13 +77,19 @@ def close_dead_runs(client: Any, experiment_ids: Sequence[str], *, report: bool 
             continue
         if not pid.isdigit() or alive(int(pid), run.data.tags.get(STARTED_TAG, "")):
             continue
-        client.set_tag(run.info.run_id, "failure_reason",
-                       f"process {pid} on {host} ended without closing the run (closed by a later command)")
+        client.set_tag(
+            run.info.run_id,
+            "failure_reason",
+            f"process {pid} on {host} ended without closing the run (closed by a later command)",
+        )
         client.set_terminated(run.info.run_id, "KILLED")
         closed.append(run.info.run_id)
     if closed and report:
-        print(f"note: {len(closed)} run(s) left RUNNING by dead processes on {host} marked KILLED: "
-              f"{', '.join(closed)}", file=sys.stderr, flush=True)
+        print(
+            f"note: {len(closed)} run(s) left RUNNING by dead processes on {host} marked KILLED: {', '.join(closed)}",
+            file=sys.stderr,
+            flush=True,
+        )
     return closed
 
 
