@@ -50,7 +50,9 @@ except ImportError:
 # %% tags=["parameters"]
 # Defaults come from the environment (SPOT_*), so the script form takes them too; papermill's
 # `-p NAME VALUE` overrides them.
-tracking_uri: str = os.environ.get("SPOT_TRACKING_URI", "")  # MLflow store; "": $MLFLOW_TRACKING_URI, else ./spot_runs or ./mlruns
+tracking_uri: str = os.environ.get(
+    "SPOT_TRACKING_URI", ""
+)  # MLflow store; "": $MLFLOW_TRACKING_URI, else ./spot_runs or ./mlruns
 fig2_experiments: str = os.environ.get("SPOT_FIG2_EXPERIMENTS", "")  # comma-separated; "": as spot tables --table 1
 smoke: bool = os.environ.get("SPOT_SMOKE", "") in ("1", "true")  # read table1-smoke
 sweep_id: str = os.environ.get("SPOT_SWEEP_ID", "")  # only the runs of this sweep (tag sweep_id)
@@ -63,6 +65,7 @@ cvae_dataset: str = os.environ.get("SPOT_CVAE_DATASET", "hopper-medium-expert") 
 cvae_size: str = os.environ.get("SPOT_CVAE_SIZE", "small")  # tiny, small or paper
 fig3_index: str = os.environ.get("SPOT_FIG3_INDEX", "100,200")  # dataset transitions to render, comma-separated
 out_dir: str = os.environ.get("SPOT_ANALYSIS_OUT", "analysis/out")  # where the PNGs are written
+
 
 # %%
 def show_png(path: Path) -> None:
@@ -90,8 +93,7 @@ print(f"{len(runs)} runs from {', '.join(experiments) if experiments else 'every
 
 # %%
 try:
-    bins = figures.extrapolation_bins(runs, URI, dataset=fig2_dataset or None,
-                                      source=fig2_source or None)
+    bins = figures.extrapolation_bins(runs, URI, dataset=fig2_dataset or None, source=fig2_source or None)
 except SpotError as e:
     print(f"Fig. 2 not drawn: {e}")
 else:

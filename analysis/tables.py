@@ -54,8 +54,12 @@ except ImportError:
 # %% tags=["parameters"]
 # Defaults come from the environment (SPOT_*), so the script form takes them too; papermill's
 # `-p NAME VALUE` overrides them.
-tracking_uri: str = os.environ.get("SPOT_TRACKING_URI", "")  # MLflow store; "": $MLFLOW_TRACKING_URI, else ./spot_runs or ./mlruns
-table_experiments: str = os.environ.get("SPOT_TABLE_EXPERIMENTS", "")  # experiments per table (format in the first cell); others: as spot tables
+tracking_uri: str = os.environ.get(
+    "SPOT_TRACKING_URI", ""
+)  # MLflow store; "": $MLFLOW_TRACKING_URI, else ./spot_runs or ./mlruns
+table_experiments: str = os.environ.get(
+    "SPOT_TABLE_EXPERIMENTS", ""
+)  # experiments per table (format in the first cell); others: as spot tables
 smoke: bool = os.environ.get("SPOT_SMOKE", "") in ("1", "true")  # read the sweeps' -smoke experiments
 sweep_id: str = os.environ.get("SPOT_SWEEP_ID", "")  # only the runs of this sweep (tag sweep_id)
 metric: str = os.environ.get("SPOT_METRIC", "eval/score_final")  # score metric of tables 1-7
@@ -81,8 +85,10 @@ named: dict[int, list[str]] = {}
 for part in filter(None, (p.strip() for p in table_experiments.split(";"))):
     number, _, names = part.partition("=")
     if not number.strip().isdigit() or int(number) not in tables.TABLES or not names.strip():
-        raise SpotError(f"table_experiments: {part!r} is not TABLE=EXPERIMENT[,EXPERIMENT...] with TABLE one of "
-                        f"{', '.join(map(str, tables.TABLES))}")
+        raise SpotError(
+            f"table_experiments: {part!r} is not TABLE=EXPERIMENT[,EXPERIMENT...] with TABLE one of "
+            f"{', '.join(map(str, tables.TABLES))}"
+        )
     named[int(number)] = [n.strip() for n in names.split(",") if n.strip()]
 
 
@@ -115,12 +121,19 @@ for number in tables.TABLES:
 # Runs per table, experiment, method, dataset and status; only FINISHED runs enter the cells.
 
 # %%
-counts = [r.groupby(["experiment", "method", "paper_dataset", "dataset_source", "status"]).size()
-          .rename("runs").reset_index().assign(table=number)
-          for number, r in runs.items() if not r.empty]
+counts = [
+    r.groupby(["experiment", "method", "paper_dataset", "dataset_source", "status"])
+    .size()
+    .rename("runs")
+    .reset_index()
+    .assign(table=number)
+    for number, r in runs.items()
+    if not r.empty
+]
 if counts:
-    overview = pd.concat(counts).set_index(["table", "experiment", "method", "paper_dataset",
-                                            "dataset_source", "status"])
+    overview = pd.concat(counts).set_index(
+        ["table", "experiment", "method", "paper_dataset", "dataset_source", "status"]
+    )
     show(overview, "runs per table")
 else:
     print("no runs found")
@@ -164,7 +177,9 @@ for number, r in runs.items():
 
 # %%
 for t in built.values():
-    fields = [f for f in ("mean", "std", "n", "paper", "paper_std", "diff") if f in set(t.columns.get_level_values("field"))]
+    fields = [
+        f for f in ("mean", "std", "n", "paper", "paper_std", "diff") if f in set(t.columns.get_level_values("field"))
+    ]
     show(t.loc[:, pd.IndexSlice[:, fields]].round(2), t.attrs["title"])
 
 # %% [markdown]

@@ -31,16 +31,25 @@ def main() -> None:
     n, rng = args.transitions, np.random.default_rng(args.seed)
     obs = np.cumsum(rng.normal(scale=0.05, size=(n, args.obs_dim)).astype(np.float32), axis=0) % 3.0
     timeouts = np.zeros(n, bool)
-    timeouts[args.episode_length - 1::args.episode_length] = True
+    timeouts[args.episode_length - 1 :: args.episode_length] = True
     raw = RawDataset(
         observations=obs,
         actions=rng.uniform(-1, 1, (n, args.act_dim)).astype(np.float32),
         rewards=(obs[:, min(5, args.obs_dim - 1)] + 0.1 * rng.normal(size=n)).astype(np.float32),
-        terminals=np.zeros(n, bool), timeouts=timeouts, name=args.path.stem,
+        terminals=np.zeros(n, bool),
+        timeouts=timeouts,
+        name=args.path.stem,
     )
     args.path.parent.mkdir(parents=True, exist_ok=True)
-    formats.write_d4rl_hdf5(raw, args.path, {"name": args.path.stem, "source": "file",
-                                             "note": "synthetic, for benchmarks (scripts/make_synthetic_d4rl.py)"})
+    formats.write_d4rl_hdf5(
+        raw,
+        args.path,
+        {
+            "name": args.path.stem,
+            "source": "file",
+            "note": "synthetic, for benchmarks (scripts/make_synthetic_d4rl.py)",
+        },
+    )
     print(f"wrote {n} transitions to {args.path}")
 
 

@@ -43,7 +43,8 @@ def synthetic_pairs(num_pairs: int, length: int, obs_dim: int, act_dim: int, see
         "act_1": np.asarray(jax.random.uniform(k[1], (num_pairs, length, act_dim), minval=-1, maxval=1)),
         "obs_2": np.asarray(jax.random.normal(k[2], (num_pairs, length, obs_dim))),
         "act_2": np.asarray(jax.random.uniform(k[3], (num_pairs, length, act_dim), minval=-1, maxval=1)),
-        "timesteps_1": ts, "timesteps_2": ts.copy(),
+        "timesteps_1": ts,
+        "timesteps_2": ts.copy(),
         "label": np.asarray(jax.random.bernoulli(k[4], 0.5, (num_pairs,)), np.float32),
     }
 
@@ -86,8 +87,14 @@ def _time_chunks(chunk: Any, state: Any, n: int, args: tuple, repeats: int) -> d
 
 
 # --------------------------------------------------------------------------- stages
-def iql_updates(obs_dim: int = 11, act_dim: int = 3, n: int = 1_000_000, steps: int = 3000, seeds: int = 1,
-                cfg: IQLConfig | None = None) -> dict[str, float]:
+def iql_updates(
+    obs_dim: int = 11,
+    act_dim: int = 3,
+    n: int = 1_000_000,
+    steps: int = 3000,
+    seeds: int = 1,
+    cfg: IQLConfig | None = None,
+) -> dict[str, float]:
     """Updates per second of IQL's train chunk on ``n`` random transitions: ``steps`` timed updates
     (rounded up to whole chunks) after one compile and one warm-up chunk; ``seeds > 1`` runs the
     vmapped chunk. ``updates_per_cpu_s`` is per second of process CPU time (all threads)."""
@@ -114,21 +121,36 @@ def iql_updates(obs_dim: int = 11, act_dim: int = 3, n: int = 1_000_000, steps: 
     chunks = -(-steps // cfg.chunk)
     t = _time_chunks(fn, state, cfg.chunk, (data, key), chunks)
     updates = chunks * cfg.chunk * seeds
-    return {"updates_per_s": updates / t["elapsed_s"], "updates_per_s_per_seed": updates / t["elapsed_s"] / seeds,
-            "updates_per_cpu_s": updates / t["cpu_s"], "compile_s": t["compile_s"], "peak_rss_mb": peak_rss_mb()}
+    return {
+        "updates_per_s": updates / t["elapsed_s"],
+        "updates_per_s_per_seed": updates / t["elapsed_s"] / seeds,
+        "updates_per_cpu_s": updates / t["cpu_s"],
+        "compile_s": t["compile_s"],
+        "peak_rss_mb": peak_rss_mb(),
+    }
 
 
 def bench_iql(small: bool = False, seeds: int = 1, order: str = IQLConfig.order) -> dict[str, Any]:
     cfg = IQLConfig(hidden=(64, 64), chunk=100, order=order) if small else IQLConfig(chunk=1000, order=order)
     n = 10_000 if small else 1_000_000
     steps = 300 if small else 3000
-    return {"what": f"IQL updates (batch {cfg.batch_size}, {cfg.hidden}, obs 11, act 3, {n} transitions, "
-                    f"{seeds} seed(s), order {order})",
-            **iql_updates(obs_dim=11, act_dim=3, n=n, steps=steps, seeds=seeds, cfg=cfg)}
+    return {
+        "what": f"IQL updates (batch {cfg.batch_size}, {cfg.hidden}, obs 11, act 3, {n} transitions, "
+        f"{seeds} seed(s), order {order})",
+        **iql_updates(obs_dim=11, act_dim=3, n=n, steps=steps, seeds=seeds, cfg=cfg),
+    }
 
 
-def reward_steps(model: Any, batch: int = 256, length: int = 100, steps: int = 3, obs_dim: int = 11,
-                 act_dim: int = 3, seed: int = 0, micro_batch: int = 64) -> dict[str, float]:
+def reward_steps(
+    model: Any,
+    batch: int = 256,
+    length: int = 100,
+    steps: int = 3,
+    obs_dim: int = 11,
+    act_dim: int = 3,
+    seed: int = 0,
+    micro_batch: int = 64,
+) -> dict[str, float]:
     """Time ``steps`` training steps of ``batch`` pairs of length ``length`` (the real train chunk,
     one call): ``steps_per_s`` (compile excluded), ``cpu_s_per_step``, ``compile_s``, ``peak_rss_mb``."""
     import jax
@@ -140,8 +162,12 @@ def reward_steps(model: Any, batch: int = 256, length: int = 100, steps: int = 3
     state = train.init_state(model, init_key, obs_dim, act_dim, steps)
     chunk = train.make_train_chunk(model, batch, steps, steps, micro_batch)
     t = _time_chunks(chunk, state, steps, (data, train_key), 1)
-    return {"steps_per_s": steps / t["elapsed_s"], "cpu_s_per_step": t["cpu_s"] / steps, "compile_s": t["compile_s"],
-            "peak_rss_mb": peak_rss_mb()}
+    return {
+        "steps_per_s": steps / t["elapsed_s"],
+        "cpu_s_per_step": t["cpu_s"] / steps,
+        "compile_s": t["compile_s"],
+        "peak_rss_mb": peak_rss_mb(),
+    }
 
 
 def bench_pt(small: bool = False, dtype: str = "float32") -> dict[str, Any]:
@@ -152,12 +178,22 @@ def bench_pt(small: bool = False, dtype: str = "float32") -> dict[str, Any]:
     else:
         cfg, batch, length, steps = PTConfig(dtype=dtype), 256, 100, 3
     out = reward_steps(PT(cfg), batch=batch, length=length, steps=steps)
-    return {"what": f"PT train steps ({cfg.n_layer} layer, {cfg.n_head} heads, {cfg.embd_dim} dims, segment {length}, "
-                    f"batch {batch} pairs, {dtype})", **out}
+    return {
+        "what": f"PT train steps ({cfg.n_layer} layer, {cfg.n_head} heads, {cfg.embd_dim} dims, segment {length}, "
+        f"batch {batch} pairs, {dtype})",
+        **out,
+    }
 
 
-def relabel_transitions(n_transitions: int, model: Any, relabel_cfg: RelabelConfig | None = None, obs_dim: int = 11,
-                        act_dim: int = 3, episode_len: int = 1000, seed: int = 0) -> dict[str, float]:
+def relabel_transitions(
+    n_transitions: int,
+    model: Any,
+    relabel_cfg: RelabelConfig | None = None,
+    obs_dim: int = 11,
+    act_dim: int = 3,
+    episode_len: int = 1000,
+    seed: int = 0,
+) -> dict[str, float]:
     """Relabel ``n_transitions`` random transitions with a freshly initialised ``model``:
     ``transitions_per_s`` (compile excluded), ``compile_s``, ``total_s``, ``cpu_s_total`` (all
     threads, compile included) and ``peak_rss_mb``."""
@@ -169,8 +205,13 @@ def relabel_transitions(n_transitions: int, model: Any, relabel_cfg: RelabelConf
     params = model.init(jax.random.key(seed), obs_dim, act_dim)
     c0 = cpu_seconds()
     out = relabel.relabel_rewards(model, params, ds, relabel_cfg or RelabelConfig(), progress=False)
-    return {"transitions_per_s": n_transitions / (out.total_s - out.compile_s), "compile_s": out.compile_s,
-            "total_s": out.total_s, "cpu_s_total": cpu_seconds() - c0, "peak_rss_mb": peak_rss_mb()}
+    return {
+        "transitions_per_s": n_transitions / (out.total_s - out.compile_s),
+        "compile_s": out.compile_s,
+        "total_s": out.total_s,
+        "cpu_s_total": cpu_seconds() - c0,
+        "peak_rss_mb": peak_rss_mb(),
+    }
 
 
 def bench_relabel(small: bool = False, mode: str = "chunked") -> dict[str, Any]:
@@ -179,8 +220,10 @@ def bench_relabel(small: bool = False, mode: str = "chunked") -> dict[str, Any]:
     n = 20_000 if small else 1_000_000
     cfg = PTConfig(embd_dim=64, pref_attn_dim=64) if small else PTConfig()
     rcfg = RelabelConfig(mode=mode, window=100 if mode == "chunked" else 25)
-    return {"what": f"PT relabelling, {mode} mode, {n} transitions ({cfg.embd_dim} dims)",
-            **relabel_transitions(n, PT(cfg), relabel_cfg=rcfg)}
+    return {
+        "what": f"PT relabelling, {mode} mode, {n} transitions ({cfg.embd_dim} dims)",
+        **relabel_transitions(n, PT(cfg), relabel_cfg=rcfg),
+    }
 
 
 def bench_cvae(small: bool = False) -> dict[str, Any]:
@@ -195,11 +238,17 @@ def bench_cvae(small: bool = False) -> dict[str, Any]:
     steps = 500 if small else 5000
     rng = np.random.default_rng(0)
     s = rng.normal(size=(m, obs_dim)).astype(np.float32)
-    data = Triplets(jnp.asarray(s), jnp.asarray(rng.uniform(-1, 1, (m, act_dim)).astype(np.float32)), jnp.asarray(s + 0.1))
+    data = Triplets(
+        jnp.asarray(s), jnp.asarray(rng.uniform(-1, 1, (m, act_dim)).astype(np.float32)), jnp.asarray(s + 0.1)
+    )
     state = cvae.init(jax.random.key(0), obs_dim, act_dim, cfg, cvae.obs_stats(s))
     t = _time_chunks(cvae.make_train_chunk(cfg, steps), state, steps, (data, jax.random.key(1)), 1)
-    return {"what": f"CVAE steps (batch {cfg.batch_size}, hidden {cfg.hidden}, latent {cfg.latent_dim})",
-            "steps_per_s": steps / t["elapsed_s"], "compile_s": t["compile_s"], "peak_rss_mb": peak_rss_mb()}
+    return {
+        "what": f"CVAE steps (batch {cfg.batch_size}, hidden {cfg.hidden}, latent {cfg.latent_dim})",
+        "steps_per_s": steps / t["elapsed_s"],
+        "compile_s": t["compile_s"],
+        "peak_rss_mb": peak_rss_mb(),
+    }
 
 
 BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": bench_cvae}
@@ -210,4 +259,3 @@ def format_result(name: str, result: dict[str, Any]) -> str:
     for key, value in result.items():
         lines.append(f"  {key:18s} {value:,.3f}" if isinstance(value, float) else f"  {key:18s} {value}")
     return "\n".join(lines)
-

@@ -214,7 +214,9 @@ class _Code:
         h, deps = hashlib.sha256(), []
         for attr, value in sorted(vars(module).items()):
             target = _unwrap(value)
-            if getattr(target, "__module__", None) == name and (isinstance(target, type) or hasattr(target, "__code__")):
+            if getattr(target, "__module__", None) == name and (
+                isinstance(target, type) or hasattr(target, "__code__")
+            ):
                 h.update(attr.encode())
                 self._object(target, h, deps)
             elif _plain(value) and not attr.startswith("__"):
@@ -281,13 +283,18 @@ def _canonical(obj: Any) -> Any:
     if isinstance(obj, Mapping):
         return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {"__type__": type(obj).__qualname__,
-                **{f.name: _canonical(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
+        return {
+            "__type__": type(obj).__qualname__,
+            **{f.name: _canonical(getattr(obj, f.name)) for f in dataclasses.fields(obj)},
+        }
     if isinstance(obj, (list, tuple)):
         return [_canonical(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return {"sha256": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(),
-                "shape": list(obj.shape), "dtype": str(obj.dtype)}
+        return {
+            "sha256": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(),
+            "shape": list(obj.shape),
+            "dtype": str(obj.dtype),
+        }
     if isinstance(obj, (np.integer, np.floating, np.bool_)):
         return obj.item()
     return obj
@@ -295,8 +302,9 @@ def _canonical(obj: Any) -> Any:
 
 def key(stage: str, deps: Mapping[str, Any], code: str) -> str:
     """Hash of the stage name, its code version (:func:`code_version`) and its dependencies."""
-    payload = json.dumps({"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)},
-                         sort_keys=True, default=str)
+    payload = json.dumps(
+        {"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)}, sort_keys=True, default=str
+    )
     return f"{stage}-{hashlib.sha256(payload.encode()).hexdigest()[:20]}"
 
 
@@ -433,8 +441,10 @@ def write_entry(path: Path, value: Any) -> None:
     """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename."""
     tree, arrays = encode(value)  # jax arrays are copied to host numpy arrays
     tree_bytes = json.dumps(tree).encode()
-    meta = {"__tree__": np.frombuffer(tree_bytes, np.uint8),
-            "__digest__": np.frombuffer(_digest(tree_bytes, arrays).encode(), np.uint8)}
+    meta = {
+        "__tree__": np.frombuffer(tree_bytes, np.uint8),
+        "__digest__": np.frombuffer(_digest(tree_bytes, arrays).encode(), np.uint8),
+    }
     buf = io.BytesIO()
     np.savez(buf, **meta, **arrays)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -483,8 +493,9 @@ def store(k: str, value: Any) -> None:
     write_entry(entry_path(k), value)
 
 
-def cached(stage: str, deps: Mapping[str, Any], compute: Callable[[], Any],
-           code: str | None = None) -> tuple[Any, bool, str]:
+def cached(
+    stage: str, deps: Mapping[str, Any], compute: Callable[[], Any], code: str | None = None
+) -> tuple[Any, bool, str]:
     """``(value, hit, key)``: the cached value for ``deps``, or ``compute()`` stored under it.
 
     ``code`` is the stage's code version; by default :func:`code_version` of ``compute`` (the code
@@ -497,4 +508,3 @@ def cached(stage: str, deps: Mapping[str, Any], compute: Callable[[], Any],
     value = compute()
     store(k, value)
     return value, False, k
-

@@ -67,68 +67,92 @@ def _data_fetch(args: argparse.Namespace) -> None:
             total = f"{sum(sizes):,}" if None not in sizes else "?"
             trust = ",".join(sorted({f.trust for f in s.files}))
             print(f"{s.name:36s} {len(s.files):5d} {total:>12s}  {trust:22s} {s.description}")
-        print(f"{'minari:<dataset id>':36s} {'':5s} {'':>12s}  {'tofu':22s} a Minari dataset through "
-              "minari.download_dataset (extra 'minari')")
-        print("\nchecksum from: lfs-oid = a mirror's published Git LFS id; git-commit = the file in a "
-              "pinned git commit; third-party = recorded by an independent project; tofu = trust on "
-              f"first use (recorded in the lock file, default ./{fetch.DEFAULT_LOCK})")
-        print(f"destination: {args.dest or fetch.default_dest()}   registry: "
-              f"{fetch.registry_path(args.registry) or 'spot/data/sources.json (package)'}")
+        print(
+            f"{'minari:<dataset id>':36s} {'':5s} {'':>12s}  {'tofu':22s} a Minari dataset through "
+            "minari.download_dataset (extra 'minari')"
+        )
+        print(
+            "\nchecksum from: lfs-oid = a mirror's published Git LFS id; git-commit = the file in a "
+            "pinned git commit; third-party = recorded by an independent project; tofu = trust on "
+            f"first use (recorded in the lock file, default ./{fetch.DEFAULT_LOCK})"
+        )
+        print(
+            f"destination: {args.dest or fetch.default_dest()}   registry: "
+            f"{fetch.registry_path(args.registry) or 'spot/data/sources.json (package)'}"
+        )
         return
     if not args.name:
         raise SpotError("spot data fetch needs a NAME (or --list)")
     if args.name.startswith(fetch.MINARI_PREFIX):
-        folder, digest, status = fetch.fetch_minari(args.name[len(fetch.MINARI_PREFIX):], lock=args.lock)
+        folder, digest, status = fetch.fetch_minari(args.name[len(fetch.MINARI_PREFIX) :], lock=args.lock)
         lock = args.lock or fetch.default_lock()
-        what = ("TOFU: Minari publishes no checksums; recorded the folder digest in"
-                if status == "recorded" else "matches the folder digest in")
+        what = (
+            "TOFU: Minari publishes no checksums; recorded the folder digest in"
+            if status == "recorded"
+            else "matches the folder digest in"
+        )
         print(f"fetched {args.name} -> {folder}\n  {what} {lock}: {digest}")
         return
-    result = fetch.fetch(args.name, args.dest, mirrors=args.mirror, registry=args.registry,
-                         lock=args.lock, progress=not args.quiet)
+    result = fetch.fetch(
+        args.name, args.dest, mirrors=args.mirror, registry=args.registry, lock=args.lock, progress=not args.quiet
+    )
     src = result.source
     print(f"fetched {src.name} -> {(args.dest and Path(args.dest)) or fetch.default_dest()}")
     for f in result.files:
         print(f"  {f.status:10s} {f.path}  {f.size:,} B  sha256 {f.sha256}")
         if f.status == "recorded":
-            print(f"             TOFU: no published checksum; this first download's sum is now in "
-                  f"{result.lock}: commit it, later downloads must match")
+            print(
+                f"             TOFU: no published checksum; this first download's sum is now in "
+                f"{result.lock}: commit it, later downloads must match"
+            )
         else:
             print(f"             verified against: {fetch._trust_words(f.trust)}")
     if src.kind in ("d4rl", "robomimic"):
         print(f"use it: data.name={result.files[0].path}")
         if src.labels:
-            print(f"human labels: spot data fetch {src.labels}, then labels.source=human "
-                  "labels.path=<its folder>")
+            print(f"human labels: spot data fetch {src.labels}, then labels.source=human labels.path=<its folder>")
     elif src.kind == "pt-labels":
-        print(f"use it: labels.source=human labels.path={result.files[0].path.parent} "
-              f"(with the data of {src.labels_for})")
+        print(
+            f"use it: labels.source=human labels.path={result.files[0].path.parent} (with the data of {src.labels_for})"
+        )
 
 
 # --------------------------------------------------------------------------- labels
 # `spot labels make` flags -> the config keys they set (None: not given, the resolved config decides).
-_LABEL_FLAGS = {"num_queries": "labels.num_queries", "segment_length": "labels.segment_length",
-                "teacher": "labels.teacher", "score": "labels.score", "discount": "labels.discount",
-                "tie_threshold": "labels.tie_threshold", "mistake_rate": "labels.mistake_rate",
-                "allow_cross_episode": "labels.allow_cross_episode", "label_seed": "labels.seed",
-                "size": "data.size", "data_seed": "data.build_seed"}
+_LABEL_FLAGS = {
+    "num_queries": "labels.num_queries",
+    "segment_length": "labels.segment_length",
+    "teacher": "labels.teacher",
+    "score": "labels.score",
+    "discount": "labels.discount",
+    "tie_threshold": "labels.tie_threshold",
+    "mistake_rate": "labels.mistake_rate",
+    "allow_cross_episode": "labels.allow_cross_episode",
+    "label_seed": "labels.seed",
+    "size": "data.size",
+    "data_seed": "data.build_seed",
+}
 
 
 def _labels_make(args: argparse.Namespace) -> None:
     """The queries `spot run` would make with the same config: the labels settings are resolved like
     a run's (defaults < method < budget < suite preset < --config file < overrides and flags)."""
     from spot import config, stages
+
     flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
     cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])
-    ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
-                          progress=not args.quiet)
+    ds, _ = registry.load(
+        cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source, progress=not args.quiet
+    )
     prefs = stages.make_preferences(cfg, ds)
     prefs.save_npz(args.out)
     lc = cfg.labels
     print(f"wrote {len(prefs)} queries (segment length {prefs.segment_length}) to {args.out}")
-    print(f"settings (method={cfg.method}, budget={cfg.budget}): source={lc.source} teacher={lc.teacher} "
-          f"score={lc.score} discount={lc.discount} tie_threshold={lc.tie_threshold} "
-          f"mistake_rate={lc.mistake_rate} allow_cross_episode={lc.allow_cross_episode} seed={lc.seed}")
+    print(
+        f"settings (method={cfg.method}, budget={cfg.budget}): source={lc.source} teacher={lc.teacher} "
+        f"score={lc.score} discount={lc.discount} tie_threshold={lc.tie_threshold} "
+        f"mistake_rate={lc.mistake_rate} allow_cross_episode={lc.allow_cross_episode} seed={lc.seed}"
+    )
     _print_label_stats(prefs)
 
 
@@ -136,8 +160,10 @@ def _print_label_stats(prefs) -> None:
     import numpy as np
 
     y = prefs.labels
-    print(f"labels: seg1 preferred {int(np.sum(y == 0))}, seg2 preferred {int(np.sum(y == 1))}, "
-          f"ties {int(np.sum(y == 0.5))}")
+    print(
+        f"labels: seg1 preferred {int(np.sum(y == 0))}, seg2 preferred {int(np.sum(y == 1))}, "
+        f"ties {int(np.sum(y == 0.5))}"
+    )
 
 
 def _labels_info(args: argparse.Namespace) -> None:
@@ -196,8 +222,10 @@ def _eval(args: argparse.Namespace) -> None:
 
     res = pipeline.evaluate_run(args.run_id, args.tracking_uri, args.episodes)
     n, seed = res["episodes"], res["eval_seed"]
-    print(f"run {res['run_id']}: {res['method']} policy after {res['steps']} updates on {res['env']}, "
-          f"{n} episodes (env seeds {seed}..{seed + n - 1})")
+    print(
+        f"run {res['run_id']}: {res['method']} policy after {res['steps']} updates on {res['env']}, "
+        f"{n} episodes (env seeds {seed}..{seed + n - 1})"
+    )
     print(f"  {'score_mean':24s} {res['score_mean']:.3f}")
     print(f"  {'score_std':24s} {res['score_std']:.3f}")
     print(f"  {'return_mean':24s} {res['return_mean']:.3f}")
@@ -207,8 +235,10 @@ def _eval(args: argparse.Namespace) -> None:
     elif abs(logged - res["score_mean"]) <= 1e-9 * max(1.0, abs(logged)):
         print(f"  reproduces the logged eval/score_final {logged:.3f}")
     else:
-        print(f"  logged eval/score_final {logged:.3f} (differs: other episodes{' count' if args.episodes else ''}, "
-              "or another machine's floating point)")
+        print(
+            f"  logged eval/score_final {logged:.3f} (differs: other episodes{' count' if args.episodes else ''}, "
+            "or another machine's floating point)"
+        )
 
 
 # --------------------------------------------------------------------------- bench
@@ -230,9 +260,16 @@ def _sweep(args: argparse.Namespace) -> int:
     from spot import sweep
 
     try:
-        rows = sweep.run_sweep(args.file, smoke=args.smoke, resume=args.resume, retry_errored=args.retry_errored,
-                               address=args.address, max_concurrent=args.max_concurrent,
-                               tracking_uri=args.tracking_uri, storage=args.storage)
+        rows = sweep.run_sweep(
+            args.file,
+            smoke=args.smoke,
+            resume=args.resume,
+            retry_errored=args.retry_errored,
+            address=args.address,
+            max_concurrent=args.max_concurrent,
+            tracking_uri=args.tracking_uri,
+            storage=args.storage,
+        )
     except sweep.Interrupted as e:
         print(f"interrupted: {e}", file=sys.stderr)
         return e.exit_code  # 143 for SIGTERM, 130 for SIGINT
@@ -321,17 +358,21 @@ def _figures(args: argparse.Namespace) -> None:
             if args.dataset:
                 ds, _ = registry.load(args.dataset, args.size, args.data_seed, progress=False)
             else:
-                ds, _ = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
-                                      progress=False)
+                ds, _ = registry.load(
+                    cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source, progress=False
+                )
                 args.dataset = head.get("dataset") or cfg.data.name
             obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
         elif args.cvae and args.index:
             obs, goal = figures.pairs_from_cvae(params, ds.observations, ds.actions, args.index)
         else:
-            raise SpotError("fig3 needs --pairs FILE.npy --env ENV, --run-id ID --index I [I ...], "
-                            "or --cvae FILE --dataset NAME --index I [I ...]")
-        path = figures.render_state_and_subgoal(args.env or args.dataset, obs, goal, args.out,
-                                                width=args.width, height=args.height)
+            raise SpotError(
+                "fig3 needs --pairs FILE.npy --env ENV, --run-id ID --index I [I ...], "
+                "or --cvae FILE --dataset NAME --index I [I ...]"
+            )
+        path = figures.render_state_and_subgoal(
+            args.env or args.dataset, obs, goal, args.out, width=args.width, height=args.height
+        )
     elif args.run_id:
         path = figures.fetch_artifact(args.run_id, figures.FIG4_ARTIFACT, args.out, args.tracking_uri)
     elif args.cvae:
@@ -355,9 +396,14 @@ class _Formatter(argparse.HelpFormatter):
     def _get_help_string(self, action: argparse.Action) -> str:
         text = action.help or ""
         default = action.default
-        if (default is None or default is False or default is argparse.SUPPRESS or default in ("", [])
-                or "default" in text
-                or not (action.option_strings or action.nargs in ("?", "*"))):
+        if (
+            default is None
+            or default is False
+            or default is argparse.SUPPRESS
+            or default in ("", [])
+            or "default" in text
+            or not (action.option_strings or action.nargs in ("?", "*"))
+        ):
             return text
         return f"{text} (default: %(default)s)"
 
@@ -365,9 +411,14 @@ class _Formatter(argparse.HelpFormatter):
 def _parser(sub: Any, name: str, help: str, examples: str, **kw: Any) -> argparse.ArgumentParser:
     """A subcommand with the shared formatter and ``examples`` (one per line) as its epilog."""
     lines = "\n".join(f"  {line}" for line in examples.strip().splitlines())
-    return sub.add_parser(name, help=help, description=kw.pop("description", help[0].upper() + help[1:] + "."),
-                          epilog=f"example{'s' if len(examples.strip().splitlines()) > 1 else ''}:\n{lines}",
-                          formatter_class=_Formatter, **kw)
+    return sub.add_parser(
+        name,
+        help=help,
+        description=kw.pop("description", help[0].upper() + help[1:] + "."),
+        epilog=f"example{'s' if len(examples.strip().splitlines()) > 1 else ''}:\n{lines}",
+        formatter_class=_Formatter,
+        **kw,
+    )
 
 
 def _positive_int(text: str) -> int:
@@ -382,8 +433,14 @@ def _positive_int(text: str) -> int:
 
 def _data_seed(d: argparse.ArgumentParser, default: int | None = 0, what: str = "dataset build seed") -> None:
     """``--data-seed`` (``data.build_seed``), with ``--seed`` kept as its old name."""
-    d.add_argument("--data-seed", "--seed", dest="data_seed", type=int, default=default,
-                   help=f"{what} (data.build_seed; --seed is the old name)")
+    d.add_argument(
+        "--data-seed",
+        "--seed",
+        dest="data_seed",
+        type=int,
+        default=default,
+        help=f"{what} (data.build_seed; --seed is the old name)",
+    )
 
 
 def _quiet(d: argparse.ArgumentParser) -> None:
@@ -407,9 +464,12 @@ def _version() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="spot", description="Offline preference-based RL: SPOT and baselines.", formatter_class=_Formatter,
+        prog="spot",
+        description="Offline preference-based RL: SPOT and baselines.",
+        formatter_class=_Formatter,
         epilog="examples:\n  spot sweep sweeps/quickstart.yaml --smoke\n  spot run configs/quickstart.yaml method=pt\n"
-               "  spot tables --table 1\n\nEvery command has --help with its options, defaults and an example.")
+        "  spot tables --table 1\n\nEvery command has --help with its options, defaults and an example.",
+    )
     p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
@@ -421,39 +481,62 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_data(sub: Any) -> None:
     """The data: list, build, info, fetch commands."""
     data = sub.add_parser("data", help="list, build, inspect and fetch datasets").add_subparsers(
-        dest="sub", required=True, metavar="SUB")
+        dest="sub", required=True, metavar="SUB"
+    )
     d = _parser(data, "list", "registered datasets and what is built", "spot data list")
     d.set_defaults(fn=_data_list)
-    d = _parser(data, "build", "build a dataset with its local recipe (once; cached)",
-                "spot data build hopper-medium-replay --size small --data-seed 0")
+    d = _parser(
+        data,
+        "build",
+        "build a dataset with its local recipe (once; cached)",
+        "spot data build hopper-medium-replay --size small --data-seed 0",
+    )
     d.add_argument("name", help="registered dataset name (spot data list)")
     d.add_argument("--size", default="small", choices=_SIZES, help="dataset size")
     _data_seed(d)
     d.add_argument("--force", action="store_true", help="rebuild even if cached")
     _quiet(d)
     d.set_defaults(fn=_data_build)
-    d = _parser(data, "info", "summary and card of a built dataset or an hdf5 file",
-                "spot data info hopper-medium-replay --size tiny")
+    d = _parser(
+        data,
+        "info",
+        "summary and card of a built dataset or an hdf5 file",
+        "spot data info hopper-medium-replay --size tiny",
+    )
     d.add_argument("name", help="registered name or path")
     d.add_argument("--size", default="small", choices=_SIZES, help="dataset size (registered names)")
     _data_seed(d)
     _quiet(d)
     d.set_defaults(fn=_data_info)
     d = _parser(
-        data, "fetch", "download the paper's real data files (D4RL, robomimic, PT labels), verified",
+        data,
+        "fetch",
+        "download the paper's real data files (D4RL, robomimic, PT labels), verified",
         "spot data fetch --list\nspot data fetch d4rl/hopper-medium-replay-v2",
         description="Download a registered source's files to DEST with resume and mirror fallback; "
-                    "each file's size and sha256 are verified before it is put in place.")
+        "each file's size and sha256 are verified before it is put in place.",
+    )
     d.add_argument("name", nargs="?", help="registry name (see --list) or minari:<dataset id>")
     d.add_argument("--list", action="store_true", help="list the registered sources and exit")
     d.add_argument("--dest", help="destination folder (default: $SPOT_DATA_DIR/real)")
-    d.add_argument("--mirror", action="append", default=[], metavar="URL",
-                   help="base URL tried first, as URL/<file path> (repeatable)")
-    d.add_argument("--registry", metavar="FILE",
-                   help="another sources registry in the same JSON format, e.g. a private mirror "
-                        "or a test server (default: $SPOT_FETCH_REGISTRY, else the package's)")
-    d.add_argument("--lock", metavar="FILE",
-                   help="trust-on-first-use lock file (default: $SPOT_DATA_LOCK, else ./spot-data.lock.json)")
+    d.add_argument(
+        "--mirror",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="base URL tried first, as URL/<file path> (repeatable)",
+    )
+    d.add_argument(
+        "--registry",
+        metavar="FILE",
+        help="another sources registry in the same JSON format, e.g. a private mirror "
+        "or a test server (default: $SPOT_FETCH_REGISTRY, else the package's)",
+    )
+    d.add_argument(
+        "--lock",
+        metavar="FILE",
+        help="trust-on-first-use lock file (default: $SPOT_DATA_LOCK, else ./spot-data.lock.json)",
+    )
     _quiet(d)
     d.set_defaults(fn=_data_fetch)
 
@@ -461,12 +544,17 @@ def _add_data(sub: Any) -> None:
 def _add_labels(sub: Any) -> None:
     """The labels: make, info commands."""
     lab = sub.add_parser("labels", help="make and inspect preference queries").add_subparsers(
-        dest="sub", required=True, metavar="SUB")
-    d = _parser(lab, "make", "the preference queries `spot run` would make on a dataset -> .npz",
-                "spot labels make drawer-open --out queries.npz --size tiny method=ipl",
-                description="Resolves the labels settings like `spot run` (method, budget and suite "
-                            "presets, --config, KEY=VALUE overrides); the flags are shorthands for "
-                            "labels.* keys and win over the overrides.")
+        dest="sub", required=True, metavar="SUB"
+    )
+    d = _parser(
+        lab,
+        "make",
+        "the preference queries `spot run` would make on a dataset -> .npz",
+        "spot labels make drawer-open --out queries.npz --size tiny method=ipl",
+        description="Resolves the labels settings like `spot run` (method, budget and suite "
+        "presets, --config, KEY=VALUE overrides); the flags are shorthands for "
+        "labels.* keys and win over the overrides.",
+    )
     d.add_argument("dataset", help="data.name: a registered name or a dataset file")
     d.add_argument("overrides", nargs="*", help="a.b=value config overrides, e.g. method=ipl budget=paper")
     d.add_argument("--out", required=True, help="output .npz")
@@ -476,8 +564,11 @@ def _add_labels(sub: Any) -> None:
     d.add_argument("--num-queries", type=int, help="labels.num_queries")
     d.add_argument("--segment-length", type=int, help="labels.segment_length")
     d.add_argument("--teacher", choices=("sum", "discounted"), help="labels.teacher")
-    d.add_argument("--score", choices=("reward", "dense"),
-                   help="labels.score: sum the dataset's reward or its dense reward infos/dense_reward (robosuite recipes)")
+    d.add_argument(
+        "--score",
+        choices=("reward", "dense"),
+        help="labels.score: sum the dataset's reward or its dense reward infos/dense_reward (robosuite recipes)",
+    )
     d.add_argument("--discount", type=float, help="labels.discount")
     d.add_argument("--tie-threshold", type=float, help="labels.tie_threshold (negative: no ties)")
     d.add_argument("--mistake-rate", type=float, help="labels.mistake_rate")
@@ -485,8 +576,12 @@ def _add_labels(sub: Any) -> None:
     d.add_argument("--label-seed", type=int, help="labels.seed")
     _quiet(d)
     d.set_defaults(fn=_labels_make)
-    d = _parser(lab, "info", "inspect a .npz query file or a PT human-label folder",
-                "spot labels info queries.npz --dataset drawer-open --size tiny")
+    d = _parser(
+        lab,
+        "info",
+        "inspect a .npz query file or a PT human-label folder",
+        "spot labels info queries.npz --dataset drawer-open --size tiny",
+    )
     d.add_argument("path", help=".npz query file or PT human-label folder")
     d.add_argument("--dataset", help="check that every segment fits this dataset")
     d.add_argument("--size", default="small", choices=_SIZES, help="with --dataset: its size")
@@ -499,30 +594,45 @@ def _add_run(sub: Any) -> None:
     """The run, eval, bench commands."""
     from spot.config import IQL_ORDERS, IQLConfig
 
-    d = _parser(sub, "run", "one run (one seed) end to end, logged to MLflow",
-                "spot run configs/quickstart.yaml method=spot seed=1\n"
-                "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000",
-                description="One run (one seed) end to end, logged to MLflow. It ends with where it logged, "
-                            "the mlflow ui command and a link to the run.")
+    d = _parser(
+        sub,
+        "run",
+        "one run (one seed) end to end, logged to MLflow",
+        "spot run configs/quickstart.yaml method=spot seed=1\n"
+        "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000",
+        description="One run (one seed) end to end, logged to MLflow. It ends with where it logged, "
+        "the mlflow ui command and a link to the run.",
+    )
     d.add_argument("config", nargs="?", help="YAML run config (see configs/)")
     d.add_argument("overrides", nargs="*", help="a.b=value overrides, e.g. method=pt iql.steps=5000")
-    d.add_argument("--tracking-uri", help="MLflow tracking URI, same as the override tracking.uri=URI (default: "
-                                          "tracking.uri, else $MLFLOW_TRACKING_URI, else ./mlruns/mlflow.db)")
+    d.add_argument(
+        "--tracking-uri",
+        help="MLflow tracking URI, same as the override tracking.uri=URI (default: "
+        "tracking.uri, else $MLFLOW_TRACKING_URI, else ./mlruns/mlflow.db)",
+    )
     _quiet(d)
     d.set_defaults(fn=_run)
 
-    d = _parser(sub, "eval", "evaluate a logged run's saved policy again",
-                "spot eval 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --episodes 10 --tracking-uri sqlite:///spot_runs/mlflow.db",
-                description="Download a run's policy (models/policy) and config, rebuild its evaluation env "
-                            "and evaluate the policy's mean action on the run's evaluation seeds. With the "
-                            "run's eval.episodes this reproduces its eval/score_final.")
+    d = _parser(
+        sub,
+        "eval",
+        "evaluate a logged run's saved policy again",
+        "spot eval 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --episodes 10 --tracking-uri sqlite:///spot_runs/mlflow.db",
+        description="Download a run's policy (models/policy) and config, rebuild its evaluation env "
+        "and evaluate the policy's mean action on the run's evaluation seeds. With the "
+        "run's eval.episodes this reproduces its eval/score_final.",
+    )
     d.add_argument("run_id", help="MLflow run id")
     d.add_argument("--episodes", type=_positive_int, help="episodes (default: the run's eval.episodes)")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.set_defaults(fn=_eval)
 
-    d = _parser(sub, "bench", "throughput, compile time and peak memory of a stage (paper sizes)",
-                "spot bench iql --small\nspot bench iql --seeds 5 --order sequential")
+    d = _parser(
+        sub,
+        "bench",
+        "throughput, compile time and peak memory of a stage (paper sizes)",
+        "spot bench iql --small\nspot bench iql --seeds 5 --order sequential",
+    )
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"), help="the stage")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
     d.add_argument("--seeds", type=_positive_int, default=1, help="iql: seeds as a vmap axis")
@@ -534,22 +644,29 @@ def _add_run(sub: Any) -> None:
 
 def _add_sweep(sub: Any) -> None:
     """The sweep, config commands."""
-    d = _parser(sub, "sweep", "run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
-                "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/table1.yaml --address auto --max-concurrent 8",
-                description="Run a sweep file with Ray Tune, one MLflow run per (config, seed). Exit code 0 "
-                            "when every run finished, 1 otherwise. See docs/sweeps.md.")
+    d = _parser(
+        sub,
+        "sweep",
+        "run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
+        "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/table1.yaml --address auto --max-concurrent 8",
+        description="Run a sweep file with Ray Tune, one MLflow run per (config, seed). Exit code 0 "
+        "when every run finished, 1 otherwise. See docs/sweeps.md.",
+    )
     d.add_argument("file", help="sweep YAML file")
     d.add_argument("--smoke", action="store_true", help="apply the file's smoke block (experiment <name>-smoke)")
     d.add_argument("--resume", action="store_true", help="continue the last launch of this sweep")
     d.add_argument("--retry-errored", action="store_true", help="with --resume: run failed trials again")
     d.add_argument("--address", help="Ray cluster address (default: local Ray on all CPUs)")
-    d.add_argument("--max-concurrent", type=_positive_int, help="trials at once, >= 1 (default: the file's max_concurrent)")
+    d.add_argument(
+        "--max-concurrent", type=_positive_int, help="trials at once, >= 1 (default: the file's max_concurrent)"
+    )
     d.add_argument("--tracking-uri", help="MLflow tracking URI (default: a loopback server on ./spot_runs/mlflow.db)")
     d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder")
     d.set_defaults(fn=_sweep)
 
     cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(
-        dest="sub", required=True, metavar="SUB")
+        dest="sub", required=True, metavar="SUB"
+    )
     d = _parser(cfg, "show", "print the fully resolved config", "spot config show configs/quickstart.yaml method=pt")
     d.add_argument("config", nargs="?", help="YAML run config")
     d.add_argument("overrides", nargs="*", help="a.b=value overrides")
@@ -562,11 +679,18 @@ def _add_tables(sub: Any) -> None:
     """The tables, results, report commands."""
     from spot import tables
 
-    d = _parser(sub, "tables", "a paper table from the MLflow runs, the paper's numbers beside ours",
-                "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex")
+    d = _parser(
+        sub,
+        "tables",
+        "a paper table from the MLflow runs, the paper's numbers beside ours",
+        "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex",
+    )
     d.add_argument("--table", type=int, required=True, choices=tables.TABLES, help="paper table")
-    d.add_argument("--experiment", action="append",
-                   help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)")
+    d.add_argument(
+        "--experiment",
+        action="append",
+        help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)",
+    )
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
@@ -578,22 +702,35 @@ def _add_tables(sub: Any) -> None:
     d.set_defaults(fn=_tables)
 
     res = sub.add_parser("results", help="export finished runs from MLflow to a small CSV").add_subparsers(
-        dest="sub", required=True, metavar="SUB")
-    d = _parser(res, "export", "one row per run: identity, config hash, data digest, params, metrics",
-                "spot results export --experiment table1 --out results/table1.csv")
+        dest="sub", required=True, metavar="SUB"
+    )
+    d = _parser(
+        res,
+        "export",
+        "one row per run: identity, config hash, data digest, params, metrics",
+        "spot results export --experiment table1 --out results/table1.csv",
+    )
     d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--out", required=True, help="the CSV to write, e.g. results/lab_table1.csv")
     d.set_defaults(fn=_results_export)
 
-    d = _parser(sub, "report", "the paper's claims: effect, 95%% CI, n and verdict per claim",
-                "spot report --results results/ --out report.md")
+    d = _parser(
+        sub,
+        "report",
+        "the paper's claims: effect, 95%% CI, n and verdict per claim",
+        "spot report --results results/ --out report.md",
+    )
     d.add_argument("--results", nargs="+", help="results CSVs (files or folders); default: read MLflow")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
-    d.add_argument("--use", action="append", metavar="CLAIM=EXPERIMENT",
-                   help="read a claim's runs from this experiment (claims 1-6, C for the controls)")
+    d.add_argument(
+        "--use",
+        action="append",
+        metavar="CLAIM=EXPERIMENT",
+        help="read a claim's runs from this experiment (claims 1-6, C for the controls)",
+    )
     d.add_argument("--out", help="write the report (Markdown) to this file instead of printing it")
     d.set_defaults(fn=_report)
 
@@ -601,18 +738,29 @@ def _add_tables(sub: Any) -> None:
 def _add_figures(sub: Any) -> None:
     """The figures: fig2, fig3, fig4 commands."""
     figs = sub.add_parser("figures", help="the paper's figures 2, 3 and 4 from runs").add_subparsers(
-        dest="figure", required=True, metavar="FIGURE")
-    d = _parser(figs, "fig2", "extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD",
-                "spot figures fig2 --experiment table1 --out fig2.pdf")
+        dest="figure", required=True, metavar="FIGURE"
+    )
+    d = _parser(
+        figs,
+        "fig2",
+        "extrapolation error vs cos(s, g), PT vs SPOT, in-distribution vs OOD",
+        "spot figures fig2 --experiment table1 --out fig2.pdf",
+    )
     d.add_argument("--experiment", action="append", help="MLflow experiment (repeatable; default: all)")
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--dataset", help="the paper's dataset name, if the runs span several")
     d.add_argument("--source", choices=("recipe", "file"), help="dataset source, if the runs span both")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over runs: 1 = sample, 0 = population")
-    d.add_argument("--out", default="fig2.png", help="output file; its extension picks the format (.png, .pdf, .svg...)")
-    d = _parser(figs, "fig3", "locomotion states rendered beside their predicted subgoals (MuJoCo, headless)",
-                "spot figures fig3 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --index 120 480\n"
-                "spot figures fig3 --pairs pairs.npy --env Hopper-v5")
+    d.add_argument(
+        "--out", default="fig2.png", help="output file; its extension picks the format (.png, .pdf, .svg...)"
+    )
+    d = _parser(
+        figs,
+        "fig3",
+        "locomotion states rendered beside their predicted subgoals (MuJoCo, headless)",
+        "spot figures fig3 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --index 120 480\n"
+        "spot figures fig3 --pairs pairs.npy --env Hopper-v5",
+    )
     d.add_argument("--pairs", help=".npy of [2, obs_dim] or [n, 2, obs_dim] (state, subgoal)")
     d.add_argument("--run-id", help="use this run's CVAE (its models/cvae artifact) on the run's dataset")
     d.add_argument("--env", help="Hopper-v5, Walker2d-v5, HalfCheetah-v5 or a dataset name (default: --dataset)")
@@ -620,8 +768,12 @@ def _add_figures(sub: Any) -> None:
     d.add_argument("--width", type=_positive_int, default=320, help="pixels per image")
     d.add_argument("--height", type=_positive_int, default=320, help="pixels per image")
     d.add_argument("--out", default="fig3.png", help="output file; its extension picks the format")
-    d = _parser(figs, "fig4", "PCA of observations and subgoals: a run's artifact, or redrawn from a CVAE",
-                "spot figures fig4 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --out fig4.pdf")
+    d = _parser(
+        figs,
+        "fig4",
+        "PCA of observations and subgoals: a run's artifact, or redrawn from a CVAE",
+        "spot figures fig4 --run-id 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --out fig4.pdf",
+    )
     d.add_argument("--run-id", help="this run's subgoal_projection.png, written in --out's format")
     d.add_argument("--out", default="fig4.png", help="output file; its extension picks the format")
     for d in figs.choices.values():

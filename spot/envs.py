@@ -10,7 +10,8 @@ Three families, each evaluated the way its reference papers report it:
   gymnasium's bundled v2-v4 ``walker2d.xml`` (:data:`LOCOMOTION_MODELS`). ``Hopper-v5`` and
   ``HalfCheetah-v5`` load the same xml as their v2-v4 versions. Every v5 env differs from v2-v4 in
   one reward detail: no healthy reward on the terminating step (at most 1 of an episode's return,
-  about 0.02 normalised points for Hopper). Score: the D4RL normalised return ``100 · (R − R_random) / (R_expert − R_random)``
+  about 0.02 normalised points for Hopper). Score: the D4RL normalised return ``100 · (R − R_random) / (R_expert −
+  R_random)``
   with the ``-random-v0`` / expert references of ``d4rl/infos.py`` that the ``-v2`` datasets
   inherit (reference/algorithms.md §2.4; PT's ``EpisodeMonitor`` multiplies by 100).
 * **metaworld** (``drawer-open``, ``plate-slide``, ``button-press``): the goal-observable v3
@@ -168,9 +169,7 @@ class _RobosuiteEnv(gym.Env):
         try:
             import robosuite
         except ImportError as e:
-            raise SpotError(
-                "robosuite evaluation needs robosuite 1.5.1: pip install 'spot-pbrl[robosuite]'"
-            ) from e
+            raise SpotError("robosuite evaluation needs robosuite 1.5.1: pip install 'spot-pbrl[robosuite]'") from e
         global_state = np.random.get_state()
         np.random.seed(seed)
         try:
@@ -200,9 +199,9 @@ class _RobosuiteEnv(gym.Env):
 
     @staticmethod
     def _flatten(obs: dict[str, np.ndarray]) -> np.ndarray:
-        return np.concatenate(
-            [obs["object-state" if k == "object" else k] for k in ROBOMIMIC_OBS_KEYS]
-        ).astype(np.float64)
+        return np.concatenate([obs["object-state" if k == "object" else k] for k in ROBOMIMIC_OBS_KEYS]).astype(
+            np.float64
+        )
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
@@ -335,4 +334,3 @@ def evaluate(policy_fn: Callable[[np.ndarray], Any], name: str, episodes: int, s
         "returns": returns,
         "lengths": lengths,
     }
-

@@ -22,7 +22,8 @@
 
 Headless rendering: MuJoCo picks its OpenGL backend from ``MUJOCO_GL`` when it is first imported;
 :func:`spot.runtime.configure` (called by the ``spot`` command) sets ``MUJOCO_GL=egl`` if the
-variable is unset and mujoco is not imported yet. EGL works with Mesa's software driver on machines without a GPU or display (no
+variable is unset and mujoco is not imported yet. EGL works with Mesa's software driver on machines without a GPU or
+display (no
 ``/dev/dri`` needed); ``osmesa`` needs libOSMesa and ``glfw`` a display. If mujoco was already
 imported with ``glfw`` and there is no display, set ``MUJOCO_GL=egl`` before starting Python.
 
@@ -63,8 +64,9 @@ def _bins_from_artifact(path: Path) -> list[dict[str, Any]]:
     rows = []
     for g, group in enumerate(d.get("groups", GROUPS)):
         for b in range(error.shape[1]):
-            rows.append({"group": group, "bin": b, "centre": centres[b], "mean_error": error[g, b],
-                         "count": count[g, b]})
+            rows.append(
+                {"group": group, "bin": b, "centre": centres[b], "mean_error": error[g, b], "count": count[g, b]}
+            )
     return rows
 
 
@@ -72,8 +74,9 @@ def _bins_from_metrics(client: Any, run_id: str) -> list[dict[str, Any]]:
     rows = []
     for group, metric in GROUP_METRICS.items():
         for m in client.get_metric_history(run_id, metric):
-            rows.append({"group": group, "bin": int(m.step), "centre": np.nan, "mean_error": float(m.value),
-                         "count": np.nan})
+            rows.append(
+                {"group": group, "bin": int(m.step), "centre": np.nan, "mean_error": float(m.value), "count": np.nan}
+            )
     return rows
 
 
@@ -89,8 +92,14 @@ def _pick(runs: pd.DataFrame, column: str, value: str | None, what: str) -> pd.D
     return runs
 
 
-def extrapolation_bins(runs: pd.DataFrame, tracking_uri: str | None = None, *, dataset: str | None = None,
-                       source: str | None = None, methods: Sequence[str] = FIG2_METHODS) -> pd.DataFrame:
+def extrapolation_bins(
+    runs: pd.DataFrame,
+    tracking_uri: str | None = None,
+    *,
+    dataset: str | None = None,
+    source: str | None = None,
+    methods: Sequence[str] = FIG2_METHODS,
+) -> pd.DataFrame:
     """Per-run binned extrapolation error of the finished ``methods`` runs of one dataset and source.
 
     Args:
@@ -111,24 +120,38 @@ def extrapolation_bins(runs: pd.DataFrame, tracking_uri: str | None = None, *, d
     sel = _pick(sel, "dataset_source", source, "source")
     mixed = tables.mixed_params(sel, sel[["method"]])
     if mixed:
-        raise SpotError(f"the {'/'.join(methods)} runs differ in more than the seed, so they are not pooled: "
-                        f"{'; '.join(mixed[:5])}; pick runs with --experiment / --sweep-id")
+        raise SpotError(
+            f"the {'/'.join(methods)} runs differ in more than the seed, so they are not pooled: "
+            f"{'; '.join(mixed[:5])}; pick runs with --experiment / --sweep-id"
+        )
     sel = sel.sort_values("start_time").drop_duplicates(["method", "seed"], keep="last")  # a re-run replaces
     client = tracking.reader(tracking_uri)
     uri = client.tracking_uri
     rows = []
     with tempfile.TemporaryDirectory(prefix="spot-fig2-") as tmp:
         for _, run in sel.iterrows():
-            path = tracking.download_artifact(run["run_id"], run["artifact_uri"], FIG2_ARTIFACT, uri,
-                                              str(Path(tmp) / run["run_id"]))
+            path = tracking.download_artifact(
+                run["run_id"], run["artifact_uri"], FIG2_ARTIFACT, uri, str(Path(tmp) / run["run_id"])
+            )
             found = _bins_from_artifact(path) if path is not None else _bins_from_metrics(client, run["run_id"])
             origin = "artifact" if path is not None else "metrics"
-            rows += [{"run_id": run["run_id"], "method": run["method"], "seed": run["seed"],
-                      "dataset": run["paper_dataset"], "source": run["dataset_source"], **r, "origin": origin}
-                     for r in found]
+            rows += [
+                {
+                    "run_id": run["run_id"],
+                    "method": run["method"],
+                    "seed": run["seed"],
+                    "dataset": run["paper_dataset"],
+                    "source": run["dataset_source"],
+                    **r,
+                    "origin": origin,
+                }
+                for r in found
+            ]
     if not rows:
-        raise SpotError("none of the selected runs logged extrapolation-error bins (PT runs need "
-                        "subgoal.diagnostics=true, SPOT runs log them always)")
+        raise SpotError(
+            "none of the selected runs logged extrapolation-error bins (PT runs need "
+            "subgoal.diagnostics=true, SPOT runs log them always)"
+        )
     return pd.DataFrame(rows)
 
 
@@ -138,12 +161,14 @@ def summarize_extrapolation(bins: pd.DataFrame, ddof: int = 1) -> pd.DataFrame:
     ``centre`` is the mean of the runs' bin centres, NaN if any run's edges are unknown.
     """
     g = bins.groupby(["method", "group", "bin"], sort=True)
-    out = pd.DataFrame({
-        "centre": g["centre"].mean().where(g["centre"].count() == g["centre"].size()),
-        "mean_error": g["mean_error"].mean(),
-        "std": g["mean_error"].std(ddof=ddof),
-        "n_runs": g["mean_error"].count(),
-    })
+    out = pd.DataFrame(
+        {
+            "centre": g["centre"].mean().where(g["centre"].count() == g["centre"].size()),
+            "mean_error": g["mean_error"].mean(),
+            "std": g["mean_error"].std(ddof=ddof),
+            "n_runs": g["mean_error"].count(),
+        }
+    )
     return out.reset_index()
 
 
@@ -161,8 +186,9 @@ def plot_fig2(bins: pd.DataFrame, path: str | Path, *, ddof: int = 1, reference:
     path.parent.mkdir(parents=True, exist_ok=True)
     summary = summarize_extrapolation(bins, ddof=ddof)
     use_centres = bool(summary["centre"].notna().all())
-    methods = [m for m in (*FIG2_METHODS, *sorted(set(summary["method"]) - set(FIG2_METHODS)))
-               if m in set(summary["method"])]
+    methods = [
+        m for m in (*FIG2_METHODS, *sorted(set(summary["method"]) - set(FIG2_METHODS))) if m in set(summary["method"])
+    ]
     ref = reference if reference in methods else methods[0]
     fig = Figure(figsize=(9, 3.5))
     ax_a, ax_b = fig.subplots(1, 2, sharey=True)
@@ -275,8 +301,10 @@ def load_cvae(path: str | Path) -> Any:
 def _check_dims(params: Any, observations: np.ndarray) -> None:
     obs_dim = int(params.obs_mean.shape[-1])
     if observations.shape[1] != obs_dim:
-        raise SpotError(f"the CVAE was trained on {obs_dim}-D observations, the dataset has "
-                        f"{observations.shape[1]}-D ones: pick the CVAE of this dataset")
+        raise SpotError(
+            f"the CVAE was trained on {obs_dim}-D observations, the dataset has "
+            f"{observations.shape[1]}-D ones: pick the CVAE of this dataset"
+        )
 
 
 def projection_from_cvae(params: Any, observations: np.ndarray, actions: np.ndarray, path: str | Path) -> Path:
@@ -297,8 +325,10 @@ def _mujoco() -> Any:
     context = getattr(mujoco, "GLContext", None)
     backend = context.__module__.rsplit(".", 1)[-1] if context is not None else "disabled"
     if backend == "disabled" or (backend == "glfw" and not os.environ.get("DISPLAY")):
-        raise SpotError(f"MuJoCo's GL backend is {backend!r} with no display; call "
-                        "spot.runtime.configure() (or set MUJOCO_GL=egl or osmesa) before anything imports mujoco")
+        raise SpotError(
+            f"MuJoCo's GL backend is {backend!r} with no display; call "
+            "spot.runtime.configure() (or set MUJOCO_GL=egl or osmesa) before anything imports mujoco"
+        )
     return mujoco
 
 
@@ -312,8 +342,10 @@ def locomotion_env_id(name: str) -> str:
         return name
     spec = envs.env_spec(name)
     if spec.family != "locomotion":
-        raise SpotError(f"{name!r} is a {spec.family} dataset; Fig. 3 renders locomotion states only "
-                        f"(their observation maps to qpos/qvel)")
+        raise SpotError(
+            f"{name!r} is a {spec.family} dataset; Fig. 3 renders locomotion states only "
+            f"(their observation maps to qpos/qvel)"
+        )
     return spec.env_id
 
 
@@ -321,12 +353,13 @@ def observation_to_state(obs: np.ndarray, nq: int, nv: int) -> tuple[np.ndarray,
     """``obs = [qpos[1:], qvel]`` (x position excluded) -> ``(qpos, qvel)`` with x = 0."""
     obs = np.asarray(obs, np.float64)
     if obs.shape != (nq - 1 + nv,):
-        raise SpotError(f"observation has shape {obs.shape}; expected ({nq - 1 + nv},) = qpos[1:] ({nq - 1}) + qvel ({nv})")
-    return np.concatenate([[0.0], obs[:nq - 1]]), obs[nq - 1:]
+        raise SpotError(
+            f"observation has shape {obs.shape}; expected ({nq - 1 + nv},) = qpos[1:] ({nq - 1}) + qvel ({nv})"
+        )
+    return np.concatenate([[0.0], obs[: nq - 1]]), obs[nq - 1 :]
 
 
-def render_observations(env_id: str, observations: np.ndarray, *, width: int = 320,
-                        height: int = 320) -> np.ndarray:
+def render_observations(env_id: str, observations: np.ndarray, *, width: int = 320, height: int = 320) -> np.ndarray:
     """``[n, height, width, 3]`` uint8 images of observation vectors ``[n, obs_dim]``, one fixed side camera."""
     import gymnasium as gym
 
@@ -359,8 +392,9 @@ def render_observations(env_id: str, observations: np.ndarray, *, width: int = 3
     return np.stack(images)
 
 
-def render_state_and_subgoal(env_id: str, obs: np.ndarray, subgoal: np.ndarray, path: str | Path, *,
-                             width: int = 320, height: int = 320) -> Path:
+def render_state_and_subgoal(
+    env_id: str, obs: np.ndarray, subgoal: np.ndarray, path: str | Path, *, width: int = 320, height: int = 320
+) -> Path:
     """Fig. 3 as a PNG: each state (left) beside its predicted subgoal ĝ (right).
 
     Args:
@@ -397,12 +431,15 @@ def pairs_from_file(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if pairs.ndim == 2:
         pairs = pairs[None]
     if pairs.ndim != 3 or pairs.shape[1] != 2:
-        raise SpotError(f"{path}: expected an array [2, obs_dim] or [n, 2, obs_dim] (state, subgoal), got {pairs.shape}")
+        raise SpotError(
+            f"{path}: expected an array [2, obs_dim] or [n, 2, obs_dim] (state, subgoal), got {pairs.shape}"
+        )
     return pairs[:, 0], pairs[:, 1]
 
 
-def pairs_from_cvae(params: Any, observations: np.ndarray, actions: np.ndarray,
-                    indices: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+def pairs_from_cvae(
+    params: Any, observations: np.ndarray, actions: np.ndarray, indices: Sequence[int]
+) -> tuple[np.ndarray, np.ndarray]:
     """``(states, ĝ)`` for dataset transitions ``indices``: ĝ = the CVAE's prior-mean subgoal."""
     from spot.subgoal import cvae as cvae_lib
 

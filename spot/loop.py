@@ -162,8 +162,7 @@ def check_finite(metrics: Mapping[str, Any], step: int, names: Sequence[str] | N
     return host
 
 
-def _chunk_row(metrics: dict[str, np.ndarray], done: int, n: int,
-               losses: Mapping[str, str] | None) -> dict[str, Any]:
+def _chunk_row(metrics: dict[str, np.ndarray], done: int, n: int, losses: Mapping[str, str] | None) -> dict[str, Any]:
     """Check the chunk's losses (``losses``: metric -> reported name; None: every metric ending in
     ``loss``, under its own name) and reduce the chunk to one row of means. Stacked metrics name
     the failing update (``done + i``), chunk means the chunk's end (``done + n``)."""
@@ -195,12 +194,22 @@ class Run:
     loop_s: float = 0.0
 
 
-def run(chunk: Callable, state: Any, args: tuple | Callable[[int], tuple], *, steps: int, length: int,
-        losses: Mapping[str, str] | None = None, evaluate: Callable[[Any], Mapping[str, float]] | None = None,
-        eval_loss: tuple[str, str] | None = None, best_by: str | None = None,
-        params_of: Callable[[Any], Any] = lambda s: s.params,
-        on_chunk: Callable[[dict[str, Any], Any], None] | None = None,
-        progress: bool = False, desc: str = "train") -> Run:
+def run(
+    chunk: Callable,
+    state: Any,
+    args: tuple | Callable[[int], tuple],
+    *,
+    steps: int,
+    length: int,
+    losses: Mapping[str, str] | None = None,
+    evaluate: Callable[[Any], Mapping[str, float]] | None = None,
+    eval_loss: tuple[str, str] | None = None,
+    best_by: str | None = None,
+    params_of: Callable[[Any], Any] = lambda s: s.params,
+    on_chunk: Callable[[dict[str, Any], Any], None] | None = None,
+    progress: bool = False,
+    desc: str = "train",
+) -> Run:
     """Train for exactly ``steps`` updates in chunks of ``length`` (:func:`chunk_sizes`).
 
     Args:

@@ -150,8 +150,9 @@ class TransformerBlock(nn.Module):
     dtype: Any = jnp.float32
 
     @nn.compact
-    def __call__(self, x: jax.Array, mask: jax.Array, *, deterministic: bool = True,
-                 query_index: np.ndarray | None = None) -> jax.Array:
+    def __call__(
+        self, x: jax.Array, mask: jax.Array, *, deterministic: bool = True, query_index: np.ndarray | None = None
+    ) -> jax.Array:
         """Apply the block.
 
         Args:
@@ -200,8 +201,7 @@ def jit_init(module: nn.Module, *example_args: Any) -> Callable[[jax.Array], Par
     Eager ``init`` compiles every primitive separately (seconds for a transformer); one program at
     optimisation level 0 compiles in about half the time of a default one and runs once anyway.
     """
-    return jax.jit(lambda key: module.init(key, *example_args),
-                   compiler_options={"xla_backend_optimization_level": 0})
+    return jax.jit(lambda key: module.init(key, *example_args), compiler_options={"xla_backend_optimization_level": 0})
 
 
 def create_train_state(module: nn.Module, params: Params, tx: optax.GradientTransformation) -> TrainState:

@@ -48,8 +48,12 @@ METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"
 OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # Where each claim's runs are: the first experiment in the list that has runs is used.
 EXPERIMENTS = {
-    "1": ("lab_table1", "table1"), "2": ("lab_table2", "table2_topk"), "3": ("lab_table3", "table3_shaping"),
-    "4": ("lab_table4", "table4_queries"), "5": ("lab_table7", "table7_cvae_loss"), "6": ("lab_table1", "table1"),
+    "1": ("lab_table1", "table1"),
+    "2": ("lab_table2", "table2_topk"),
+    "3": ("lab_table3", "table3_shaping"),
+    "4": ("lab_table4", "table4_queries"),
+    "5": ("lab_table7", "table7_cvae_loss"),
+    "6": ("lab_table1", "table1"),
     "C": ("lab_controls",),
 }
 
@@ -60,6 +64,7 @@ def _param(key: str, value: str) -> Filter:
     def select(df: pd.DataFrame) -> pd.Series:
         col = f"params.{key}"
         return df[col].astype(str) == value if col in df else pd.Series(False, index=df.index)
+
     return select
 
 
@@ -176,8 +181,11 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     for name, g in done.groupby("paper_dataset"):
         qs = q[g.index]
         few, most = qs.min(), qs.max()
-        cells = [g[(g["method"] == m) & (qs == n)][metric].dropna().to_numpy(np.float64)
-                 for m in ("spot", "pt") for n in (few, most)]
+        cells = [
+            g[(g["method"] == m) & (qs == n)][metric].dropna().to_numpy(np.float64)
+            for m in ("spot", "pt")
+            for n in (few, most)
+        ]
         if few == most or any(len(c) == 0 for c in cells):
             row.notes.append(f"{name} left out: needs spot and pt runs at two query counts")
             continue
@@ -199,25 +207,62 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
 
 
 CLAIMS: tuple[tuple[str, str, str, Callable[[pd.DataFrame, str, Row], Row]], ...] = (
-    ("1", "SPOT ≥ PT on average (Table 1)", "spot vs pt",
-     lambda df, m, r: compare(df, _method("spot"), _method("pt"), m, r, ("spot", "pt"))),
-    ("1", "SPOT ≥ MR on average (Table 1)", "spot vs mr",
-     lambda df, m, r: compare(df, _method("spot"), _method("mr"), m, r, ("spot", "mr"))),
-    ("2", "top-10 % subgoals beat bottom-10 % (Table 2)", "group top vs bottom",
-     lambda df, m, r: compare(df, _param("subgoal.group", "top"), _param("subgoal.group", "bottom"), m, r,
-                              ("top", "bottom"))),
+    (
+        "1",
+        "SPOT ≥ PT on average (Table 1)",
+        "spot vs pt",
+        lambda df, m, r: compare(df, _method("spot"), _method("pt"), m, r, ("spot", "pt")),
+    ),
+    (
+        "1",
+        "SPOT ≥ MR on average (Table 1)",
+        "spot vs mr",
+        lambda df, m, r: compare(df, _method("spot"), _method("mr"), m, r, ("spot", "mr")),
+    ),
+    (
+        "2",
+        "top-10 % subgoals beat bottom-10 % (Table 2)",
+        "group top vs bottom",
+        lambda df, m, r: compare(
+            df, _param("subgoal.group", "top"), _param("subgoal.group", "bottom"), m, r, ("top", "bottom")
+        ),
+    ),
     ("3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _claim3),
-    ("4", "SPOT keeps its score with fewer queries, PT does not (Table 4)",
-     "(spot few − most) − (pt few − most)", _claim4),
-    ("5", "MSE + cosine beats MSE for the CVAE (Table 7)", "mse_cos vs mse",
-     lambda df, m, r: compare(df, _param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), m, r,
-                              ("mse_cos", "mse"))),
-    ("C", "control: attention subgoals beat random-state subgoals", "spot vs random subgoals",
-     lambda df, m, r: compare(df, _both(_method("spot"), _not(_param("subgoal.source", "random"))),
-                              _param("subgoal.source", "random"), m, r, ("spot", "random subgoals"))),
-    ("C", "control: SPOT beats a constant bonus of the same mean", "spot vs constant bonus",
-     lambda df, m, r: compare(df, _param("shaping.kind", "cosine"), _param("shaping.kind", "constant"), m, r,
-                              ("spot", "constant bonus"))),
+    (
+        "4",
+        "SPOT keeps its score with fewer queries, PT does not (Table 4)",
+        "(spot few − most) − (pt few − most)",
+        _claim4,
+    ),
+    (
+        "5",
+        "MSE + cosine beats MSE for the CVAE (Table 7)",
+        "mse_cos vs mse",
+        lambda df, m, r: compare(
+            df, _param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), m, r, ("mse_cos", "mse")
+        ),
+    ),
+    (
+        "C",
+        "control: attention subgoals beat random-state subgoals",
+        "spot vs random subgoals",
+        lambda df, m, r: compare(
+            df,
+            _both(_method("spot"), _not(_param("subgoal.source", "random"))),
+            _param("subgoal.source", "random"),
+            m,
+            r,
+            ("spot", "random subgoals"),
+        ),
+    ),
+    (
+        "C",
+        "control: SPOT beats a constant bonus of the same mean",
+        "spot vs constant bonus",
+        lambda df, m, r: compare(
+            df, _param("shaping.kind", "cosine"), _param("shaping.kind", "constant"), m, r, ("spot", "constant bonus")
+        ),
+    ),
 )
 
 
@@ -249,8 +294,15 @@ def aggregate(df: pd.DataFrame, metric: str = METRICS["last"], reference: str = 
         poi = None
         if reference in per and m != reference and shared:
             poi = stats.estimate([*(per[reference][d] for d in shared), *strata], stats.probability_of_improvement)
-        out.append({"method": m, "datasets": len(shared), "runs": sum(map(len, strata)),
-                    "iqm": iqm.text() if iqm else "", f"P({reference} > method)": poi.text(2) if poi else ""})
+        out.append(
+            {
+                "method": m,
+                "datasets": len(shared),
+                "runs": sum(map(len, strata)),
+                "iqm": iqm.text() if iqm else "",
+                f"P({reference} > method)": poi.text(2) if poi else "",
+            }
+        )
     return pd.DataFrame(out)
 
 
@@ -261,21 +313,28 @@ def _n(row: Row) -> str:
 
 def format_rows(rows: Sequence[Row]) -> str:
     """The report as Markdown: one table per statistic, then the notes."""
-    titles = {"last": "Last evaluation (`eval/score_final`): verdicts",
-              "best": "Best evaluation (`eval/score_best`), for comparison",
-              "ood": "Fig. 2: out-of-distribution extrapolation error (last)"}
+    titles = {
+        "last": "Last evaluation (`eval/score_final`): verdicts",
+        "best": "Best evaluation (`eval/score_best`), for comparison",
+        "ood": "Fig. 2: out-of-distribution extrapolation error (last)",
+    }
     parts = []
     for stat, title in titles.items():
         sel = [r for r in rows if r.stat == stat]
         if not sel:
             continue
-        parts += [f"### {title}", "", "| # | claim | comparison | experiment | effect [95% CI] | "
-                  "P(x > y) [95% CI] | n | verdict |", "|---|---|---|---|---|---|---|---|"]
+        parts += [
+            f"### {title}",
+            "",
+            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | n | verdict |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in sel:
             eff = r.effect.text(3 if stat == "ood" else 1) if r.effect else "–"
             poi = r.poi.text(2) if r.poi else "–"
-            parts.append(f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {_n(r)} | "
-                         f"{r.verdict} |")
+            parts.append(
+                f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {_n(r)} | {r.verdict} |"
+            )
         parts.append("")
     notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})
     if notes:

@@ -24,8 +24,22 @@ import pandas as pd
 
 from spot import SpotError
 
-ID_COLUMNS = ("run_id", "experiment", "sweep_id", "status", "method", "dataset", "paper_dataset",
-              "dataset_source", "seed", "config_hash", "data_digest", "git_commit", "start_time", "end_time")
+ID_COLUMNS = (
+    "run_id",
+    "experiment",
+    "sweep_id",
+    "status",
+    "method",
+    "dataset",
+    "paper_dataset",
+    "dataset_source",
+    "seed",
+    "config_hash",
+    "data_digest",
+    "git_commit",
+    "start_time",
+    "end_time",
+)
 METRIC_PREFIXES = ("eval/", "diag/", "time/", "cache/", "reward/", "cvae/", "subgoal/", "shaping/")
 TAG_COLUMNS = {"sweep_id": "tags.sweep_id", "data_digest": "tags.data_digest", "git_commit": "tags.git_commit"}
 REQUIRED = ("run_id", "experiment", "status", "method", "dataset", "seed")
@@ -33,22 +47,31 @@ REQUIRED = ("run_id", "experiment", "status", "method", "dataset", "seed")
 
 def config_hash(params: dict[str, str]) -> str:
     """SHA-256 (16 hex digits) of the params that define a cell: all but ``seed`` and ``tracking.*``."""
-    keep = {k: str(v) for k, v in params.items() if k != "seed" and not k.startswith("tracking.")
-            and not pd.isna(v)}
+    keep = {k: str(v) for k, v in params.items() if k != "seed" and not k.startswith("tracking.") and not pd.isna(v)}
     return hashlib.sha256(json.dumps(keep, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def to_frame(runs: pd.DataFrame) -> pd.DataFrame:
     """The export's columns from a :func:`spot.tables.load_runs` frame."""
     out = pd.DataFrame(index=runs.index)
-    for col in ("run_id", "experiment", "status", "method", "dataset", "paper_dataset", "dataset_source",
-                "seed", "start_time", "end_time"):
+    for col in (
+        "run_id",
+        "experiment",
+        "status",
+        "method",
+        "dataset",
+        "paper_dataset",
+        "dataset_source",
+        "seed",
+        "start_time",
+        "end_time",
+    ):
         out[col] = runs[col] if col in runs else pd.NA
     for col, tag in TAG_COLUMNS.items():
         out[col] = runs[tag] if tag in runs else pd.NA
     params = sorted(c for c in runs if c.startswith("params."))
-    out["config_hash"] = [config_hash({c[len("params."):]: r[c] for c in params}) for _, r in runs.iterrows()]
-    metrics = sorted(c for c in runs if c.startswith("metrics.") and c[len("metrics."):].startswith(METRIC_PREFIXES))
+    out["config_hash"] = [config_hash({c[len("params.") :]: r[c] for c in params}) for _, r in runs.iterrows()]
+    metrics = sorted(c for c in runs if c.startswith("metrics.") and c[len("metrics.") :].startswith(METRIC_PREFIXES))
     out = pd.concat([out[list(ID_COLUMNS)], runs[params], runs[metrics]], axis=1)
     return out.sort_values(["experiment", "method", "dataset", "config_hash", "seed", "run_id"]).reset_index(drop=True)
 
@@ -76,8 +99,9 @@ def read(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
             raise SpotError(f"results file {f}: not a results CSV ({type(e).__name__}: {e})") from None
         missing = [c for c in REQUIRED if c not in df]
         if missing:
-            raise SpotError(f"results file {f}: missing columns {missing}; expected a file written by "
-                            f"`spot results export`")
+            raise SpotError(
+                f"results file {f}: missing columns {missing}; expected a file written by `spot results export`"
+            )
         frames.append(df)
     df = pd.concat(frames, ignore_index=True)
     for col in df:

@@ -24,17 +24,21 @@ from scipy import stats as sps
 
 CONFIDENCE = 0.95
 N_RESAMPLES = 5000
-SUPPORTED, NOT_SUPPORTED, INCONCLUSIVE, TOO_FEW = ("supported", "not supported", "inconclusive",
-                                                   "too few seeds")
+SUPPORTED, NOT_SUPPORTED, INCONCLUSIVE, TOO_FEW = ("supported", "not supported", "inconclusive", "too few seeds")
 
 
 def _arrays(strata: Sequence[Sequence[float]]) -> list[np.ndarray]:
     return [np.asarray(s, dtype=np.float64).ravel() for s in strata]
 
 
-def bootstrap_ci(strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *,
-                 confidence: float = CONFIDENCE, n_resamples: int = N_RESAMPLES,
-                 seed: int = 0) -> tuple[float, float]:
+def bootstrap_ci(
+    strata: Sequence[Sequence[float]],
+    statistic: Callable[..., np.ndarray],
+    *,
+    confidence: float = CONFIDENCE,
+    n_resamples: int = N_RESAMPLES,
+    seed: int = 0,
+) -> tuple[float, float]:
     """Percentile CI of ``statistic(*strata, axis=-1)`` under the stratified bootstrap.
 
     ``statistic`` must be vectorised: it receives arrays whose last axis holds one resample of
@@ -46,8 +50,16 @@ def bootstrap_ci(strata: Sequence[Sequence[float]], statistic: Callable[..., np.
     if all(np.ptp(a) == 0 for a in arrays):  # every resample gives the same value
         v = float(statistic(*arrays, axis=-1))
         return v, v
-    res = sps.bootstrap(tuple(arrays), statistic, n_resamples=n_resamples, confidence_level=confidence,
-                        method="percentile", vectorized=True, paired=False, rng=np.random.default_rng(seed))
+    res = sps.bootstrap(
+        tuple(arrays),
+        statistic,
+        n_resamples=n_resamples,
+        confidence_level=confidence,
+        method="percentile",
+        vectorized=True,
+        paired=False,
+        rng=np.random.default_rng(seed),
+    )
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
@@ -110,12 +122,16 @@ def cell(values: Sequence[float], *, seed: int = 0) -> dict[str, float]:
     x = np.asarray(values, dtype=np.float64)
     x = x[np.isfinite(x)]
     low, high = bootstrap_ci([x], mean_of_means, seed=seed)
-    return {"n": len(x), "mean": float(x.mean()) if len(x) else float("nan"),
-            "std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"), "ci_low": low, "ci_high": high}
+    return {
+        "n": len(x),
+        "mean": float(x.mean()) if len(x) else float("nan"),
+        "std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"),
+        "ci_low": low,
+        "ci_high": high,
+    }
 
 
-def estimate(strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *,
-             seed: int = 0) -> Estimate:
+def estimate(strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *, seed: int = 0) -> Estimate:
     """``statistic`` on ``strata`` with its stratified-bootstrap CI."""
     arrays = _arrays(strata)
     low, high = bootstrap_ci(arrays, statistic, seed=seed)

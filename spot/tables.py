@@ -65,11 +65,30 @@ CACHE_HIT_TAGS = ("cache.reward", "cache.relabel", "cache.cvae")  # "hit" | "mis
 CACHE_HIT_METRICS = ("cache/reward_hit", "cache/relabel_hit", "cache/cvae_hit")  # runs logged before the tags
 BEST_FRACTION = 0.95
 # The MLflow experiment each table's sweep writes (sweeps/<name>.yaml; `--smoke` adds "-smoke").
-SWEEP_EXPERIMENTS = {1: "table1", 2: "table2_topk", 3: "table3_shaping", 4: "table4_queries",
-                     7: "table7_cvae_loss", 8: "table1"}
+SWEEP_EXPERIMENTS = {
+    1: "table1",
+    2: "table2_topk",
+    3: "table3_shaping",
+    4: "table4_queries",
+    7: "table7_cvae_loss",
+    8: "table1",
+}
 AVERAGE_ROW = "average"
-_RUN_COLUMNS = ("run_id", "run_name", "experiment_id", "experiment", "status", "start_time",
-                "end_time", "artifact_uri", "method", "dataset", "paper_dataset", "dataset_source", "seed")
+_RUN_COLUMNS = (
+    "run_id",
+    "run_name",
+    "experiment_id",
+    "experiment",
+    "status",
+    "start_time",
+    "end_time",
+    "artifact_uri",
+    "method",
+    "dataset",
+    "paper_dataset",
+    "dataset_source",
+    "seed",
+)
 
 
 # --------------------------------------------------------------------------- the paper's numbers
@@ -137,10 +156,15 @@ def paper_cells(table: int) -> pd.DataFrame:
     else:  # table 8: reward-model seconds in `mean`, the rest in `note`
         rows = []
         for _, r in p.iterrows():
-            values = {"reward_model_s": float(r["mean"]), "offline_rl_s": _note_seconds(r["note"], "offline RL"),
-                      "total_s": _note_seconds(r["note"], "total")}
-            rows += [{"method": r["method"], "dataset": r["dataset"], spec.col: k, "paper": v,
-                      "paper_std": float("nan")} for k, v in values.items()]
+            values = {
+                "reward_model_s": float(r["mean"]),
+                "offline_rl_s": _note_seconds(r["note"], "offline RL"),
+                "total_s": _note_seconds(r["note"], "total"),
+            }
+            rows += [
+                {"method": r["method"], "dataset": r["dataset"], spec.col: k, "paper": v, "paper_std": float("nan")}
+                for k, v in values.items()
+            ]
         out = pd.DataFrame(rows)
     return out.reset_index(drop=True)
 
@@ -156,8 +180,9 @@ def default_experiments(table: int, tracking_uri: str | None = None) -> list[str
     return None
 
 
-def load_runs(tracking_uri: str | None = None, experiment_names: Sequence[str] | None = None,
-              sweep_id: str | None = None) -> pd.DataFrame:
+def load_runs(
+    tracking_uri: str | None = None, experiment_names: Sequence[str] | None = None, sweep_id: str | None = None
+) -> pd.DataFrame:
     """Every run of the experiments (all experiments if ``None``), one row per run.
 
     Sweep parent runs (runs without a ``method`` tag) are left out. Columns follow
@@ -191,8 +216,11 @@ def load_runs(tracking_uri: str | None = None, experiment_names: Sequence[str] |
 def _run_row(run: Any, experiments: dict[str, str]) -> dict[str, Any]:
     info, data = run.info, run.data
     row: dict[str, Any] = {
-        "run_id": info.run_id, "run_name": info.run_name, "experiment_id": info.experiment_id,
-        "experiment": experiments[info.experiment_id], "status": info.status,
+        "run_id": info.run_id,
+        "run_name": info.run_name,
+        "experiment_id": info.experiment_id,
+        "experiment": experiments[info.experiment_id],
+        "status": info.status,
         "start_time": pd.to_datetime(info.start_time, unit="ms"),
         "end_time": pd.to_datetime(info.end_time, unit="ms") if info.end_time else pd.NaT,
         "artifact_uri": info.artifact_uri,
@@ -226,8 +254,9 @@ def _shaped(runs: pd.DataFrame, table: int) -> pd.Series:
 def _group_label(group: str, top_k: float) -> str:
     k = f"{top_k:g}"
     k2 = f"{2 * top_k:g}"
-    return {"top": f"top-{k}", "top_next": f"top-{k}-{k2}", "bottom_next": f"bottom-{k}-{k2}",
-            "bottom": f"bottom-{k}"}[group]
+    return {"top": f"top-{k}", "top_next": f"top-{k}-{k2}", "bottom_next": f"bottom-{k}-{k2}", "bottom": f"bottom-{k}"}[
+        group
+    ]
 
 
 @dataclass(frozen=True)
@@ -243,26 +272,84 @@ class _Spec:
 
 
 _SPECS = {
-    1: _Spec(1, "Table 1: score per dataset and method", ("dataset",), "method", "score", "row", None,
-             lambda r, t: {"dataset": r["paper_dataset"], "method": r["method"]}),
-    2: _Spec(2, "Table 2: score per Top-K% percentile group (SPOT)", ("group",), "dataset", "score", "col",
-             _shaped,
-             lambda r, t: {"group": pd.Series([_group_label(g, float(k)) for g, k in zip(
-                 _param(r, "subgoal.group", t), _param(r, "subgoal.top_k", t), strict=True)], index=r.index),
-                 "dataset": r["paper_dataset"]}),
-    3: _Spec(3, "Table 3: score per shaping kind and weight λ", ("dataset", "shaping.kind"), "shaping.weight",
-             "score", "row", _shaped,
-             lambda r, t: {"dataset": r["paper_dataset"], "shaping.kind": _param(r, "shaping.kind", t),
-                           "shaping.weight": _param(r, "shaping.weight", t).astype(float)}),
-    4: _Spec(4, "Table 4: score per number of preference queries", ("dataset", "method", "labels.num_queries"),
-             "metric", "score", "none", None,
-             lambda r, t: {"dataset": r["paper_dataset"], "method": r["method"],
-                           "labels.num_queries": _param(r, "labels.num_queries", t).astype(int),
-                           "metric": pd.Series("score", index=r.index)}),
-    7: _Spec(7, "Table 7: score per CVAE loss (SPOT)", ("dataset",), "cvae.loss", "score", "row", _shaped,
-             lambda r, t: {"dataset": r["paper_dataset"], "cvae.loss": _param(r, "cvae.loss", t)}),
-    8: _Spec(8, "Table 8: wall time per stage, seconds", ("method", "dataset"), "time", "time", "none", None,
-             lambda r, t: {"method": r["method"], "dataset": r["paper_dataset"]}),
+    1: _Spec(
+        1,
+        "Table 1: score per dataset and method",
+        ("dataset",),
+        "method",
+        "score",
+        "row",
+        None,
+        lambda r, t: {"dataset": r["paper_dataset"], "method": r["method"]},
+    ),
+    2: _Spec(
+        2,
+        "Table 2: score per Top-K% percentile group (SPOT)",
+        ("group",),
+        "dataset",
+        "score",
+        "col",
+        _shaped,
+        lambda r, t: {
+            "group": pd.Series(
+                [
+                    _group_label(g, float(k))
+                    for g, k in zip(_param(r, "subgoal.group", t), _param(r, "subgoal.top_k", t), strict=True)
+                ],
+                index=r.index,
+            ),
+            "dataset": r["paper_dataset"],
+        },
+    ),
+    3: _Spec(
+        3,
+        "Table 3: score per shaping kind and weight λ",
+        ("dataset", "shaping.kind"),
+        "shaping.weight",
+        "score",
+        "row",
+        _shaped,
+        lambda r, t: {
+            "dataset": r["paper_dataset"],
+            "shaping.kind": _param(r, "shaping.kind", t),
+            "shaping.weight": _param(r, "shaping.weight", t).astype(float),
+        },
+    ),
+    4: _Spec(
+        4,
+        "Table 4: score per number of preference queries",
+        ("dataset", "method", "labels.num_queries"),
+        "metric",
+        "score",
+        "none",
+        None,
+        lambda r, t: {
+            "dataset": r["paper_dataset"],
+            "method": r["method"],
+            "labels.num_queries": _param(r, "labels.num_queries", t).astype(int),
+            "metric": pd.Series("score", index=r.index),
+        },
+    ),
+    7: _Spec(
+        7,
+        "Table 7: score per CVAE loss (SPOT)",
+        ("dataset",),
+        "cvae.loss",
+        "score",
+        "row",
+        _shaped,
+        lambda r, t: {"dataset": r["paper_dataset"], "cvae.loss": _param(r, "cvae.loss", t)},
+    ),
+    8: _Spec(
+        8,
+        "Table 8: wall time per stage, seconds",
+        ("method", "dataset"),
+        "time",
+        "time",
+        "none",
+        None,
+        lambda r, t: {"method": r["method"], "dataset": r["paper_dataset"]},
+    ),
 }
 
 
@@ -274,7 +361,9 @@ def _spec(table: int) -> _Spec:
 
 # --------------------------------------------------------------------------- ordering
 def _group_rank(label: str) -> int:
-    for rank, pattern in enumerate((r"top-[\d.]+$", r"top-[\d.]+-[\d.]+$", r"bottom-[\d.]+-[\d.]+$", r"bottom-[\d.]+$")):
+    for rank, pattern in enumerate(
+        (r"top-[\d.]+$", r"top-[\d.]+-[\d.]+$", r"bottom-[\d.]+-[\d.]+$", r"bottom-[\d.]+$")
+    ):
         if re.fullmatch(pattern, str(label)):
             return rank
     return 99
@@ -286,9 +375,13 @@ def _sort_key(name: str, value: Any) -> tuple:
         if value == AVERAGE_ROW:
             return (2, 0, "")
         return (0, order.index(value), "") if value in order else (1, 0, str(value))
-    orders: dict[str, Sequence[Any]] = {"method": METHOD_ORDER, "source": SOURCE_ORDER,
-                                        "shaping.kind": SHAPING_ORDER, "cvae.loss": CVAE_LOSS_ORDER,
-                                        "time": TIME_COLUMNS}
+    orders: dict[str, Sequence[Any]] = {
+        "method": METHOD_ORDER,
+        "source": SOURCE_ORDER,
+        "shaping.kind": SHAPING_ORDER,
+        "cvae.loss": CVAE_LOSS_ORDER,
+        "time": TIME_COLUMNS,
+    }
     if name in orders:
         order = orders[name]
         return (0, list(order).index(value), "") if value in order else (1, 0, str(value))
@@ -302,8 +395,10 @@ def _sort_key(name: str, value: Any) -> tuple:
 
 
 def _sorted_frame(df: pd.DataFrame, names: Sequence[str]) -> pd.DataFrame:
-    keys = [tuple(_sort_key(n, v) for n, v in zip(names, row, strict=True))
-            for row in df[list(names)].itertuples(index=False)]
+    keys = [
+        tuple(_sort_key(n, v) for n, v in zip(names, row, strict=True))
+        for row in df[list(names)].itertuples(index=False)
+    ]
     order = sorted(range(len(df)), key=lambda i: keys[i])
     return df.iloc[order].reset_index(drop=True)
 
@@ -314,7 +409,7 @@ def _run_values(runs: pd.DataFrame, spec: _Spec, metric: str) -> pd.DataFrame:
     if spec.kind == "score":
         col = f"metrics.{metric}"
         if col not in runs:
-            have = sorted(c[len("metrics."):] for c in runs if c.startswith("metrics.eval/"))
+            have = sorted(c[len("metrics.") :] for c in runs if c.startswith("metrics.eval/"))
             raise SpotError(f"no run logged the metric {metric!r}; eval metrics logged: {', '.join(have) or 'none'}")
         return pd.DataFrame({"run_id": runs["run_id"], "value": runs[col].astype(float)})
 
@@ -324,21 +419,28 @@ def _run_values(runs: pd.DataFrame, spec: _Spec, metric: str) -> pd.DataFrame:
             return pd.Series(0.0, index=runs.index)
         return runs[cols].astype(float).fillna(0.0).sum(axis=1)
 
-    wall = runs["metrics.time/total_s"].astype(float) if "metrics.time/total_s" in runs else pd.Series(np.nan, index=runs.index)
+    wall = (
+        runs["metrics.time/total_s"].astype(float)
+        if "metrics.time/total_s" in runs
+        else pd.Series(np.nan, index=runs.index)
+    )
     kind = runs["params.shaping.kind"] if "params.shaping.kind" in runs else pd.Series("none", index=runs.index)
     shaped = kind.fillna("none") != "none"
     rm = stage_sum(REWARD_MODEL_STAGES) + stage_sum(SUBGOAL_STAGES).where(shaped, 0.0)
     rl = stage_sum(OFFLINE_RL_STAGES)
     timed = wall.notna()  # runs that reached the end of the pipeline log time/total_s
     values = {"reward_model_s": rm, "offline_rl_s": rl, "total_s": rm + rl, "wall_s": wall}
-    return pd.concat([pd.DataFrame({"run_id": runs["run_id"], "time": name, "value": v.where(timed)})
-                      for name, v in values.items()], ignore_index=True)
+    return pd.concat(
+        [pd.DataFrame({"run_id": runs["run_id"], "time": name, "value": v.where(timed)}) for name, v in values.items()],
+        ignore_index=True,
+    )
 
 
 def mixed_params(runs: pd.DataFrame, cell_keys: pd.DataFrame) -> list[str]:
     """``"cell (...): key in {a, b}"`` for every param (but seed, tracking.*) that varies inside a cell."""
-    params = [c for c in runs if c.startswith("params.") and c != "params.seed"
-              and not c.startswith("params.tracking.")]
+    params = [
+        c for c in runs if c.startswith("params.") and c != "params.seed" and not c.startswith("params.tracking.")
+    ]
     if not params:
         return []
     filled = runs[params].astype(object).where(runs[params].notna(), "<unset>")
@@ -348,7 +450,7 @@ def mixed_params(runs: pd.DataFrame, cell_keys: pd.DataFrame) -> list[str]:
         for p in params:
             values = sorted(set(map(str, group[p])))
             if len(values) > 1:
-                problems.append(f"cell {key}: {p[len('params.'):]} in {{{', '.join(values)}}}")
+                problems.append(f"cell {key}: {p[len('params.') :]} in {{{', '.join(values)}}}")
     return problems
 
 
@@ -372,10 +474,18 @@ def _average_rows(cells: pd.DataFrame, spec: _Spec) -> pd.DataFrame:
         if ours["dataset"].nunique() < 2:
             continue
         paper_ok = ours["paper"].notna().all()
-        rows.append({"dataset": AVERAGE_ROW, "source": source, spec.col: method,
-                     "mean": ours["mean"].mean(), "std": ours["std"].mean(), "n": len(ours),
-                     "paper": ours["paper"].mean() if paper_ok else np.nan,
-                     "paper_std": ours["paper_std"].mean() if paper_ok else np.nan})
+        rows.append(
+            {
+                "dataset": AVERAGE_ROW,
+                "source": source,
+                spec.col: method,
+                "mean": ours["mean"].mean(),
+                "std": ours["std"].mean(),
+                "n": len(ours),
+                "paper": ours["paper"].mean() if paper_ok else np.nan,
+                "paper_std": ours["paper_std"].mean() if paper_ok else np.nan,
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -388,18 +498,25 @@ def _finished(runs: pd.DataFrame, spec: _Spec, table: int) -> tuple[pd.DataFrame
     if spec.select is not None and not finished.empty:
         finished = finished[spec.select(finished, table)]
     if finished.empty:
-        raise SpotError(f"no FINISHED runs for table {table}"
-                        + (f" ({len(excluded)} runs did not finish)" if len(excluded) else ""))
+        raise SpotError(
+            f"no FINISHED runs for table {table}" + (f" ({len(excluded)} runs did not finish)" if len(excluded) else "")
+        )
     return finished, excluded
 
 
-def _values(finished: pd.DataFrame, spec: _Spec, table: int, metric: str, allow_mixed: bool,
-            notes: list[str]) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _values(
+    finished: pd.DataFrame, spec: _Spec, table: int, metric: str, allow_mixed: bool, notes: list[str]
+) -> tuple[pd.DataFrame, pd.DataFrame]:
     """``(one value per run and cell column, the runs used)``: runs without the metric left out,
     a later run of the same cell and seed replacing an earlier one, mixed cells refused or noted."""
     keys = pd.DataFrame(spec.keys(finished, table), index=finished.index)
-    base = pd.concat([finished[["run_id", "seed", "start_time", "dataset_source"]].rename(
-        columns={"dataset_source": "source"}), keys], axis=1)
+    base = pd.concat(
+        [
+            finished[["run_id", "seed", "start_time", "dataset_source"]].rename(columns={"dataset_source": "source"}),
+            keys,
+        ],
+        axis=1,
+    )
     cell = [*spec.rows, "source"] + ([spec.col] if spec.kind == "score" else [])
     long = _run_values(finished, spec, metric).merge(base, on="run_id", how="left")
     missing = long["value"].isna()
@@ -408,7 +525,9 @@ def _values(finished: pd.DataFrame, spec: _Spec, table: int, metric: str, allow_
         notes.append(f"{long.loc[missing, 'run_id'].nunique()} finished runs did not log {what} and are left out")
         long = long[~missing]
     if long.empty:
-        raise SpotError(f"no finished run for table {table} logged {metric if spec.kind == 'score' else 'time metrics'}")
+        raise SpotError(
+            f"no finished run for table {table} logged {metric if spec.kind == 'score' else 'time metrics'}"
+        )
     long = long.sort_values("start_time")
     dup = long.duplicated([*spec.rows, "source", spec.col, "seed"], keep="last")
     if dup.any():
@@ -418,9 +537,11 @@ def _values(finished: pd.DataFrame, spec: _Spec, table: int, metric: str, allow_
     mixed = mixed_params(used, base.loc[used.index, cell])
     if mixed:
         if not allow_mixed:
-            raise SpotError(f"table {table}: runs in one cell differ in more than the seed, so they are not "
-                            f"averaged: {'; '.join(mixed[:5])}{' ...' if len(mixed) > 5 else ''}. Pick runs with "
-                            "--experiment / --sweep-id, or pass --allow-mixed to average them anyway")
+            raise SpotError(
+                f"table {table}: runs in one cell differ in more than the seed, so they are not "
+                f"averaged: {'; '.join(mixed[:5])}{' ...' if len(mixed) > 5 else ''}. Pick runs with "
+                "--experiment / --sweep-id, or pass --allow-mixed to average them anyway"
+            )
         notes += [f"mixed params averaged ({m})" for m in mixed]
     return long, used
 
@@ -434,8 +555,9 @@ def _with_paper(cells: pd.DataFrame, spec: _Spec, table: int, paper_only_cells: 
     if paper_only_cells:
         anchor = "dataset" if "dataset" in spec.rows else spec.col
         ran = cells[[anchor, "source"]].drop_duplicates()
-        extra = paper.merge(ran, on=anchor).merge(cells[[*join, "source"]], on=[*join, "source"],
-                                                  how="left", indicator=True)
+        extra = paper.merge(ran, on=anchor).merge(
+            cells[[*join, "source"]], on=[*join, "source"], how="left", indicator=True
+        )
         extra = extra[extra["_merge"] == "left_only"].drop(columns="_merge")
         cells = pd.concat([cells, extra.assign(n=0)], ignore_index=True)
     return cells
@@ -460,18 +582,30 @@ def _wide(cells: pd.DataFrame, spec: _Spec) -> pd.DataFrame:
 def _run_notes(used: pd.DataFrame, excluded: pd.DataFrame) -> list[str]:
     """Where the counted runs came from, and which runs were not counted."""
     sweeps = sorted(used["tags.sweep_id"].dropna().unique()) if "tags.sweep_id" in used else []
-    notes = [f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
-             + (f", sweep(s) {', '.join(sweeps)}" if sweeps else "")]
+    notes = [
+        f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
+        + (f", sweep(s) {', '.join(sweeps)}" if sweeps else "")
+    ]
     if len(excluded):
         by_status = excluded["status"].value_counts()
-        notes.append(f"not counted: {len(excluded)} runs not FINISHED ("
-                     + ", ".join(f"{s}: {c}" for s, c in sorted(by_status.items())) + "): "
-                     + ", ".join(excluded["run_id"].str[:8]))
+        notes.append(
+            f"not counted: {len(excluded)} runs not FINISHED ("
+            + ", ".join(f"{s}: {c}" for s, c in sorted(by_status.items()))
+            + "): "
+            + ", ".join(excluded["run_id"].str[:8])
+        )
     return notes
 
 
-def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final", *, ddof: int = 1,
-                allow_mixed: bool = False, paper_only_cells: bool = True) -> pd.DataFrame:
+def build_table(
+    runs: pd.DataFrame,
+    table: int,
+    metric: str = "eval/score_final",
+    *,
+    ddof: int = 1,
+    allow_mixed: bool = False,
+    paper_only_cells: bool = True,
+) -> pd.DataFrame:
     """Table ``table`` of the paper from ``runs`` (a :func:`load_runs` frame).
 
     Args:
@@ -511,38 +645,59 @@ def build_table(runs: pd.DataFrame, table: int, metric: str = "eval/score_final"
     cells = _sorted_frame(cells, [*spec.rows, "source", spec.col])
     wide = _wide(cells, spec)
     notes = _standard_notes(spec, cells, metric, ddof, with_paper, used) + notes + _run_notes(used, excluded)
-    wide.attrs = {"table": table, "title": spec.title, "metric": metric if spec.kind == "score" else "time/*",
-                  "ddof": ddof, "kind": spec.kind, "rows": [*spec.rows, "source"], "col": spec.col,
-                  "notes": notes, "excluded": excluded.to_dict("records")}
+    wide.attrs = {
+        "table": table,
+        "title": spec.title,
+        "metric": metric if spec.kind == "score" else "time/*",
+        "ddof": ddof,
+        "kind": spec.kind,
+        "rows": [*spec.rows, "source"],
+        "col": spec.col,
+        "notes": notes,
+        "excluded": excluded.to_dict("records"),
+    }
     return wide
 
 
-def _standard_notes(spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, with_paper: bool,
-                    used: pd.DataFrame) -> list[str]:
+def _standard_notes(
+    spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, with_paper: bool, used: pd.DataFrame
+) -> list[str]:
     std = "sample std (ddof=1)" if ddof == 1 else "population std (ddof=0)"
     unit = "the stage times in seconds" if spec.kind == "time" else metric
-    notes = [f"cell: ours mean ± {std} over seeds of {unit} (n seeds)"
-             + (" [paper mean ± std, Δ = ours − paper]" if with_paper else "")]
+    notes = [
+        f"cell: ours mean ± {std} over seeds of {unit} (n seeds)"
+        + (" [paper mean ± std, Δ = ours − paper]" if with_paper else "")
+    ]
     if spec.best != "none":
         where = "row" if spec.best == "row" else "column"
-        notes.append(f"bold: ours ≥ {BEST_FRACTION:.0%} of the {where}'s best (the paper's 'top 95%')"
-                     + (", Oracle left out as in the paper" if spec.number == 1 else ""))
+        notes.append(
+            f"bold: ours ≥ {BEST_FRACTION:.0%} of the {where}'s best (the paper's 'top 95%')"
+            + (", Oracle left out as in the paper" if spec.number == 1 else "")
+        )
     for source in dict.fromkeys(cells["source"]):
         notes.append(f"dataset source {source}: {SOURCE_NOTES.get(source, 'unknown origin')}")
     if cells["source"].nunique() > 1:
         notes.append("runs from different dataset sources are never averaged together (one row per source)")
     if spec.number == 1 and (cells["dataset"] == AVERAGE_ROW).any():
-        notes.append("average: mean over the datasets we ran ± mean of their stds (the paper's Avg.std), n = datasets; paper = "
-                     "the mean of the paper's values on the same datasets (the paper's printed Average for MR, PT, "
-                     "IPL and HPL differs from the mean of its own rows)")
+        notes.append(
+            "average: mean over the datasets we ran ± mean of their stds (the paper's Avg.std), n = datasets; paper = "
+            "the mean of the paper's values on the same datasets (the paper's printed Average for MR, PT, "
+            "IPL and HPL differs from the mean of its own rows)"
+        )
     if spec.number == 3 and (cells["shaping.kind"] == "?").any():
         notes.append("shaping.kind '?': paper values whose shaping kind is lost in the extracted paper text")
     if spec.number == 8:
-        notes.append("reward model = time/{" + ",".join(REWARD_MODEL_STAGES) + "}_s, plus time/{"
-                     + ",".join(SUBGOAL_STAGES) + "}_s where shaping is on (runs without shaping spend those "
-                     "on the Fig. 2 diagnostics only); offline RL = time/{" + ",".join(OFFLINE_RL_STAGES)
-                     + "}_s; total = the two; wall = time/total_s (everything, data loading and diagnostics "
-                     "included). Paper: one GTX 1080 Ti")
+        notes.append(
+            "reward model = time/{"
+            + ",".join(REWARD_MODEL_STAGES)
+            + "}_s, plus time/{"
+            + ",".join(SUBGOAL_STAGES)
+            + "}_s where shaping is on (runs without shaping spend those "
+            "on the Fig. 2 diagnostics only); offline RL = time/{"
+            + ",".join(OFFLINE_RL_STAGES)
+            + "}_s; total = the two; wall = time/total_s (everything, data loading and diagnostics "
+            "included). Paper: one GTX 1080 Ti"
+        )
         hit = pd.Series(False, index=used.index)
         for t in CACHE_HIT_TAGS:
             if f"tags.{t}" in used:
@@ -551,8 +706,10 @@ def _standard_notes(spec: _Spec, cells: pd.DataFrame, metric: str, ddof: int, wi
             if f"metrics.{m}" in used:
                 hit |= used[f"metrics.{m}"].astype(float) > 0
         if hit.any():
-            notes.append(f"{int(hit.sum())} of {len(used)} runs reused a cached reward model, relabelling or CVAE: "
-                         "their reward-model time leaves out that training")
+            notes.append(
+                f"{int(hit.sum())} of {len(used)} runs reused a cached reward model, relabelling or CVAE: "
+                "their reward-model time leaves out that training"
+            )
     return notes
 
 
@@ -594,10 +751,27 @@ def _col_label(col: str, value: Any) -> str:
     return str(value)
 
 
-_LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
-                  "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}"}
-_LATEX_UNICODE = {"±": r"$\pm$", "Δ": r"$\Delta$", "λ": r"$\lambda$", "≥": r"$\geq$", "−": "-", "–": "--",
-                  "ĝ": r"$\hat g$"}
+_LATEX_SPECIAL = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "$": r"\$",
+    "#": r"\#",
+    "_": r"\_",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+}
+_LATEX_UNICODE = {
+    "±": r"$\pm$",
+    "Δ": r"$\Delta$",
+    "λ": r"$\lambda$",
+    "≥": r"$\geq$",
+    "−": "-",
+    "–": "--",
+    "ĝ": r"$\hat g$",
+}
 
 
 def _latex(text: str) -> str:
@@ -631,9 +805,14 @@ def format_table(table: pd.DataFrame, fmt: str = "md") -> str:
         lines += ["| " + " | ".join(r) + " |" for r in body]
         lines += [""] + [f"- {n}" for n in a["notes"]]
         return "\n".join(lines) + "\n"
-    esc_body = [[_latex(x) for x in r[:len(rows)]] + r[len(rows):] for r in body]
-    lines = [f"% {_latex(title)}", "\\begin{tabular}{" + "l" * len(rows) + "|" + "c" * len(col_values) + "}",
-             "\\hline", " & ".join(_latex(h) for h in header) + " \\\\", "\\hline"]
+    esc_body = [[_latex(x) for x in r[: len(rows)]] + r[len(rows) :] for r in body]
+    lines = [
+        f"% {_latex(title)}",
+        "\\begin{tabular}{" + "l" * len(rows) + "|" + "c" * len(col_values) + "}",
+        "\\hline",
+        " & ".join(_latex(h) for h in header) + " \\\\",
+        "\\hline",
+    ]
     lines += [" & ".join(r) + " \\\\" for r in esc_body]
     lines += ["\\hline", "\\end{tabular}", ""]
     lines += [f"\\par{{\\footnotesize {_latex(n)}}}" for n in a["notes"]]

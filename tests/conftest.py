@@ -46,8 +46,14 @@ def tiny_drawer(spot_dirs):
 def run_cli(*args: str, cwd: Path | None = None, env: dict | None = None, timeout: int = 600):
     """Run ``python -m spot.cli ARGS`` in a subprocess; returns CompletedProcess."""
     full_env = {**os.environ, **(env or {})}
-    return subprocess.run([sys.executable, "-m", "spot.cli", *args], capture_output=True, text=True,
-                          cwd=cwd, env=full_env, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "spot.cli", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=full_env,
+        timeout=timeout,
+    )
 
 
 def make_dataset(episode_lengths: list[int], seed: int = 0, obs_dim: int = 4, act_dim: int = 2):
@@ -58,8 +64,12 @@ def make_dataset(episode_lengths: list[int], seed: int = 0, obs_dim: int = 4, ac
     n = sum(episode_lengths)
     obs = rng.normal(size=(n, obs_dim)).astype(np.float32)
     return Dataset(
-        observations=obs, actions=rng.uniform(-1, 1, size=(n, act_dim)).astype(np.float32),
-        rewards=rng.normal(size=n).astype(np.float32), next_observations=obs, terminals=np.zeros(n, bool),
-        episode_ids=np.repeat(np.arange(len(episode_lengths)), episode_lengths), raw_index=np.arange(n),
+        observations=obs,
+        actions=rng.uniform(-1, 1, size=(n, act_dim)).astype(np.float32),
+        rewards=rng.normal(size=n).astype(np.float32),
+        next_observations=obs,
+        terminals=np.zeros(n, bool),
+        episode_ids=np.repeat(np.arange(len(episode_lengths)), episode_lengths),
+        raw_index=np.arange(n),
         name="test",
     )

@@ -35,8 +35,9 @@ def _cvae_params():
     from spot.subgoal.cvae import CVAEParams
 
     net = {"params": {"enc": {"kernel": np.arange(6, dtype=np.float32).reshape(2, 3), "bias": np.zeros(3, np.float32)}}}
-    return CVAEParams(net=net, obs_mean=np.ones(3, np.float32), obs_std=np.full(3, 2.0, np.float32),
-                      hidden=(32, 64), latent_dim=4)
+    return CVAEParams(
+        net=net, obs_mean=np.ones(3, np.float32), obs_std=np.full(3, 2.0, np.float32), hidden=(32, 64), latent_dim=4
+    )
 
 
 def test_round_trip_keeps_values_and_types(cache_dir):
@@ -167,8 +168,13 @@ def test_an_entry_crafted_to_run_code_is_never_executed(cache_dir, tmp_path):
     with pytest.warns(UserWarning, match="unusable"):
         assert not cache.cached("reward", {"a": 1}, compute, code="v")[1]
     # 3. an npz whose array is a pickled object array (numpy pickles object dtype)
-    _npz(cache_dir / f"{k}.npz", {"t": "array", "ref": "a0"}, {"a0": np.array([_Exploit(marker)], object)},
-         digest=False, allow_pickle=True)
+    _npz(
+        cache_dir / f"{k}.npz",
+        {"t": "array", "ref": "a0"},
+        {"a0": np.array([_Exploit(marker)], object)},
+        digest=False,
+        allow_pickle=True,
+    )
     with pytest.warns(UserWarning, match="unusable"):
         assert not cache.cached("reward", {"a": 1}, compute, code="v")[1]
     # 4. a well-formed entry that names a callable outside spot, or a spot function, as its "type"
@@ -180,14 +186,17 @@ def test_an_entry_crafted_to_run_code_is_never_executed(cache_dir, tmp_path):
     assert compute.calls == 1 + 1 + 1 + 4
 
 
-@pytest.mark.parametrize("tree", [
-    {"t": "array", "ref": "a9"},                                   # a missing array
-    {"t": "dict", "k": ["a", "b"], "v": [{"t": "none"}]},           # keys and values differ
-    {"t": "dataclass", "type": "spot.subgoal.cvae:CVAEParams", "k": ["net"], "v": [{"t": "none"}]},  # fields
-    {"t": "int", "v": "1"},
-    {"t": "lambda"},
-    [1, 2],
-])
+@pytest.mark.parametrize(
+    "tree",
+    [
+        {"t": "array", "ref": "a9"},  # a missing array
+        {"t": "dict", "k": ["a", "b"], "v": [{"t": "none"}]},  # keys and values differ
+        {"t": "dataclass", "type": "spot.subgoal.cvae:CVAEParams", "k": ["net"], "v": [{"t": "none"}]},  # fields
+        {"t": "int", "v": "1"},
+        {"t": "lambda"},
+        [1, 2],
+    ],
+)
 def test_an_entry_of_the_wrong_structure_is_evicted_and_recomputed(cache_dir, tree):
     k = cache.key("cvae", {}, "v")
     _npz(cache_dir / f"{k}.npz", tree, {})
@@ -233,7 +242,8 @@ def toy_package(tmp_path, monkeypatch):
     (pkg / "__init__.py").write_text("")
     (pkg / "helper.py").write_text("def scale(x):\n    return 2 * x\n")
     (pkg / "other.py").write_text("def unused():\n    return 0\n")
-    (pkg / "stage.py").write_text(textwrap.dedent("""
+    (pkg / "stage.py").write_text(
+        textwrap.dedent("""
         from toystages import other
 
         def _prepare(x):
@@ -249,7 +259,8 @@ def toy_package(tmp_path, monkeypatch):
 
         def unrelated():
             return other.unused()
-    """))
+    """)
+    )
     monkeypatch.syspath_prepend(str(root))
     monkeypatch.setattr(sys, "dont_write_bytecode", True)  # reloads compile the edited source, never a stale .pyc
     yield pkg
@@ -292,7 +303,9 @@ def test_code_version_follows_the_stage_and_what_it_runs(toy_package):
 
 def test_the_real_stages_versions_cover_their_modules():
     reward = cache.code_parts(stages.learned_reward)
-    assert {"spot.stages:learned_reward", "spot.reward.train", "spot.reward.pt", "spot.reward.mr", "spot.nets"} <= set(reward)
+    assert {"spot.stages:learned_reward", "spot.reward.train", "spot.reward.pt", "spot.reward.mr", "spot.nets"} <= set(
+        reward
+    )
     assert "spot.stages:cvae_stage" not in reward and "spot.subgoal.cvae" not in reward
     assert "spot.config" not in reward  # config values are in the deps, not the code version
     cvae = cache.code_parts(stages.cvae_stage)

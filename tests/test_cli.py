@@ -12,7 +12,9 @@ from tests.conftest import run_cli
 PT_LABELS = Path(__file__).parent / "data" / "pt-human-labels"
 
 
-@pytest.mark.parametrize("cmd", [[], ["data"], ["data", "build"], ["labels", "make"], ["run"], ["bench"], ["config", "show"]])
+@pytest.mark.parametrize(
+    "cmd", [[], ["data"], ["data", "build"], ["labels", "make"], ["run"], ["bench"], ["config", "show"]]
+)
 def test_help_on_every_command(cmd):
     out = run_cli(*cmd, "--help")
     assert out.returncode == 0, out.stderr
@@ -31,15 +33,39 @@ def test_data_build_info_and_labels(tmp_path, spot_dirs, tiny_drawer):
     summary = json.loads(info.stdout)["summary"]
     assert summary["obs_dim"] == 39 and summary["act_dim"] == 4 and summary["transitions"] > 1000
     out = tmp_path / "q.npz"
-    made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "--num-queries", "30",
-                   "--segment-length", "25", "--out", str(out))
+    made = run_cli(
+        "labels",
+        "make",
+        "drawer-open",
+        "--size",
+        "tiny",
+        "--num-queries",
+        "30",
+        "--segment-length",
+        "25",
+        "--out",
+        str(out),
+    )
     assert made.returncode == 0, made.stderr
     with np.load(out) as z:
         assert len(z["labels"]) == 30
     shown = run_cli("labels", "info", str(out), "--dataset", "drawer-open", "--size", "tiny")
     assert shown.returncode == 0 and "all segments fit" in shown.stdout
-    dense = run_cli("labels", "make", "drawer-open", "--size", "tiny", "--num-queries", "30",
-                    "--segment-length", "25", "--score", "dense", "--out", str(out))
+    dense = run_cli(
+        "labels",
+        "make",
+        "drawer-open",
+        "--size",
+        "tiny",
+        "--num-queries",
+        "30",
+        "--segment-length",
+        "25",
+        "--score",
+        "dense",
+        "--out",
+        str(out),
+    )
     assert dense.returncode == 2 and "no dense reward 'infos/dense_reward'" in dense.stderr
 
 
@@ -64,8 +90,19 @@ def test_labels_make_resolves_its_settings_like_run(tmp_path, spot_dirs, tiny_dr
     by_hand = labels.scripted_teacher(ds, 30, 25, teacher="discounted", discount=0.99, seed=42)
     np.testing.assert_array_equal(got.labels, by_hand.labels)
     # a flag (shorthand for labels.teacher) and an override beat the suite preset
-    made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "labels.num_queries=30",
-                   "labels.segment_length=40", "--teacher", "sum", "--out", str(out))
+    made = run_cli(
+        "labels",
+        "make",
+        "drawer-open",
+        "--size",
+        "tiny",
+        "labels.num_queries=30",
+        "labels.segment_length=40",
+        "--teacher",
+        "sum",
+        "--out",
+        str(out),
+    )
     assert made.returncode == 0, made.stderr
     assert "teacher=sum" in made.stdout
     got = labels.Preferences.load_npz(out)
@@ -102,8 +139,9 @@ def test_user_errors_exit_2_without_traceback(args, fragment, spot_dirs):
 
 def test_label_index_past_dataset_end_is_a_user_error(spot_dirs, tiny_drawer):
     # The real hopper labels index ~400k transitions; the tiny drawer dataset is much shorter.
-    out = run_cli("labels", "info", str(PT_LABELS / "hopper-medium-replay-v2"), "--dataset", "drawer-open",
-                  "--size", "tiny")
+    out = run_cli(
+        "labels", "info", str(PT_LABELS / "hopper-medium-replay-v2"), "--dataset", "drawer-open", "--size", "tiny"
+    )
     assert out.returncode == 2 and "past the end" in out.stderr and "Traceback" not in out.stderr
 
 
@@ -156,21 +194,48 @@ def test_one_name_per_concept_across_commands():
     from spot import cli
 
     p = cli.build_parser()
-    for argv in (["run"], ["eval", "r"], ["sweep", "f"], ["tables", "--table", "1"], ["report"],
-                 ["results", "export", "--experiment", "e", "--out", "o"], ["figures", "fig2"],
-                 ["figures", "fig3"], ["figures", "fig4"]):
+    for argv in (
+        ["run"],
+        ["eval", "r"],
+        ["sweep", "f"],
+        ["tables", "--table", "1"],
+        ["report"],
+        ["results", "export", "--experiment", "e", "--out", "o"],
+        ["figures", "fig2"],
+        ["figures", "fig3"],
+        ["figures", "fig4"],
+    ):
         assert p.parse_args([*argv, "--tracking-uri", "http://h:1"]).tracking_uri == "http://h:1", argv
-    for argv in (["data", "build", "x"], ["data", "info", "x"], ["labels", "info", "p"],
-                 ["labels", "make", "d", "--out", "o"], ["figures", "fig3"], ["figures", "fig4"]):
+    for argv in (
+        ["data", "build", "x"],
+        ["data", "info", "x"],
+        ["labels", "info", "p"],
+        ["labels", "make", "d", "--out", "o"],
+        ["figures", "fig3"],
+        ["figures", "fig4"],
+    ):
         assert p.parse_args([*argv, "--data-seed", "3"]).data_seed == 3, argv
         assert p.parse_args([*argv, "--seed", "4"]).data_seed == 4, argv  # the old name
-    for argv in (["run"], ["data", "build", "x"], ["data", "info", "x"], ["data", "fetch"], ["labels", "info", "p"],
-                 ["labels", "make", "d", "--out", "o"]):
+    for argv in (
+        ["run"],
+        ["data", "build", "x"],
+        ["data", "info", "x"],
+        ["data", "fetch"],
+        ["labels", "info", "p"],
+        ["labels", "make", "d", "--out", "o"],
+    ):
         assert p.parse_args([*argv, "--quiet"]).quiet is True, argv
 
 
-@pytest.mark.parametrize("argv", [["sweep", "f.yaml", "--max-concurrent", "0"], ["sweep", "f.yaml", "--max-concurrent", "x"],
-                                  ["eval", "r", "--episodes", "0"], ["bench", "iql", "--seeds", "-1"]])
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["sweep", "f.yaml", "--max-concurrent", "0"],
+        ["sweep", "f.yaml", "--max-concurrent", "x"],
+        ["eval", "r", "--episodes", "0"],
+        ["bench", "iql", "--seeds", "-1"],
+    ],
+)
 def test_counts_must_be_positive(argv, capsys):
     from spot import cli
 
@@ -200,8 +265,10 @@ def test_run_takes_tracking_uri_and_says_where_it_logged(tmp_path, monkeypatch, 
     run_id = out.split()[1].rstrip(":")
     exp_id = MlflowClient(uri).get_experiment_by_name("cli").experiment_id
     assert f"logged to {uri} (experiment id {exp_id}, run {run_id})" in out
-    assert (f"open the runs with: MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri {uri} "
-            f"--artifacts-destination {tmp_path / 'artifacts'} --workers 1") in out
+    assert (
+        f"open the runs with: MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri {uri} "
+        f"--artifacts-destination {tmp_path / 'artifacts'} --workers 1"
+    ) in out
     assert f"then: http://127.0.0.1:5000/#/experiments/{exp_id}/runs/{run_id}" in out
     assert f"runs table: http://127.0.0.1:5000/#/experiments/{exp_id}/runs?workflowType=machine_learning" in out
 
@@ -224,6 +291,8 @@ def test_fig4_honours_the_output_extension(tmp_path, capsys):
         assert cli.main(["figures", "fig4", "--run-id", tr.run_id, "--out", str(out), "--tracking-uri", uri]) == 0
         assert out.read_bytes().startswith(head), ext
     assert (tmp_path / "fig4.png").read_bytes() == png.read_bytes()  # a PNG is copied as is
-    assert cli.main(["figures", "fig4", "--run-id", tr.run_id, "--out", str(tmp_path / "f.xyz"),
-                     "--tracking-uri", uri]) == 2
+    assert (
+        cli.main(["figures", "fig4", "--run-id", tr.run_id, "--out", str(tmp_path / "f.xyz"), "--tracking-uri", uri])
+        == 2
+    )
     assert "unknown figure format 'xyz'" in capsys.readouterr().err

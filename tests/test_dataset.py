@@ -17,8 +17,13 @@ def _raw(n=10, timeouts=(), terminals=(), next_obs=False):
     to = np.zeros(n, bool)
     to[list(timeouts)] = True
     return RawDataset(
-        observations=obs, actions=np.zeros((n, 1), np.float32), rewards=np.arange(n, dtype=np.float32),
-        terminals=t, timeouts=to, next_observations=obs + 100 if next_obs else None, name="hand",
+        observations=obs,
+        actions=np.zeros((n, 1), np.float32),
+        rewards=np.arange(n, dtype=np.float32),
+        terminals=t,
+        timeouts=to,
+        next_observations=obs + 100 if next_obs else None,
+        name="hand",
     )
 
 
@@ -100,8 +105,13 @@ def test_segments_past_end_or_across_episodes_are_refused():
     ],
 )
 def test_bad_arrays_are_named(change, fragment):
-    base = dict(observations=np.zeros((4, 2), np.float32), actions=np.zeros((4, 1), np.float32),
-                rewards=np.zeros(4, np.float32), terminals=np.zeros(4, bool), timeouts=np.zeros(4, bool))
+    base = dict(
+        observations=np.zeros((4, 2), np.float32),
+        actions=np.zeros((4, 1), np.float32),
+        rewards=np.zeros(4, np.float32),
+        terminals=np.zeros(4, bool),
+        timeouts=np.zeros(4, bool),
+    )
     base.update(change)
     with pytest.raises(SpotError) as err:
         RawDataset(**base, name="bad")
@@ -110,9 +120,15 @@ def test_bad_arrays_are_named(change, fragment):
 
 def test_raw_from_episodes_layout():
     def ep(t, term):
-        return dict(observations=np.zeros((t, 2)), actions=np.zeros((t, 1)), rewards=np.ones(t),
-                    next_observations=np.ones((t, 2)), terminals=np.eye(t)[-1] * term,
-                    timeouts=np.eye(t)[-1] * (1 - term))
+        return dict(
+            observations=np.zeros((t, 2)),
+            actions=np.zeros((t, 1)),
+            rewards=np.ones(t),
+            next_observations=np.ones((t, 2)),
+            terminals=np.eye(t)[-1] * term,
+            timeouts=np.eye(t)[-1] * (1 - term),
+        )
+
     raw = raw_from_episodes([ep(3, 0), ep(2, 1)], "eps")
     assert len(raw) == 5 and raw.timeouts.tolist() == [0, 0, 1, 0, 0] and raw.terminals.tolist() == [0, 0, 0, 0, 1]
     ds = raw.qlearning()
@@ -121,9 +137,16 @@ def test_raw_from_episodes_layout():
 
 def test_infos_ride_along_episodes_and_the_qlearning_view():
     def ep(t, term, base):
-        return dict(observations=np.zeros((t, 2)), actions=np.zeros((t, 1)), rewards=np.zeros(t),
-                    next_observations=np.ones((t, 2)), terminals=np.eye(t)[-1] * term,
-                    timeouts=np.eye(t)[-1] * (1 - term), infos={"dense_reward": base + np.arange(t)})
+        return dict(
+            observations=np.zeros((t, 2)),
+            actions=np.zeros((t, 1)),
+            rewards=np.zeros(t),
+            next_observations=np.ones((t, 2)),
+            terminals=np.eye(t)[-1] * term,
+            timeouts=np.eye(t)[-1] * (1 - term),
+            infos={"dense_reward": base + np.arange(t)},
+        )
+
     raw = raw_from_episodes([ep(3, 0, 10.0), ep(3, 1, 20.0)], "eps")
     np.testing.assert_array_equal(raw.infos["dense_reward"], [10, 11, 12, 20, 21, 22])
     ds = raw.qlearning()  # row 2 (timeout) and row 5 (last) dropped

@@ -20,7 +20,9 @@ import yaml
 REPO = Path(__file__).resolve().parent.parent
 DOCKER = REPO / "docker"
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
-PINS = dict(re.match(r"([A-Za-z0-9_.\[\]-]+)==(.+)", d).groups() for d in PYPROJECT["project"]["dependencies"] if "==" in d)
+PINS = dict(
+    re.match(r"([A-Za-z0-9_.\[\]-]+)==(.+)", d).groups() for d in PYPROJECT["project"]["dependencies"] if "==" in d
+)
 
 
 def _readme_install() -> str:
@@ -51,7 +53,9 @@ def test_compose_file_and_mlflow_version():
     assert set(images) == {"postgres", "minio", "create-bucket"}  # mlflow is built from mlflow/Dockerfile
     for image in images.values():  # pinned: an explicit version tag, never latest or a bare major
         tag = image.rpartition(":")[2]
-        assert ":" in image and tag != "latest" and re.fullmatch(r"\d+\.\d+|RELEASE\.\d{4}-\d\d-\d\dT[\d-]+Z", tag), image
+        assert ":" in image and tag != "latest" and re.fullmatch(r"\d+\.\d+|RELEASE\.\d{4}-\d\d-\d\dT[\d-]+Z", tag), (
+            image
+        )
 
 
 def test_ray_configs_parse_and_point_at_real_sweeps():
@@ -75,27 +79,54 @@ def _ignored(path: str, patterns: list[str]) -> bool:
         pattern = pattern.lstrip("!").strip("/")
         parts = path.split("/")
         prefixes = ["/".join(parts[:i]) for i in range(1, len(parts) + 1)]  # a folder excludes its files
-        if any(fnmatch.fnmatchcase(p, pattern) or (pattern.startswith("**/") and fnmatch.fnmatchcase(p.split("/")[-1], pattern[3:]))
-               for p in prefixes):
+        if any(
+            fnmatch.fnmatchcase(p, pattern)
+            or (pattern.startswith("**/") and fnmatch.fnmatchcase(p.split("/")[-1], pattern[3:]))
+            for p in prefixes
+        ):
             ignored = not negate
     return ignored
 
 
 def test_dockerignore_keeps_the_source_and_drops_venv_runs_and_data():
-    patterns = [line.strip() for line in (REPO / ".dockerignore").read_text().splitlines()
-                if line.strip() and not line.startswith("#")]
-    for path in (".venv/bin/python", ".git/HEAD", "mlruns/mlflow.db", "spot_runs/mlflow.db", "runs/x",
-                 "ray_results/x", "data/hopper.hdf5", "spot_data/x", "cache/stages/x.pkl", "docker/.env",
-                 "analysis/out/table1.md", "spot/__pycache__/cli.cpython-311.pyc", "scratch/d4rl.hdf5"):
+    patterns = [
+        line.strip()
+        for line in (REPO / ".dockerignore").read_text().splitlines()
+        if line.strip() and not line.startswith("#")
+    ]
+    for path in (
+        ".venv/bin/python",
+        ".git/HEAD",
+        "mlruns/mlflow.db",
+        "spot_runs/mlflow.db",
+        "runs/x",
+        "ray_results/x",
+        "data/hopper.hdf5",
+        "spot_data/x",
+        "cache/stages/x.pkl",
+        "docker/.env",
+        "analysis/out/table1.md",
+        "spot/__pycache__/cli.cpython-311.pyc",
+        "scratch/d4rl.hdf5",
+    ):
         assert _ignored(path, patterns), path
-    for path in ("pyproject.toml", "README.md", "spot/cli.py", "spot/paper_tables.csv", "sweeps/table1.yaml",
-                 "configs/quickstart.yaml", "tests/data/pt-human-labels/Lift_mh/label_human", "docker/mlflow/Dockerfile"):
+    for path in (
+        "pyproject.toml",
+        "README.md",
+        "spot/cli.py",
+        "spot/paper_tables.csv",
+        "sweeps/table1.yaml",
+        "configs/quickstart.yaml",
+        "tests/data/pt-human-labels/Lift_mh/label_human",
+        "docker/mlflow/Dockerfile",
+    ):
         assert not _ignored(path, patterns), path
 
 
 # --------------------------------------------------------------------------- MLflow as deployed
 def _interpolate(text: str, env: dict[str, str]) -> str:
     """Compose's variable syntax: ${VAR}, ${VAR:-default}, ${VAR-default}, $$ for a literal $."""
+
     def sub(m: re.Match) -> str:
         if m.group(0) == "$$":
             return "$"
@@ -106,6 +137,7 @@ def _interpolate(text: str, env: dict[str, str]) -> str:
         if op == "-":
             return default if value is None else value
         return value or ""
+
     return re.sub(r"\$\$|\$\{(\w+)(?:(:?-)([^}]*))?\}", sub, text)
 
 
@@ -126,8 +158,13 @@ def _split_options(argv: list[str]) -> list[tuple[str, str | None]]:
     return out
 
 
-def _request(port: int, host: str, method: str = "GET", path: str = "/api/2.0/mlflow/experiments/search?max_results=1",
-             body: dict | None = None) -> tuple[int, str]:
+def _request(
+    port: int,
+    host: str,
+    method: str = "GET",
+    path: str = "/api/2.0/mlflow/experiments/search?max_results=1",
+    body: dict | None = None,
+) -> tuple[int, str]:
     conn = http.client.HTTPConnection("127.0.0.1", port, timeout=30)
     try:
         data = json.dumps(body).encode() if body is not None else None
@@ -152,8 +189,9 @@ def _serve(argv: list[str], env: dict[str, str], tmp_path: Path, replace: dict[s
     for flag, value in options:
         cmd += [flag] if value is None else [flag, replace.get(flag, value)]
     log = (tmp_path / "server.log").open("wb")
-    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **env},
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        cmd, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **env}, start_new_session=True
+    )
     try:
         deadline = time.monotonic() + 180
         while True:
@@ -189,17 +227,23 @@ def test_compose_mlflow_command_answers_its_service_name(tmp_path):
     argv = shlex.split(_interpolate(service["command"], {}))
     env = {k: _interpolate(str(v), {}) for k, v in service["environment"].items()}
     options = dict(_split_options(argv[2:]))
-    assert options["--backend-store-uri"].startswith("postgresql://") and options["--artifacts-destination"] == "s3://mlflow/"
+    assert (
+        options["--backend-store-uri"].startswith("postgresql://")
+        and options["--artifacts-destination"] == "s3://mlflow/"
+    )
     container_port = options["--port"]
     assert f"{container_port}:{container_port}" in service["ports"]
-    replace = {"--backend-store-uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
-               "--artifacts-destination": str(tmp_path / "artifacts")}
+    replace = {
+        "--backend-store-uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
+        "--artifacts-destination": str(tmp_path / "artifacts"),
+    }
     with _serve(argv, env, tmp_path, replace) as port:
         # what `--tracking-uri http://mlflow:5000` sends from a container on the compose network
         status, text = _request(port, f"mlflow:{container_port}")
         assert status == 200, text
-        status, text = _request(port, f"mlflow:{container_port}", "POST", "/api/2.0/mlflow/experiments/create",
-                                {"name": "from-a-container"})
+        status, text = _request(
+            port, f"mlflow:{container_port}", "POST", "/api/2.0/mlflow/experiments/create", {"name": "from-a-container"}
+        )
         assert status == 200 and "experiment_id" in text, text
         assert _request(port, f"localhost:{container_port}")[0] == 200  # the published port, on this machine
         assert _request(port, f"192.168.1.20:{container_port}")[0] == 200  # a LAN address
@@ -231,12 +275,17 @@ def test_k8s_mlflow_command_answers_its_service_name(tmp_path):
     (port_spec,) = service["spec"]["ports"]
     assert port_spec["targetPort"] == container["ports"][0]["name"]
     assert str(container["ports"][0]["containerPort"]) == options["--port"] == str(port_spec["port"])
-    replace = {"--backend-store-uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
-               "--artifacts-destination": str(tmp_path / "artifacts")}
+    replace = {
+        "--backend-store-uri": f"sqlite:///{tmp_path / 'mlflow.db'}",
+        "--artifacts-destination": str(tmp_path / "artifacts"),
+    }
     env = {e["name"]: e["value"] for e in container.get("env", [])}
     with _serve(container["command"], env, tmp_path, replace) as port:
-        for host in (f"mlflow:{port_spec['port']}", f"mlflow.spot.svc.cluster.local:{port_spec['port']}",
-                     f"localhost:{port_spec['port']}"):
+        for host in (
+            f"mlflow:{port_spec['port']}",
+            f"mlflow.spot.svc.cluster.local:{port_spec['port']}",
+            f"localhost:{port_spec['port']}",
+        ):
             status, text = _request(port, host)
             assert status == 200, (host, text)
         status, text = _request(port, f"evil.example:{port_spec['port']}")
@@ -254,8 +303,11 @@ def test_k8s_manifests_validate_and_reference_only_what_they_define():
     for doc in docs:
         if doc["kind"] in ("RayCluster", "RayJob"):
             for spec in _pod_specs(doc):
-                kubernetes_validate.validate({"apiVersion": "v1", "kind": "PodTemplate", "metadata": {"name": "t"},
-                                              "template": {"spec": spec}}, "1.37", strict=True)
+                kubernetes_validate.validate(
+                    {"apiVersion": "v1", "kind": "PodTemplate", "metadata": {"name": "t"}, "template": {"spec": spec}},
+                    "1.37",
+                    strict=True,
+                )
         else:
             kubernetes_validate.validate(doc, "1.37", strict=True)
     pvcs = {d["metadata"]["name"]: d for d in docs if d["kind"] == "PersistentVolumeClaim"}
@@ -263,8 +315,9 @@ def test_k8s_manifests_validate_and_reference_only_what_they_define():
     services = {d["metadata"]["name"]: d for d in docs if d["kind"] == "Service"}
     deployments = [d for d in docs if d["kind"] == "Deployment"]
     for svc in services.values():  # each Service selects the pods of a Deployment
-        assert any(svc["spec"]["selector"].items() <= d["spec"]["template"]["metadata"]["labels"].items()
-                   for d in deployments), svc["metadata"]["name"]
+        assert any(
+            svc["spec"]["selector"].items() <= d["spec"]["template"]["metadata"]["labels"].items() for d in deployments
+        ), svc["metadata"]["name"]
     for doc in docs:
         for spec in _pod_specs(doc):
             volumes = {v["name"]: v for v in spec.get("volumes", [])}

@@ -40,9 +40,15 @@ def _train(chunk, steps=250, every=100, length=60):
     cfg = config.IQLConfig(steps=steps, chunk=length)
     seen, logged = [], []
     state = SimpleNamespace(actor=SimpleNamespace(params=0))
-    curve = iql.train(chunk, state, lambda c: (c,), cfg, every,
-                      lambda params, step: (seen.append((params, step)), float(step))[1],
-                      log=lambda metrics, step: logged.append(step))
+    curve = iql.train(
+        chunk,
+        state,
+        lambda c: (c,),
+        cfg,
+        every,
+        lambda params, step: (seen.append((params, step)), float(step))[1],
+        log=lambda metrics, step: logged.append(step),
+    )
     return curve, seen, logged
 
 
@@ -74,8 +80,9 @@ def test_saved_model_round_trip_and_cvae_from_run(tmp_path):
     cfg = config.load(None, ["method=spot", "budget=tiny", f"tracking.uri={_uri(tmp_path)}", "tracking.experiment=m"])
     params = cvae.init(jax.random.key(0), 5, 2, cfg.cvae, (np.arange(5.0), np.ones(5))).params
     with tracking.start_run(cfg, {"name": "hopper-medium-replay"}, system_metrics=False) as tr:
-        head = tracking.save_model(tr, tmp_path / "out", "cvae", "a CVAE", params, {"cvae": {"latent_dim": 4}},
-                                   score=float("nan"))
+        head = tracking.save_model(
+            tr, tmp_path / "out", "cvae", "a CVAE", params, {"cvae": {"latent_dim": 4}}, score=float("nan")
+        )
     assert head["shapes"][".obs_mean"] == [5] and head["score"] is None  # JSON-safe header
     got, cfg_back, head = figures.cvae_from_run(tr.run_id, _uri(tmp_path))
     assert isinstance(got, cvae.CVAEParams) and (got.hidden, got.latent_dim) == (params.hidden, params.latent_dim)
@@ -83,14 +90,19 @@ def test_saved_model_round_trip_and_cvae_from_run(tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert cfg_back == cfg
     header = json.loads(next((tmp_path / "artifacts").rglob("models/cvae.json")).read_text())
-    assert header["name"] == "cvae" and header["config"] == {"cvae": {"latent_dim": 4}} and "spot.cache" in header["format"]
+    assert (
+        header["name"] == "cvae"
+        and header["config"] == {"cvae": {"latent_dim": 4}}
+        and "spot.cache" in header["format"]
+    )
     with pytest.raises(SpotError, match="has no saved model models/policy"):
         tracking.load_model(tr.run_id, "policy", _uri(tmp_path))
 
 
 def test_a_tampered_model_is_refused(tmp_path):
-    with tracking.start_run(config.load(None, [f"tracking.uri={_uri(tmp_path)}"]), {"name": "x"},
-                            system_metrics=False) as tr:
+    with tracking.start_run(
+        config.load(None, [f"tracking.uri={_uri(tmp_path)}"]), {"name": "x"}, system_metrics=False
+    ) as tr:
         tracking.save_model(tr, tmp_path / "out", "policy", "p", {"w": np.ones(3)}, {})
     npz = next((tmp_path / "artifacts").rglob("models/policy.npz"))
     data = bytearray(npz.read_bytes())
@@ -107,8 +119,19 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     uri = _uri(tmp_path)
-    cfg = config.load(None, ["method=oracle", "budget=tiny", "data.name=drawer-open", "iql.steps=200",
-                             "eval.every=100", "eval.episodes=2", f"tracking.uri={uri}", "tracking.experiment=e"])
+    cfg = config.load(
+        None,
+        [
+            "method=oracle",
+            "budget=tiny",
+            "data.name=drawer-open",
+            "iql.steps=200",
+            "eval.every=100",
+            "eval.episodes=2",
+            f"tracking.uri={uri}",
+            "tracking.experiment=e",
+        ],
+    )
     out = pipeline.run(cfg, progress=False)
     run_id = out["run_id"]
     client = MlflowClient(uri)
@@ -139,16 +162,44 @@ def test_fig3_uses_the_runs_cvae_on_the_runs_dataset(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     data = tmp_path / "hopper-medium-replay-v2.hdf5"
-    made = subprocess.run([sys.executable, str(root / "scripts" / "make_synthetic_d4rl.py"), str(data),
-                           "--transitions", "2000", "--episode-length", "100"], capture_output=True, text=True)
+    made = subprocess.run(
+        [
+            sys.executable,
+            str(root / "scripts" / "make_synthetic_d4rl.py"),
+            str(data),
+            "--transitions",
+            "2000",
+            "--episode-length",
+            "100",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert made.returncode == 0, made.stderr
-    cfg = config.load(None, ["method=spot", "budget=tiny", f"data.name={data}", "data.source=file",
-                             f"tracking.uri={_uri(tmp_path)}"])
+    cfg = config.load(
+        None, ["method=spot", "budget=tiny", f"data.name={data}", "data.source=file", f"tracking.uri={_uri(tmp_path)}"]
+    )
     params = cvae.init(jax.random.key(1), 11, 3, cfg.cvae, (np.zeros(11), np.ones(11))).params
     with tracking.start_run(cfg, {"name": "hopper-medium-replay"}, system_metrics=False) as tr:
         tracking.save_model(tr, tmp_path / "out", "cvae", "a CVAE", params, {}, dataset="hopper-medium-replay")
     out = tmp_path / "fig3.png"
-    got = run_cli("figures", "fig3", "--run-id", tr.run_id, "--index", "0", "7", "--width", "48", "--height", "48",
-                  "--tracking-uri", _uri(tmp_path), "--out", str(out), timeout=300)
+    got = run_cli(
+        "figures",
+        "fig3",
+        "--run-id",
+        tr.run_id,
+        "--index",
+        "0",
+        "7",
+        "--width",
+        "48",
+        "--height",
+        "48",
+        "--tracking-uri",
+        _uri(tmp_path),
+        "--out",
+        str(out),
+        timeout=300,
+    )
     assert got.returncode == 0, got.stderr[-2000:]
     assert out.read_bytes()[:4] == b"\x89PNG" and f"wrote {out}" in got.stdout

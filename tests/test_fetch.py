@@ -105,20 +105,32 @@ def payload(n: int = 300_000, seed: int = 0) -> bytes:
 
 
 def write_registry(path: Path, files: list[dict], name: str = "d4rl/toy-v2", kind: str = "d4rl") -> Path:
-    path.write_text(json.dumps({"schema": 1, "sources": {name: {
-        "kind": kind, "description": "test source", "files": files}}}))
+    path.write_text(
+        json.dumps({"schema": 1, "sources": {name: {"kind": kind, "description": "test source", "files": files}}})
+    )
     return path
 
 
 def one_file(urls, data=None, trust="third-party", path="d4rl/toy-v2.hdf5", size=True):
-    return {"path": path, "urls": urls, "trust": trust,
-            "sha256": None if trust == "tofu" else sha(data),
-            "size": len(data) if (size and data is not None and trust != "tofu") else None}
+    return {
+        "path": path,
+        "urls": urls,
+        "trust": trust,
+        "sha256": None if trust == "tofu" else sha(data),
+        "size": len(data) if (size and data is not None and trust != "tofu") else None,
+    }
 
 
 def do_fetch(tmp_path, registry, **kw):
-    return fetch.fetch("d4rl/toy-v2", tmp_path / "dest", registry=registry,
-                       lock=tmp_path / "spot-data.lock.json", progress=False, backoff=0.0, **kw)
+    return fetch.fetch(
+        "d4rl/toy-v2",
+        tmp_path / "dest",
+        registry=registry,
+        lock=tmp_path / "spot-data.lock.json",
+        progress=False,
+        backoff=0.0,
+        **kw,
+    )
 
 
 def assert_nothing_left(tmp_path):
@@ -234,8 +246,7 @@ def test_resume_of_a_partial_temp_file_requests_only_the_rest(tmp_path, server):
     part.write_bytes(data[:123_456])
     reg = write_registry(tmp_path / "reg.json", [one_file([server.base + "/toy.hdf5"], data)])
     do_fetch(tmp_path, reg)
-    assert server.log == [{"path": "/toy.hdf5", "range": "bytes=123456-", "status": 206,
-                           "sent": len(data) - 123_456}]
+    assert server.log == [{"path": "/toy.hdf5", "range": "bytes=123456-", "status": 206, "sent": len(data) - 123_456}]
     assert (tmp_path / "dest" / "d4rl" / "toy-v2.hdf5").read_bytes() == data
     assert not part.exists()
 
@@ -257,8 +268,7 @@ def test_mirror_fallback_in_order(tmp_path, server):
     data = payload()
     server.files["/good/toy.hdf5"] = data
     server.files["/bad/toy.hdf5"] = payload(seed=3)
-    urls = [server.base + "/missing/toy.hdf5", server.base + "/bad/toy.hdf5",
-            server.base + "/good/toy.hdf5"]
+    urls = [server.base + "/missing/toy.hdf5", server.base + "/bad/toy.hdf5", server.base + "/good/toy.hdf5"]
     reg = write_registry(tmp_path / "reg.json", [one_file(urls, data)])
     result = do_fetch(tmp_path, reg)
     assert [e["path"] for e in server.log] == ["/missing/toy.hdf5", "/bad/toy.hdf5", "/good/toy.hdf5"]
@@ -325,9 +335,13 @@ def test_loader_rechecks_a_fetched_dataset_file(tmp_path, server):
     ds = make_dataset([30, 20])
     src = tmp_path / "toy.hdf5"
     raw = RawDataset(
-        observations=ds.observations, actions=ds.actions, rewards=ds.rewards,
-        terminals=ds.terminals, timeouts=np.r_[np.zeros(29, bool), True, np.zeros(19, bool), True],
-        next_observations=ds.next_observations)
+        observations=ds.observations,
+        actions=ds.actions,
+        rewards=ds.rewards,
+        terminals=ds.terminals,
+        timeouts=np.r_[np.zeros(29, bool), True, np.zeros(19, bool), True],
+        next_observations=ds.next_observations,
+    )
     formats.write_d4rl_hdf5(raw, src)
     data = src.read_bytes()
     server.files["/toy.hdf5"] = data
@@ -355,8 +369,13 @@ def test_packaged_pt_label_sums_match_the_real_files_and_load(tmp_path, server):
             data = (PT_LABELS / Path(f.path).relative_to("pt-labels")).read_bytes()
             assert (f.sha256, f.size, f.trust) == (sha(data), len(data), "git-commit")
             server.files["/m/" + f.path] = data
-    result = fetch.fetch("pt-labels/hopper-medium-replay-v2", tmp_path / "dest",
-                         mirrors=[server.base + "/m"], lock=tmp_path / "lock.json", progress=False)
+    result = fetch.fetch(
+        "pt-labels/hopper-medium-replay-v2",
+        tmp_path / "dest",
+        mirrors=[server.base + "/m"],
+        lock=tmp_path / "lock.json",
+        progress=False,
+    )
     folder = result.files[0].path.parent
     prefs = labels.read_pt_labels(folder)
     assert len(prefs) == 500 and prefs.segment_length == 100
@@ -382,16 +401,25 @@ def test_packaged_registry_covers_the_paper_data():
     assert fetch.resolve("Lift_ph", sources).name == "pt-labels/Lift_ph"
 
 
-@pytest.mark.parametrize("bad, key", [
-    ({"trust": "tofu", "sha256": "0" * 64}, "no pinned 'sha256'"),
-    ({"trust": "lfs-oid", "sha256": "xyz"}, "64 lowercase hex"),
-    ({"trust": "sure"}, "'trust' is 'sure'"),
-    ({"urls": ["ftp://x/y"]}, "http(s) URLs"),
-    ({"path": "../escape.hdf5"}, "relative path"),
-])
+@pytest.mark.parametrize(
+    "bad, key",
+    [
+        ({"trust": "tofu", "sha256": "0" * 64}, "no pinned 'sha256'"),
+        ({"trust": "lfs-oid", "sha256": "xyz"}, "64 lowercase hex"),
+        ({"trust": "sure"}, "'trust' is 'sure'"),
+        ({"urls": ["ftp://x/y"]}, "http(s) URLs"),
+        ({"path": "../escape.hdf5"}, "relative path"),
+    ],
+)
 def test_bad_registry_entries_name_the_key(tmp_path, bad, key):
-    entry = {"path": "d4rl/x.hdf5", "urls": ["http://127.0.0.1:9/x"], "trust": "lfs-oid",
-             "sha256": "a" * 64, "size": 3, **bad}
+    entry = {
+        "path": "d4rl/x.hdf5",
+        "urls": ["http://127.0.0.1:9/x"],
+        "trust": "lfs-oid",
+        "sha256": "a" * 64,
+        "size": 3,
+        **bad,
+    }
     reg = write_registry(tmp_path / "reg.json", [entry])
     with pytest.raises(SpotError, match="source 'd4rl/toy-v2', files\\[0\\]") as err:
         fetch.load_registry(reg)
@@ -428,8 +456,18 @@ def test_cli_fetch_list_and_fetch_through_a_registry_file(tmp_path, server):
     server.files["/toy.hdf5"] = data
     reg = write_registry(tmp_path / "reg.json", [one_file([server.base + "/toy.hdf5"], trust="tofu")])
     env = {"NO_PROXY": "127.0.0.1", "no_proxy": "127.0.0.1"}
-    args = ("data", "fetch", "toy-v2", "--registry", str(reg), "--dest", str(tmp_path / "d"),
-            "--lock", str(tmp_path / "l.json"), "--quiet")
+    args = (
+        "data",
+        "fetch",
+        "toy-v2",
+        "--registry",
+        str(reg),
+        "--dest",
+        str(tmp_path / "d"),
+        "--lock",
+        str(tmp_path / "l.json"),
+        "--quiet",
+    )
     out = run_cli(*args, env=env)
     assert out.returncode == 0, out.stderr
     assert "recorded" in out.stdout and "TOFU" in out.stdout and sha(data) in out.stdout

@@ -15,36 +15,43 @@ ROOT = Path(__file__).resolve().parents[1]
 # locomotion dataset (hopper-medium-replay).
 ROWS = {
     10: {"pt.n_layer": (1, 1, 3), "pt.n_head": (4, 4, 1)},  # Table 5 / SGPbrl get_default_config
-    14: {"pt.schedule": ("warmup_constant", "warmup_constant", "warmup_cosine"),  # Table 5 / PT repo
-         "pt.peak_factor": (10.0, 10.0, 10.0),
-         "pt.b2": (0.99, 0.99, 0.999),
-         "pt.warmup_fraction": (0.0, 0.0, 0.1)},
-    17: {"relabel.mode": ("chunked", "sliding", "sliding"),  # PT repo / SGPbrl seq_len 25
-         "relabel.window": (50, 25, 25)},                    # spot: the small budget's chunk length
+    14: {
+        "pt.schedule": ("warmup_constant", "warmup_constant", "warmup_cosine"),  # Table 5 / PT repo
+        "pt.peak_factor": (10.0, 10.0, 10.0),
+        "pt.b2": (0.99, 0.99, 0.999),
+        "pt.warmup_fraction": (0.0, 0.0, 0.1),
+    },
+    17: {
+        "relabel.mode": ("chunked", "sliding", "sliding"),  # PT repo / SGPbrl seq_len 25
+        "relabel.window": (50, 25, 25),
+    },  # spot: the small budget's chunk length
     20: {"subgoal.weight": ("column_mean", "column_mean", "diagonal")},
     21: {"subgoal.filter_on": ("r_hat", "r_hat", "z")},
     22: {"subgoal.reward_filter": (True, True, True)},
     23: {"subgoal.filter_groups": ("top", "all", "top")},
     25: {"subgoal.last_step": (False, False, True)},
-    26: {"subgoal.triplets": ("next_subgoal", "next_subgoal", "interval"),
-         "subgoal.interval_draws": (10, 10, 10)},
+    26: {"subgoal.triplets": ("next_subgoal", "next_subgoal", "interval"), "subgoal.interval_draws": (10, 10, 10)},
     30: {"cvae.loss": ("mse_cos", "mse_cos", "authors")},  # eq. 7 + 8 / SGPbrl vae_train_step
     31: {"cvae.inputs": ("zscore", "zscore", "raw")},
     32: {"shaping.subgoal": ("mean", "mean", "sample")},  # SGPbrl: a prior sample (fixed-key noise)
     33: {"shaping.kind": ("cosine", "cosine", "cosine")},  # state-only cosine on s'
     34: {"shaping.weight": (1.0, 1.0, 1.0)},
-    35: {"shaping.potential_sign": ("neg", "neg", "pos"),
-         "shaping.potential_terminal": (True, True, False)},
+    35: {"shaping.potential_sign": ("neg", "neg", "pos"), "shaping.potential_terminal": (True, True, False)},
     38: {"iql.order": ("parallel", "sequential", "sequential")},
 }
 VARIANTS = ("spot", "paper", "authors")
-CASES = [(row, key, v, values[i]) for row, keys in ROWS.items() for key, values in keys.items()
-         for i, v in enumerate(VARIANTS)]
+CASES = [
+    (row, key, v, values[i])
+    for row, keys in ROWS.items()
+    for key, values in keys.items()
+    for i, v in enumerate(VARIANTS)
+]
 
 
 def _flat(*overrides: str) -> dict:
-    return config.to_flat(config.load(None, ["method=spot", "budget=small", "data.name=hopper-medium-replay",
-                                             *overrides]))
+    return config.to_flat(
+        config.load(None, ["method=spot", "budget=small", "data.name=hopper-medium-replay", *overrides])
+    )
 
 
 @pytest.mark.parametrize("row,key,variant,expected", CASES, ids=[f"{r}-{k}-{v}" for r, k, v, _ in CASES])
@@ -107,8 +114,13 @@ def test_config_show_prints_the_variant(tmp_path):
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-m", "spot.cli", "config", "show", "method=spot", "variant=authors"],
-                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-m", "spot.cli", "config", "show", "method=spot", "variant=authors"],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert out.returncode == 0, out.stderr
     assert "variant: authors" in out.stdout and "weight: diagonal" in out.stdout
     assert "triplets: interval" in out.stdout and "n_layer: 3" in out.stdout
@@ -130,9 +142,20 @@ def test_authors_variant_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monke
     from spot import pipeline
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
-    cfg = config.load(None, ["method=spot", "variant=authors", "budget=tiny", "data.name=drawer-open",
-                             "labels.num_queries=30", "labels.segment_length=25", "pt.n_layer=1",
-                             f"tracking.uri=sqlite:///{tmp_path / 'mlflow.db'}", "tracking.experiment=test"])
+    cfg = config.load(
+        None,
+        [
+            "method=spot",
+            "variant=authors",
+            "budget=tiny",
+            "data.name=drawer-open",
+            "labels.num_queries=30",
+            "labels.segment_length=25",
+            "pt.n_layer=1",
+            f"tracking.uri=sqlite:///{tmp_path / 'mlflow.db'}",
+            "tracking.experiment=test",
+        ],
+    )
     out = pipeline.run(cfg, progress=False)
     mlflow.set_tracking_uri(cfg.tracking.uri)
     run = mlflow.get_run(out["run_id"])

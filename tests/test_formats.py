@@ -21,8 +21,14 @@ def _raw(n=10, timeouts=(3,), terminals=(6,), name="hand"):
     to = np.zeros(n, bool)
     to[list(timeouts)] = True
     return RawDataset(
-        observations=obs, actions=np.ones((n, 1), np.float32), rewards=np.arange(n, dtype=np.float32),
-        terminals=t, timeouts=to, next_observations=obs + 0.5, name=name, metadata={"env": "Hop"},
+        observations=obs,
+        actions=np.ones((n, 1), np.float32),
+        rewards=np.arange(n, dtype=np.float32),
+        terminals=t,
+        timeouts=to,
+        next_observations=obs + 0.5,
+        name=name,
+        metadata={"env": "Hop"},
     )
 
 
@@ -236,8 +242,11 @@ _CAN_V15 = ("Can_to_robot0_eef_pos", 3), ("Can_to_robot0_eef_quat", 4), ("Can_po
 def _write_robomimic_can(path, obs_steps, env_version=None):
     """A Can file in robomimic's low_dim layout: one demo per list of per-step observation dicts
     (robosuite observable names), ``object`` concatenated in robomimic v0.1's order."""
-    env_args = {"env_name": "PickPlaceCan", "type": 1,
-                "env_kwargs": {"robots": ["Panda"], "control_freq": 20, "reward_shaping": False}}
+    env_args = {
+        "env_name": "PickPlaceCan",
+        "type": 1,
+        "env_kwargs": {"robots": ["Panda"], "control_freq": 20, "reward_shaping": False},
+    }
     if env_version is not None:
         env_args["env_version"] = env_version
     with h5py.File(path, "w") as f:
@@ -270,8 +279,11 @@ def test_robomimic_can_object_block_is_reordered_to_robosuite_15(tmp_path):
     steps = [[_can_step(i) for i in range(4)], [_can_step(i) for i in range(10, 13)]]
     raw = formats.read_robomimic_hdf5(_write_robomimic_can(tmp_path / "can_ph.hdf5", steps))
     assert raw.observations.shape == (5, 53) and raw.metadata["object_reordered"]
-    expected = [np.concatenate([s[k] for k, _ in _CAN_V15] + [s[k] for k in formats.ROBOMIMIC_OBS_KEYS[1:]])
-                for demo in steps for s in demo[:-1]]
+    expected = [
+        np.concatenate([s[k] for k, _ in _CAN_V15] + [s[k] for k in formats.ROBOMIMIC_OBS_KEYS[1:]])
+        for demo in steps
+        for s in demo[:-1]
+    ]
     np.testing.assert_array_equal(raw.observations, np.float32(expected))
     np.testing.assert_array_equal(raw.next_observations[0], raw.observations[1])
     # Can_pos sits at object[7:10], where the robosuite recipe's scripts read it.
@@ -330,9 +342,12 @@ class _DictObs(gym.ObservationWrapper):
     def __init__(self, env):
         super().__init__(env)
         box = env.observation_space
-        self.observation_space = gym.spaces.Dict({
-            "b": gym.spaces.Box(box.low[1:], box.high[1:]), "a": gym.spaces.Box(box.low[:1], box.high[:1]),
-        })
+        self.observation_space = gym.spaces.Dict(
+            {
+                "b": gym.spaces.Box(box.low[1:], box.high[1:]),
+                "a": gym.spaces.Box(box.low[:1], box.high[:1]),
+            }
+        )
 
     def observation(self, obs):
         return {"b": obs[1:], "a": obs[:1]}

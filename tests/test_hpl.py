@@ -26,10 +26,28 @@ from spot.reward import hpl, hpl_nets, relabel, train
 from tests.conftest import make_dataset
 
 OBS, ACT = 4, 2
-TINY = HPLConfig(seq_len=8, future_len=2, latent_groups=2, latent_classes=3, embd_dim=16, n_layer=1, n_head=2,
-                 dropout=0.1, decoder_hidden=(16,), decoder_embd=8, prior_hidden=(16,), reward_hidden=(16,),
-                 vae_steps=25, vae_batch=4, reward_steps=25, reward_batch=4, extra_batch=8, prior_samples=3,
-                 chunk=10, lr=1e-3)
+TINY = HPLConfig(
+    seq_len=8,
+    future_len=2,
+    latent_groups=2,
+    latent_classes=3,
+    embd_dim=16,
+    n_layer=1,
+    n_head=2,
+    dropout=0.1,
+    decoder_hidden=(16,),
+    decoder_embd=8,
+    prior_hidden=(16,),
+    reward_hidden=(16,),
+    vae_steps=25,
+    vae_batch=4,
+    reward_steps=25,
+    reward_batch=4,
+    extra_batch=8,
+    prior_samples=3,
+    chunk=10,
+    lr=1e-3,
+)
 # Linear prior and reward heads (one Dense each), whose weights the tests set by hand.
 LINEAR_HEADS = dataclasses.replace(TINY, prior_hidden=(), reward_hidden=())
 
@@ -37,7 +55,6 @@ LINEAR_HEADS = dataclasses.replace(TINY, prior_hidden=(), reward_hidden=())
 def np_softmax(x: np.ndarray) -> np.ndarray:
     e = np.exp(x - x.max(-1, keepdims=True))
     return e / e.sum(-1, keepdims=True)
-
 
 
 def random_pairs(num_pairs: int, length: int, seed: int) -> dict[str, np.ndarray]:
@@ -94,8 +111,9 @@ def test_straight_through_sample():
 
 
 def test_huber_and_preference_bce_by_hand():
-    np.testing.assert_allclose(hpl_nets.huber_to_zero(jnp.array([0.5, -2.0, 3.0, 0.0, 1.0])),
-                               [0.125, 1.5, 2.5, 0.0, 0.5], rtol=1e-6)
+    np.testing.assert_allclose(
+        hpl_nets.huber_to_zero(jnp.array([0.5, -2.0, 3.0, 0.0, 1.0])), [0.125, 1.5, 2.5, 0.0, 0.5], rtol=1e-6
+    )
     ret_1 = jnp.array([0.0, 2.0, 1.0, 3.0])
     ret_2 = jnp.array([1.0, 0.0, 1.0, 1.0])
     label = jnp.array([1.0, 1.0, 0.5, 0.5])
@@ -120,7 +138,9 @@ def test_vae_loss_and_decoder_targets_by_hand():
     assert float(loss) == pytest.approx(recon + 0.5 * kl, rel=1e-5)
 
     valid = jnp.asarray(np.arange(10)[None] < np.array([[10], [4]]), jnp.float32)  # rows of 10 and 4 real steps
-    target_idx, delta = jax.vmap(lambda k: hpl_nets.decoder_targets(k, valid, 3))(jax.random.split(jax.random.key(0), 500))
+    target_idx, delta = jax.vmap(lambda k: hpl_nets.decoder_targets(k, valid, 3))(
+        jax.random.split(jax.random.key(0), 500)
+    )
     target_idx, delta = np.asarray(target_idx), np.asarray(delta)
     pos = np.arange(10)
     np.testing.assert_array_equal(target_idx[:, 0], np.minimum(pos + delta[:, 0], 9))
@@ -140,8 +160,7 @@ def test_reward_objective_by_hand():
     mask_2 = np.ones((2, t), np.float32)  # 6 real steps
     zeros = jnp.zeros((2, t, OBS + ACT))
     post = jnp.zeros((2, t, 2, 3))
-    pairs = hpl.LabelledPairs(zeros, jnp.asarray(mask_1), post, zeros, jnp.asarray(mask_2), post,
-                              jnp.array([1.0, 0.5]))
+    pairs = hpl.LabelledPairs(zeros, jnp.asarray(mask_1), post, zeros, jnp.asarray(mask_2), post, jnp.array([1.0, 0.5]))
     objective = jax.jit(hpl.reward_objective, static_argnums=2)
     loss, info = objective(params["reward"], params["prior"], cfg, pairs, jnp.ones((5, OBS + ACT)), jax.random.key(1))
     r = 1.0 / (1.0 + math.exp(-bias))
@@ -186,7 +205,7 @@ def test_segments_stay_in_their_episode():
         start = int(np.flatnonzero((full == x[b, 0]).all(-1))[0])
         n_real = min(6, ends[start] - start)
         np.testing.assert_array_equal(valid[b], np.arange(6) < n_real)
-        np.testing.assert_array_equal(x[b, :n_real], full[start:start + n_real])
+        np.testing.assert_array_equal(x[b, :n_real], full[start : start + n_real])
         np.testing.assert_array_equal(x[b, n_real:], 0.0)
     firsts = {int(np.flatnonzero((full == x[b, 0]).all(-1))[0]) for b in range(256)}
     assert len(firsts) >= 19  # starts cover (nearly) every row
@@ -223,8 +242,9 @@ def test_relabel_is_the_average_over_prior_samples():
         onehot = np.zeros((g, c), np.float32)
         onehot[np.arange(g), combo] = 1.0
         prob = np.prod(p[np.arange(g), combo])
-        exact += prob / (1.0 + np.exp(-(np.concatenate([x[:5], np.tile(onehot.reshape(-1), (5, 1))], -1) @ w[:, 0]
-                                        + 0.3)))
+        exact += prob / (
+            1.0 + np.exp(-(np.concatenate([x[:5], np.tile(onehot.reshape(-1), (5, 1))], -1) @ w[:, 0] + 0.3))
+        )
     np.testing.assert_allclose(relabelled, exact, atol=0.02)
 
 
@@ -273,12 +293,30 @@ def test_hpl_ranks_held_out_segments_of_local_hopper(spot_dirs):
     ds, _ = registry.load("hopper-medium-expert", "tiny", 0, progress=False)
     prefs = labels.scripted_teacher(ds, 300, 25, seed=0)
     train_q, held_q = labels.split_eval(prefs, 0.2, 0)
-    cfg = HPLConfig(seq_len=25, future_len=5, latent_groups=4, latent_classes=8, embd_dim=16, n_layer=1, n_head=2,
-                    decoder_hidden=(64, 64), decoder_embd=32, prior_hidden=(64, 64), reward_hidden=(64, 64),
-                    vae_steps=100, vae_batch=16, reward_steps=200, reward_batch=32, extra_batch=64,
-                    prior_samples=10, chunk=50, lr=1e-3)
-    params, history = hpl.train_hpl(jax.random.key(0), ds, labels.segment_batch(ds, train_q),
-                                    labels.segment_batch(ds, held_q), cfg)
+    cfg = HPLConfig(
+        seq_len=25,
+        future_len=5,
+        latent_groups=4,
+        latent_classes=8,
+        embd_dim=16,
+        n_layer=1,
+        n_head=2,
+        decoder_hidden=(64, 64),
+        decoder_embd=32,
+        prior_hidden=(64, 64),
+        reward_hidden=(64, 64),
+        vae_steps=100,
+        vae_batch=16,
+        reward_steps=200,
+        reward_batch=32,
+        extra_batch=64,
+        prior_samples=10,
+        chunk=50,
+        lr=1e-3,
+    )
+    params, history = hpl.train_hpl(
+        jax.random.key(0), ds, labels.segment_batch(ds, train_q), labels.segment_batch(ds, held_q), cfg
+    )
     assert history["vae_recon"][-1] < history["vae_recon"][0]
     r = relabel.relabel_hpl(params, ds, cfg, jax.random.key(1))
     window = np.arange(held_q.segment_length)

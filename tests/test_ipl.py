@@ -23,8 +23,14 @@ from spot.policy import ipl, iql
 OBS, ACT, Q, T, N = 3, 2, 12, 6, 50
 IQL_CFG = IQLConfig(hidden=(16,), batch_size=16, chunk=20, discount=0.9)
 # chi2_coeff 20 with gamma 0.9 puts the V(s') clip at +-0.5, so some values of a fresh V clip.
-IPL_CFG = IPLConfig(feedback_batch=4, subsample=4, chi2_coeff=20.0, value_replay_weight=0.3,
-                    chi2_replay_weight=0.25, policy_replay_weight=0.6)
+IPL_CFG = IPLConfig(
+    feedback_batch=4,
+    subsample=4,
+    chi2_coeff=20.0,
+    value_replay_weight=0.3,
+    chi2_replay_weight=0.25,
+    policy_replay_weight=0.6,
+)
 
 
 def _bce(logit: float, y: float) -> float:
@@ -37,12 +43,22 @@ def _bce(logit: float, y: float) -> float:
 def problem() -> tuple[ipl.FeedbackPairs, iql.Transitions]:
     rng = np.random.default_rng(0)
     f32 = lambda *s: rng.standard_normal(s).astype(np.float32)  # noqa: E731
-    batch = {"obs_1": f32(Q, T, OBS), "act_1": np.tanh(f32(Q, T, ACT)), "obs_2": f32(Q, T, OBS),
-             "act_2": np.tanh(f32(Q, T, ACT)), "label": np.array([0, 1, 0.5] * (Q // 3), np.float32)}
+    batch = {
+        "obs_1": f32(Q, T, OBS),
+        "act_1": np.tanh(f32(Q, T, ACT)),
+        "obs_2": f32(Q, T, OBS),
+        "act_2": np.tanh(f32(Q, T, ACT)),
+        "label": np.array([0, 1, 0.5] * (Q // 3), np.float32),
+    }
     mask = np.ones(N, np.float32)
     mask[::7] = 0.0
-    replay = iql.Transitions(jnp.asarray(f32(N, OBS)), jnp.asarray(np.tanh(f32(N, ACT))), jnp.zeros(N),
-                             jnp.asarray(f32(N, OBS)), jnp.asarray(mask))
+    replay = iql.Transitions(
+        jnp.asarray(f32(N, OBS)),
+        jnp.asarray(np.tanh(f32(N, ACT))),
+        jnp.zeros(N),
+        jnp.asarray(f32(N, OBS)),
+        jnp.asarray(mask),
+    )
     return ipl.feedback_from(batch), replay
 
 
@@ -52,8 +68,12 @@ def test_preference_loss_by_hand():
     r_2 = jnp.array([[1.0, 1.0], [0.0, 0.0], [0.3, 0.2]])
     label = jnp.array([1.0, 0.0, 0.5])
     # logits sum(r_2) - sum(r_1) = [1, -1, 0.5]; the tie pays 1/2 log(1 + e^-0.5) + 1/2 log(1 + e^0.5)
-    expected = (math.log1p(math.exp(-1.0)) + math.log1p(math.exp(-1.0))
-                + 0.5 * math.log1p(math.exp(-0.5)) + 0.5 * math.log1p(math.exp(0.5))) / 3
+    expected = (
+        math.log1p(math.exp(-1.0))
+        + math.log1p(math.exp(-1.0))
+        + 0.5 * math.log1p(math.exp(-0.5))
+        + 0.5 * math.log1p(math.exp(0.5))
+    ) / 3
     assert abs(expected - 0.4502) < 1e-4
     np.testing.assert_allclose(ipl.preference_loss(r_1, r_2, label), expected, rtol=1e-6)
     # An ensemble axis is averaged over: member 2 sees logits [0, 0, 0] -> log 2 each.
@@ -98,13 +118,22 @@ def test_target_clipping_bound_and_use(problem):
 # --------------------------------------------------------------------------- data
 def test_feedback_from_checks_and_casts():
     q, t = 4, 3
-    batch = {"obs_1": np.zeros((q, t, 2)), "act_1": np.zeros((q, t, 1)), "obs_2": np.ones((q, t, 2)),
-             "act_2": np.ones((q, t, 1)), "label": np.array([0, 1, 0.5, 1]), "timesteps_1": np.ones((q, t))}
+    batch = {
+        "obs_1": np.zeros((q, t, 2)),
+        "act_1": np.zeros((q, t, 1)),
+        "obs_2": np.ones((q, t, 2)),
+        "act_2": np.ones((q, t, 1)),
+        "label": np.array([0, 1, 0.5, 1]),
+        "timesteps_1": np.ones((q, t)),
+    }
     fb = ipl.feedback_from(batch)
     assert fb.obs_1.shape == (q, t, 2) and fb.act_2.shape == (q, t, 1) and fb.label.dtype == jnp.float32
-    for bad, match in [({"label": np.array([0, 1, 2, 1])}, "label"), ({"act_2": np.ones((q, 2, 1))}, "segment 2"),
-                       ({"mask_1": np.array([[1, 1, 0]] * q)}, "padded"),
-                       ({k: batch[k][:, :1] for k in ("obs_1", "act_1", "obs_2", "act_2")}, "at least 2")]:
+    for bad, match in [
+        ({"label": np.array([0, 1, 2, 1])}, "label"),
+        ({"act_2": np.ones((q, 2, 1))}, "segment 2"),
+        ({"mask_1": np.array([[1, 1, 0]] * q)}, "padded"),
+        ({k: batch[k][:, :1] for k in ("obs_1", "act_1", "obs_2", "act_2")}, "at least 2"),
+    ]:
         with pytest.raises(SpotError, match=match):
             ipl.feedback_from({**batch, **bad})
     with pytest.raises(SpotError, match="missing"):
@@ -114,8 +143,13 @@ def test_feedback_from_checks_and_casts():
 def test_sample_feedback_window_and_pairs():
     q, t = 10, 6
     coords = np.stack(np.meshgrid(np.arange(q), np.arange(t), indexing="ij"), axis=-1).astype(np.float32)
-    fb = ipl.FeedbackPairs(jnp.asarray(coords), jnp.asarray(coords[..., :1]), jnp.asarray(coords + 100),
-                           jnp.asarray(coords[..., :1] + 100), jnp.arange(q, dtype=jnp.float32))
+    fb = ipl.FeedbackPairs(
+        jnp.asarray(coords),
+        jnp.asarray(coords[..., :1]),
+        jnp.asarray(coords + 100),
+        jnp.asarray(coords[..., :1] + 100),
+        jnp.arange(q, dtype=jnp.float32),
+    )
     cfg = IPLConfig(feedback_batch=4, subsample=4)
     sample = jax.jit(ipl.sample_feedback, static_argnums=2)
     starts = set()
@@ -149,7 +183,8 @@ def eager_update(problem):
 def test_update_jit_matches_no_jit(eager_update):
     state, fb, replay, eager_state, eager_metrics = eager_update
     jit_state, jit_metrics = jax.jit(ipl.update, static_argnames=("iql_cfg", "ipl_cfg"))(
-        state, fb, replay, IQL_CFG, IPL_CFG)
+        state, fb, replay, IQL_CFG, IPL_CFG
+    )
     assert set(jit_metrics) == set(eager_metrics)
     for name, value in eager_metrics.items():
         np.testing.assert_allclose(jit_metrics[name], value, rtol=1e-5, atol=1e-6, err_msg=name)
@@ -163,11 +198,18 @@ def test_update_losses_match_numpy(eager_update):
     state, fb, replay, new_state, metrics = eager_update
     cfg = IPL_CFG
     gamma, b, s = IQL_CFG.discount, 4, 4
-    seg = [(np.asarray(o[:, :-1]).reshape(-1, OBS), np.asarray(a[:, :-1]).reshape(-1, ACT),
-            np.asarray(o[:, 1:]).reshape(-1, OBS), np.full(b * (s - 1), gamma))
-           for o, a in ((fb.obs_1, fb.act_1), (fb.obs_2, fb.act_2))]
-    seg.append((np.asarray(replay.obs), np.asarray(replay.act), np.asarray(replay.next_obs),
-                gamma * np.asarray(replay.mask)))
+    seg = [
+        (
+            np.asarray(o[:, :-1]).reshape(-1, OBS),
+            np.asarray(a[:, :-1]).reshape(-1, ACT),
+            np.asarray(o[:, 1:]).reshape(-1, OBS),
+            np.full(b * (s - 1), gamma),
+        )
+        for o, a in ((fb.obs_1, fb.act_1), (fb.obs_2, fb.act_2))
+    ]
+    seg.append(
+        (np.asarray(replay.obs), np.asarray(replay.act), np.asarray(replay.next_obs), gamma * np.asarray(replay.mask))
+    )
 
     def weighted(parts, w):  # parts: per-element losses of segment 1, segment 2, replay
         return (1 - w) * 0.5 * (parts[0].mean() + parts[1].mean()) + w * parts[2].mean()
@@ -175,7 +217,8 @@ def test_update_losses_match_numpy(eager_update):
     value_parts, rewards, clipped = [], [], 0
     for obs, act, next_obs, disc in seg:
         u = np.asarray(state.critic.apply_fn(state.target_critic_params, obs, act)).min(0) - np.asarray(
-            state.value.apply_fn(state.value.params, obs))
+            state.value.apply_fn(state.value.params, obs)
+        )
         value_parts.append(np.where(u > 0, IQL_CFG.expectile, 1 - IQL_CFG.expectile) * u**2)
         next_v = np.asarray(new_state.value.apply_fn(new_state.value.params, next_obs))  # V' after its step
         clipped += int((np.abs(next_v) > 0.5).sum())
@@ -210,8 +253,14 @@ def test_chunk_compiles_once_and_is_deterministic(problem):
     assert int(state.step) == 2 * IQL_CFG.chunk
     assert runs[0][0] == runs[1][0]
     jax.tree.map(np.testing.assert_array_equal, runs[0][1], runs[1][1])
-    assert set(runs[0][0]) >= {"ipl/pref_loss", "ipl/chi2_loss", "ipl/value_loss", "ipl/actor_loss",
-                               "ipl/pref_acc", "ipl/reward_mean"}
+    assert set(runs[0][0]) >= {
+        "ipl/pref_loss",
+        "ipl/chi2_loss",
+        "ipl/value_loss",
+        "ipl/actor_loss",
+        "ipl/pref_acc",
+        "ipl/reward_mean",
+    }
     assert "ipl/reward_replay_mean" not in runs[0][0]
     # The actor is IQL's: iql.act evaluates it.
     assert np.asarray(iql.act(state.actor.params, np.zeros((2, OBS)), IQL_CFG)).shape == (2, ACT)
@@ -233,8 +282,9 @@ def test_implied_reward_ranks_held_out_segments_of_local_hopper(spot_dirs):
     held = ipl.feedback_from(labels.segment_batch(ds, held_q))
     iql_cfg = IQLConfig(hidden=(32, 32), batch_size=64, steps=1000, chunk=500)
     ipl_cfg = IPLConfig(subsample=16, feedback_batch=8)
-    init = ipl.evaluate_preferences(ipl.init_state(jax.random.key(0), ds.obs_dim, ds.act_dim, iql_cfg),
-                                    held, iql_cfg, ipl_cfg)
+    init = ipl.evaluate_preferences(
+        ipl.init_state(jax.random.key(0), ds.obs_dim, ds.act_dim, iql_cfg), held, iql_cfg, ipl_cfg
+    )
     state, history = ipl.train_ipl(jax.random.key(0), jax.device_put(ds.transitions()), feedback, iql_cfg, ipl_cfg)
     assert ipl.make_train_chunk(iql_cfg, ipl_cfg)._cache_size() == 1  # two chunks with replay, one program
     final = ipl.evaluate_preferences(state, held, iql_cfg, ipl_cfg)

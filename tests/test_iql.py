@@ -18,8 +18,7 @@ from spot import NonFiniteError, loop
 from spot.config import IQLConfig
 from spot.policy import iql
 
-CFG = IQLConfig(hidden=(32, 32), batch_size=128, steps=1200, chunk=400, discount=0.9,
-                temperature=10.0, expectile=0.8)
+CFG = IQLConfig(hidden=(32, 32), batch_size=128, steps=1200, chunk=400, discount=0.9, temperature=10.0, expectile=0.8)
 
 # Point mass on [-1, 1]^2: s' = clip(s + 0.2 a), r = -|s' - goal|, terminal within 0.1 of the goal.
 GOAL = np.array([0.6, -0.4], np.float32)
@@ -133,15 +132,18 @@ def test_update_order_picks_the_value_network(data):
     batch = jax.tree.map(lambda x: x[: CFG.batch_size], data)
     state = iql.init_state(jax.random.key(4), 2, 2, CFG)
     target_q = np.min(np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)), axis=0)
-    out = {order: jax.jit(iql.update, static_argnames="cfg")(state, batch, dataclasses.replace(CFG, order=order))
-           for order in ("parallel", "sequential")}
+    out = {
+        order: jax.jit(iql.update, static_argnames="cfg")(state, batch, dataclasses.replace(CFG, order=order))
+        for order in ("parallel", "sequential")
+    }
     # the value step itself does not depend on the order
     jax.tree.map(np.testing.assert_array_equal, out["parallel"][0].value.params, out["sequential"][0].value.params)
     for order, value in (("parallel", state.value), ("sequential", out["sequential"][0].value)):
         metrics = out[order][1]
         v, next_v = (np.asarray(value.apply_fn(value.params, x)) for x in (batch.obs, batch.next_obs))
-        np.testing.assert_allclose(metrics["iql/target_mean"],
-                                   np.mean(batch.rew + CFG.discount * batch.mask * next_v), rtol=1e-5)
+        np.testing.assert_allclose(
+            metrics["iql/target_mean"], np.mean(batch.rew + CFG.discount * batch.mask * next_v), rtol=1e-5
+        )
         np.testing.assert_allclose(metrics["iql/adv_mean"], np.mean(target_q - v), rtol=1e-4, atol=1e-6)
     # the two orders differ
     assert abs(out["parallel"][1]["iql/target_mean"] - out["sequential"][1]["iql/target_mean"]) > 1e-6
@@ -150,8 +152,14 @@ def test_update_order_picks_the_value_network(data):
 def test_chunk_compiles_once(trained, chunk_fn):
     _, history = trained
     assert chunk_fn._cache_size() == 1  # three calls, one compiled program (fresh states included)
-    assert set(history[0]) >= {"iql/value_loss", "iql/critic_loss", "iql/actor_loss", "iql/q_mean",
-                               "iql/v_mean", "iql/adv_mean"}
+    assert set(history[0]) >= {
+        "iql/value_loss",
+        "iql/critic_loss",
+        "iql/actor_loss",
+        "iql/q_mean",
+        "iql/v_mean",
+        "iql/adv_mean",
+    }
 
 
 def test_chunk_is_deterministic(data, chunk_fn):
@@ -174,8 +182,11 @@ def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
         alone, alone_metrics = chunk_fn(iql.init_state(init_keys[s], 2, 2, CFG), CFG.chunk, data, train_keys[s])
         for name, value in alone_metrics.items():
             np.testing.assert_allclose(metrics[name][s], value, rtol=2e-3, atol=2e-4, err_msg=name)
-        jax.tree.map(lambda a, b, s=s: np.testing.assert_allclose(a[s], b, rtol=2e-3, atol=2e-4),
-                     states.actor.params, alone.actor.params)
+        jax.tree.map(
+            lambda a, b, s=s: np.testing.assert_allclose(a[s], b, rtol=2e-3, atol=2e-4),
+            states.actor.params,
+            alone.actor.params,
+        )
 
 
 # --------------------------------------------------------------------------- learning

@@ -27,16 +27,23 @@ def _dataset(rewards, ends=(), obs_dim=2, name="hand"):
     terminals[list(ends)] = True
     obs = np.repeat(np.arange(n, dtype=np.float32)[:, None], obs_dim, axis=1)
     return RawDataset(
-        observations=obs, actions=-obs[:, :1], rewards=np.append(rewards, 0).astype(np.float32),
-        terminals=terminals, timeouts=np.zeros(n, bool), name=name,
+        observations=obs,
+        actions=-obs[:, :1],
+        rewards=np.append(rewards, 0).astype(np.float32),
+        terminals=terminals,
+        timeouts=np.zeros(n, bool),
+        name=name,
     ).qlearning()
 
 
 def _zeros(n_raw, obs_dim=11, name="synthetic"):
     return RawDataset(
-        observations=np.zeros((n_raw, obs_dim), np.float32), actions=np.zeros((n_raw, 3), np.float32),
-        rewards=np.zeros(n_raw, np.float32), terminals=np.zeros(n_raw, bool),
-        timeouts=np.zeros(n_raw, bool), name=name,
+        observations=np.zeros((n_raw, obs_dim), np.float32),
+        actions=np.zeros((n_raw, 3), np.float32),
+        rewards=np.zeros(n_raw, np.float32),
+        terminals=np.zeros(n_raw, bool),
+        timeouts=np.zeros(n_raw, bool),
+        name=name,
     ).qlearning()
 
 
@@ -196,7 +203,9 @@ def test_real_pt_label_files(folder, n, ties, zeros, ones, length):
         assert counts == (ties, zeros, ones)
     end = int(max(prefs.starts_1.max(), prefs.starts_2.max())) + length
     labels.check_against(prefs, _zeros(end + 1, name=folder))  # raw rows; the view has `end`
-    with pytest.raises(SpotError, match=rf"query \d+ starts at index {end - length} .*dataset '{folder}' \({end - 1} transitions\)"):
+    with pytest.raises(
+        SpotError, match=rf"query \d+ starts at index {end - length} .*dataset '{folder}' \({end - 1} transitions\)"
+    ):
         labels.check_against(prefs, _zeros(end, name=folder))
 
 

@@ -26,9 +26,14 @@ def test_reward_models_rank_held_out_segments_of_local_hopper(kind, spot_dirs):
     prefs = labels.scripted_teacher(ds, 300, 25, seed=0)
     train_q, held_q = labels.split_eval(prefs, 0.2, 0)
     cfg = config.load(None, ["budget=tiny", "reward.steps=200", "reward.batch_size=32", "reward.eval_every=50"])
-    _, history = train.train_reward_model(models.MODELS[kind](getattr(cfg, kind)), jax.random.key(0),
-                                          labels.segment_batch(ds, train_q), labels.segment_batch(ds, held_q),
-                                          cfg.reward, progress=False)
+    _, history = train.train_reward_model(
+        models.MODELS[kind](getattr(cfg, kind)),
+        jax.random.key(0),
+        labels.segment_batch(ds, train_q),
+        labels.segment_batch(ds, held_q),
+        cfg.reward,
+        progress=False,
+    )
     assert history["eval_on"] == "eval" and len(held_q) == 60
     assert history["best_eval_acc"] >= 0.68, history["best_eval_acc"]
 
@@ -47,4 +52,6 @@ def test_iql_beats_random_policy_on_local_hopper(spot_dirs):
     rng = np.random.default_rng(0)
     random = envs.evaluate(lambda o: rng.uniform(-1, 1, (o.shape[0], ds.act_dim)), "hopper-medium", 5, 100)
     assert policy["return_mean"] > 150 and policy["return_mean"] > 3 * random["return_mean"], (
-        policy["return_mean"], random["return_mean"])
+        policy["return_mean"],
+        random["return_mean"],
+    )

@@ -78,10 +78,19 @@ def test_run_does_exactly_steps_keeps_best_and_calls_back():
     def evaluate(state):  # a held-out loss (x - 5)^2: lowest after the first chunk (x = 4)
         return {"eval_loss": (float(state[0]) - 5.0) ** 2}
 
-    out = loop.run(chunk, (jnp.float32(0.0), jnp.int32(0)), (jnp.float32(1.0),), steps=10, length=4,
-                   losses={"loss": "toy/loss"}, evaluate=evaluate, eval_loss=("eval_loss", "toy/eval"),
-                   best_by="eval_loss", params_of=lambda s: {"x": s[0]},
-                   on_chunk=lambda row, state: seen.append((row["step"], float(state[0]))))
+    out = loop.run(
+        chunk,
+        (jnp.float32(0.0), jnp.int32(0)),
+        (jnp.float32(1.0),),
+        steps=10,
+        length=4,
+        losses={"loss": "toy/loss"},
+        evaluate=evaluate,
+        eval_loss=("eval_loss", "toy/eval"),
+        best_by="eval_loss",
+        params_of=lambda s: {"x": s[0]},
+        on_chunk=lambda row, state: seen.append((row["step"], float(state[0]))),
+    )
     assert [row["step"] for row in out.rows] == [4, 8, 10] and int(out.state[1]) == 10
     assert seen == [(4, 4.0), (8, 8.0), (10, 10.0)]
     # chunk means over the updates that ran: (0+1+2+3)/4, (4+..+7)/4, (8+9)/2
@@ -95,15 +104,28 @@ def test_run_names_the_failing_update():
         return (x + 1.0, step + 1), {"loss": jnp.where(step == 6, jnp.nan, x)}
 
     with pytest.raises(NonFiniteError) as err:
-        loop.run(loop.make_chunk(update, 4, "stack"), (jnp.float32(0.0), jnp.int32(0)), (0,), steps=10, length=4,
-                 losses={"loss": "toy/loss"})
+        loop.run(
+            loop.make_chunk(update, 4, "stack"),
+            (jnp.float32(0.0), jnp.int32(0)),
+            (0,),
+            steps=10,
+            length=4,
+            losses={"loss": "toy/loss"},
+        )
     assert (err.value.step, err.value.loss_name) == (6, "toy/loss")
     with pytest.raises(NonFiniteError) as err:  # chunk means: the chunk's end
         loop.run(loop.make_chunk(update, 4, "mean"), (jnp.float32(0.0), jnp.int32(0)), (0,), steps=10, length=4)
     assert (err.value.step, err.value.loss_name) == (8, "loss")
     with pytest.raises(NonFiniteError) as err:  # a held-out loss
-        loop.run(loop.make_chunk(counter_update, 4, "stack"), (jnp.float32(0.0), jnp.int32(0)), (jnp.float32(1.0),),
-                 steps=10, length=4, evaluate=lambda s: {"eval_loss": np.inf}, eval_loss=("eval_loss", "toy/eval"))
+        loop.run(
+            loop.make_chunk(counter_update, 4, "stack"),
+            (jnp.float32(0.0), jnp.int32(0)),
+            (jnp.float32(1.0),),
+            steps=10,
+            length=4,
+            evaluate=lambda s: {"eval_loss": np.inf},
+            eval_loss=("eval_loss", "toy/eval"),
+        )
     assert (err.value.step, err.value.loss_name) == (4, "toy/eval")
 
 
@@ -113,12 +135,20 @@ def test_iql_runs_exactly_steps_when_not_a_multiple_of_the_chunk():
     reaches 0 at the last update; evaluations before the first update, after 10 and at the end."""
     cfg = IQLConfig(hidden=(8,), batch_size=16, steps=15, chunk=10)
     rng = np.random.default_rng(0)
-    data = Transitions(*(jnp.asarray(rng.normal(size=shape).astype(np.float32))
-                         for shape in ((50, 3), (50, 2), (50,), (50, 3), (50,))))
+    data = Transitions(
+        *(jnp.asarray(rng.normal(size=shape).astype(np.float32)) for shape in ((50, 3), (50, 2), (50,), (50, 3), (50,)))
+    )
     state = iql.init_state(jax.random.key(0), 3, 2, cfg)
     logged = []
-    curve = iql.train(iql.make_train_chunk(cfg), state, lambda c: (data, jax.random.key(c)), cfg, 10,
-                      lambda params, step: float(step), log=lambda metrics, step: logged.append(step))
+    curve = iql.train(
+        iql.make_train_chunk(cfg),
+        state,
+        lambda c: (data, jax.random.key(c)),
+        cfg,
+        10,
+        lambda params, step: float(step),
+        log=lambda metrics, step: logged.append(step),
+    )
     assert int(curve.state.step) == 15 and int(curve.state.actor.step) == 15
     assert logged == [10, 15] and curve.steps == [0, 10, 15] and curve.scores == [0.0, 10.0, 15.0]
     actor_lr = optax.cosine_decay_schedule(cfg.lr, cfg.steps)
@@ -131,6 +161,5 @@ def test_cvae_runs_exactly_steps():
     s = rng.normal(size=(64, 3)).astype(np.float32)
     a = rng.uniform(-1, 1, (64, 2)).astype(np.float32)
     cfg = CVAEConfig(latent_dim=2, hidden=(8,), batch_size=16, steps=12)
-    _, history = cvae.train_cvae(jax.random.key(0), s, a, s + 1.0, cfg, cvae.obs_stats(s), progress=False,
-                                 log_every=5)
+    _, history = cvae.train_cvae(jax.random.key(0), s, a, s + 1.0, cfg, cvae.obs_stats(s), progress=False, log_every=5)
     assert [row["step"] for row in history] == [5, 10, 12]

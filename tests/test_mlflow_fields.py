@@ -23,7 +23,8 @@ def test_sweep_link_opens_the_runs_table_filtered_to_the_sweep():
     assert "workflowType=machine_learning" in url and "searchFilter=tags.%60sweep_id%60%20%3D%20%27quickstart" in url
     assert " " not in url and "'" not in url  # URL-encoded
     assert tracking.runs_url("3", base="http://mlflow:5000/").startswith(
-        "http://mlflow:5000/#/experiments/3/runs?workflowType=machine_learning")
+        "http://mlflow:5000/#/experiments/3/runs?workflowType=machine_learning"
+    )
 
 
 def test_ui_command_is_the_lean_one():
@@ -54,8 +55,18 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     monkeypatch.setenv("MLFLOW_SYSTEM_METRICS_SAMPLING_INTERVAL", "1")
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    argv = ["run", "method=oracle", "budget=tiny", "data.name=drawer-open", "iql.steps=100", "eval.every=100",
-            "tracking.experiment=fields", "--tracking-uri", uri, "--quiet"]
+    argv = [
+        "run",
+        "method=oracle",
+        "budget=tiny",
+        "data.name=drawer-open",
+        "iql.steps=100",
+        "eval.every=100",
+        "tracking.experiment=fields",
+        "--tracking-uri",
+        uri,
+        "--quiet",
+    ]
     assert cli.main(argv) == 0
     printed = capsys.readouterr().out
     run_id = re.search(r"^run ([0-9a-f]{32}):", printed, re.M).group(1)
@@ -66,7 +77,9 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
 
     # `spot run` says where it logged, how to open it and links to the run and the runs table
     assert f"logged to {uri} (experiment id {exp_id}, run {run_id})" in printed
-    assert "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri" in printed and "--workers 1" in printed
+    assert (
+        "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri" in printed and "--workers 1" in printed
+    )
     assert f"#/experiments/{exp_id}/runs/{run_id}" in printed
     assert f"#/experiments/{exp_id}/runs?workflowType=machine_learning" in printed
     assert run.info.status == "FINISHED" and tags["mlflow.runName"] == "oracle-drawer-open-s0"

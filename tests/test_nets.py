@@ -27,10 +27,12 @@ def test_hash_bits_is_fmix32_of_index_times_phi_plus_seed():
 
 def test_mlp_matches_a_hand_computed_forward_pass():
     mlp = nets.MLP(hidden=[2], out_dim=1)
-    params = {"params": {
-        "Dense_0": {"kernel": jnp.array([[1.0, -1.0], [2.0, 0.5]]), "bias": jnp.array([0.0, 1.0])},
-        "Dense_1": {"kernel": jnp.array([[3.0], [-2.0]]), "bias": jnp.array([0.5])},
-    }}
+    params = {
+        "params": {
+            "Dense_0": {"kernel": jnp.array([[1.0, -1.0], [2.0, 0.5]]), "bias": jnp.array([0.0, 1.0])},
+            "Dense_1": {"kernel": jnp.array([[3.0], [-2.0]]), "bias": jnp.array([0.5])},
+        }
+    }
     # x = (1, 1): hidden pre-activations (1+2+0, -1+0.5+1) = (3, 0.5) -> relu (3, 0.5)
     # output 3*3 - 2*0.5 + 0.5 = 8.5;  x = (-1, 0): (-1, 1+1) = (-1, 2) -> (0, 2) -> -4 + 0.5 = -3.5
     out = mlp.apply(params, jnp.array([[1.0, 1.0], [-1.0, 0.0]]))

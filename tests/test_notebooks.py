@@ -35,15 +35,32 @@ def smoke_store(tmp_path_factory):
     png = root / "subgoal_projection.png"
     Figure(figsize=(1, 1)).savefig(png)
     for seed, score in enumerate((80.0, 85.0, 90.0)):
-        _run(client, smoke, method="spot", dataset=HMR, seed=seed, score=score, times=_times(seed),
-             bins=_bins(-0.5), png=png if seed == 1 else None)
+        _run(
+            client,
+            smoke,
+            method="spot",
+            dataset=HMR,
+            seed=seed,
+            score=score,
+            times=_times(seed),
+            bins=_bins(-0.5),
+            png=png if seed == 1 else None,
+        )
     for seed, score in enumerate((50.0, 52.0, 60.0)):
         _run(client, smoke, method="pt", dataset=HMR, seed=seed, score=score, times=_times(seed), bins=_bins(0.0))
     _run(client, smoke, method="spot", dataset=HMR, seed=3, score=None, status="FAILED")
     # later runs of the same cells in another experiment: a re-run replaces, so reading them would show
     for seed in range(3):
-        _run(client, scratch, method="spot", dataset=HMR, seed=seed, score=0.0, times=_times(seed),
-             params=_params("spot", seed, **{"iql.steps": "5"}))
+        _run(
+            client,
+            scratch,
+            method="spot",
+            dataset=HMR,
+            seed=seed,
+            score=0.0,
+            times=_times(seed),
+            params=_params("spot", seed, **{"iql.steps": "5"}),
+        )
     return uri
 
 
@@ -55,8 +72,9 @@ def _execute(name: str, tmp_path: Path, **parameters) -> dict:
     assert len(tagged) == 1 and all(f"\n{k}: " in "\n" + tagged[0].source for k in parameters)
     src, dst = tmp_path / f"{name}.ipynb", tmp_path / f"{name}-run.ipynb"
     jupytext.write(notebook, src)
-    papermill.execute_notebook(str(src), str(dst), parameters=parameters, cwd=str(tmp_path),
-                               progress_bar=False, kernel_name="python3")
+    papermill.execute_notebook(
+        str(src), str(dst), parameters=parameters, cwd=str(tmp_path), progress_bar=False, kernel_name="python3"
+    )
     return json.loads(dst.read_text())
 
 
@@ -71,7 +89,9 @@ def _outputs(nb: dict, mime: str) -> list[str]:
 
 
 def _stdout(nb: dict) -> str:
-    return "".join("".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []) if o.get("name") == "stdout")
+    return "".join(
+        "".join(o.get("text", "")) for c in nb["cells"] for o in c.get("outputs", []) if o.get("name") == "stdout"
+    )
 
 
 def test_tables_notebook_papermill(smoke_store, tmp_path):

@@ -8,8 +8,15 @@ import pytest
 
 from spot import NonFiniteError, SpotError, config, pipeline, tracking
 
-TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=200", "eval.every=100", "eval.episodes=1",
-        "labels.num_queries=30", "labels.segment_length=25"]
+TINY = [
+    "budget=tiny",
+    "data.name=drawer-open",
+    "iql.steps=200",
+    "eval.every=100",
+    "eval.episodes=1",
+    "labels.num_queries=30",
+    "labels.segment_length=25",
+]
 
 
 def _cfg(tmp_path: Path, *overrides: str):
@@ -39,9 +46,22 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
     # the active config as params (no mr.*/hpl.*/ipl.* on a SPOT run); the whole config in config.yaml
     assert d.params == {k: str(list(v) if isinstance(v, tuple) else v) for k, v in tracking.active_params(cfg).items()}
     # metrics of every stage
-    for key in ("reward/best_eval_acc", "subgoal/num_subgoals", "subgoal/precision", "subgoal/recall",
-                "cvae/loss", "shaping/r_shape_mean", "iql/critic_loss", "eval/score", "eval/score_final",
-                "eval/score_best", "diag/extrapolation_error_ood", "time/reward_s", "time/cvae_s", "time/iql_s"):
+    for key in (
+        "reward/best_eval_acc",
+        "subgoal/num_subgoals",
+        "subgoal/precision",
+        "subgoal/recall",
+        "cvae/loss",
+        "shaping/r_shape_mean",
+        "iql/critic_loss",
+        "eval/score",
+        "eval/score_final",
+        "eval/score_best",
+        "diag/extrapolation_error_ood",
+        "time/reward_s",
+        "time/cvae_s",
+        "time/iql_s",
+    ):
         assert key in d.metrics, key
     # cache hits are tags, not metrics
     assert not any(k.startswith("cache/") for k in d.metrics)
@@ -50,11 +70,20 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
     # evaluated before the first update and at every multiple of eval.every
     assert [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")] == [0, 100, 200]
     names = {a.path for a in client.list_artifacts(run.info.run_id)}
-    assert {"config.yaml", "dataset_card.json", "learning_curve.png", "subgoal_projection.png",
-            "extrapolation_error.png", "extrapolation_error.json", "environment.json", "requirements.txt",
-            "models"} <= names
+    assert {
+        "config.yaml",
+        "dataset_card.json",
+        "learning_curve.png",
+        "subgoal_projection.png",
+        "extrapolation_error.png",
+        "extrapolation_error.json",
+        "environment.json",
+        "requirements.txt",
+        "models",
+    } <= names
     assert {a.path for a in client.list_artifacts(run.info.run_id, "models")} == {
-        f"models/{m}.{ext}" for m in ("reward_model", "cvae", "policy") for ext in ("npz", "json")}
+        f"models/{m}.{ext}" for m in ("reward_model", "cvae", "policy") for ext in ("npz", "json")
+    }
 
     # Only lambda changes: the reward model, relabelling and CVAE come from the cache.
     again = _run(config.replace(cfg, **{"shaping.weight": 0.5}))
@@ -69,7 +98,9 @@ def test_same_config_and_seed_give_identical_metrics(tmp_path, spot_dirs, tiny_d
         monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / f"cache{i}"))
         results.append(_run(_cfg(tmp_path, "method=pt", "subgoal.diagnostics=false")).data.metrics)
     skip = {k for k in results[0] if k.startswith("time/") or k.endswith("steps_per_s")}
-    assert {k: v for k, v in results[0].items() if k not in skip} == {k: v for k, v in results[1].items() if k not in skip}
+    assert {k: v for k, v in results[0].items() if k not in skip} == {
+        k: v for k, v in results[1].items() if k not in skip
+    }
 
 
 def test_oracle_uses_true_reward_without_labels(tmp_path, spot_dirs, tiny_drawer, fresh_cache):
@@ -89,6 +120,7 @@ def test_nan_loss_marks_run_failed_with_step_and_loss(tmp_path, spot_dirs, tiny_
         def run_chunk(state, *args):
             state, metrics = chunk(state, *args)
             return state, {**metrics, "iql/critic_loss": metrics["iql/critic_loss"] * np.nan}
+
         return run_chunk
 
     monkeypatch.setattr(iql, "make_train_chunk", poisoned)
@@ -99,7 +131,10 @@ def test_nan_loss_marks_run_failed_with_step_and_loss(tmp_path, spot_dirs, tiny_
     mlflow.set_tracking_uri(cfg.tracking.uri)
     failed = mlflow.search_runs(experiment_names=["test"], filter_string="attributes.status = 'FAILED'")
     assert len(failed) == 1
-    assert "iql/critic_loss" in failed["tags.failure_reason"].iloc[0] and "step 100" in failed["tags.failure_reason"].iloc[0]
+    assert (
+        "iql/critic_loss" in failed["tags.failure_reason"].iloc[0]
+        and "step 100" in failed["tags.failure_reason"].iloc[0]
+    )
 
 
 def test_config_that_does_not_fit_the_dataset(tmp_path, spot_dirs, tiny_drawer, fresh_cache):

@@ -20,14 +20,17 @@ def test_tanh_gaussian_log_prob_matches_scipy():
     log_std = rng.uniform(-2.0, 1.0, size=(5, 3))
     pre_tanh = rng.normal(scale=3.0, size=(5, 3))
     pre_tanh[0] = [8.0, -9.0, 0.0]  # saturated tanh: the naive log(1 - tanh^2) loses precision
-    expected = (stats.norm.logpdf(pre_tanh, mean, np.exp(log_std))
-                - np.log(4.0) + 2.0 * np.logaddexp(pre_tanh, -pre_tanh)).sum(-1)
+    expected = (
+        stats.norm.logpdf(pre_tanh, mean, np.exp(log_std)) - np.log(4.0) + 2.0 * np.logaddexp(pre_tanh, -pre_tanh)
+    ).sum(-1)
     # ^ log(1 - tanh(u)^2) = log 4 - 2 log(e^u + e^-u), in float64
-    naive = (stats.norm.logpdf(pre_tanh[1:], mean[1:], np.exp(log_std[1:]))
-             - np.log(1.0 - np.tanh(pre_tanh[1:]) ** 2)).sum(-1)
+    naive = (
+        stats.norm.logpdf(pre_tanh[1:], mean[1:], np.exp(log_std[1:])) - np.log(1.0 - np.tanh(pre_tanh[1:]) ** 2)
+    ).sum(-1)
     np.testing.assert_allclose(expected[1:], naive, rtol=1e-10)
-    got = sac.tanh_gaussian_log_prob(jnp.asarray(pre_tanh, jnp.float32), jnp.asarray(mean, jnp.float32),
-                                     jnp.asarray(log_std, jnp.float32))
+    got = sac.tanh_gaussian_log_prob(
+        jnp.asarray(pre_tanh, jnp.float32), jnp.asarray(mean, jnp.float32), jnp.asarray(log_std, jnp.float32)
+    )
     np.testing.assert_allclose(np.asarray(got), expected, rtol=1e-5, atol=1e-4)
 
 
@@ -43,8 +46,7 @@ def test_sample_tanh_gaussian_returns_its_log_prob():
     mean, log_std = jnp.array([[0.3, -1.0]]), jnp.array([[-0.5, 0.2]])
     action, logp = sac.sample_tanh_gaussian(jax.random.key(0), mean, log_std)
     assert np.all(np.abs(np.asarray(action)) < 1.0)
-    np.testing.assert_allclose(logp, sac.tanh_gaussian_log_prob(jnp.arctanh(action), mean, log_std),
-                               rtol=1e-4)
+    np.testing.assert_allclose(logp, sac.tanh_gaussian_log_prob(jnp.arctanh(action), mean, log_std), rtol=1e-4)
 
 
 # ---------------------------------------------------------------------------------- cheap checks
@@ -66,8 +68,9 @@ def test_normalized_score_by_hand():
 
 
 def test_pick_medium_takes_first_snapshot_reaching_a_third():
-    snaps = [sac.Snapshot(step, ret, 0.0, None)
-             for step, ret in [(1, 50.0), (2, 400.0), (3, 200.0), (4, 1100.0), (5, 900.0)]]
+    snaps = [
+        sac.Snapshot(step, ret, 0.0, None) for step, ret in [(1, 50.0), (2, 400.0), (3, 200.0), (4, 1100.0), (5, 900.0)]
+    ]
     assert locomotion.pick_medium(snaps, 1 / 3).step == 2  # 400 >= 900 / 3; later dips don't count
 
 
@@ -80,8 +83,7 @@ def builds(tmp_path_factory):
     return {
         "medium-replay": locomotion.build("hopper-medium-replay", "tiny", 0, first, progress=False),
         "medium-expert": locomotion.build("hopper-medium-expert", "tiny", 0, first, progress=False),
-        "medium-expert-rebuilt": locomotion.build("hopper-medium-expert", "tiny", 0, second,
-                                                  progress=False),
+        "medium-expert-rebuilt": locomotion.build("hopper-medium-expert", "tiny", 0, second, progress=False),
         "cache_dir": first,
     }
 
@@ -108,22 +110,36 @@ def _check_layout(raw, card):
     last_of_kind = np.append(kinds[1:] != kinds[:-1], True)
     timed_out = raw.timeouts[ends]
     assert np.all((lengths[timed_out] == 1000) | last_of_kind[timed_out])
-    for key in ("recipe", "env", "name", "size", "seed", "transitions", "episodes", "return",
-                "behaviour", "sac", "sac_cache_hit", "build_time_s", "versions"):
+    for key in (
+        "recipe",
+        "env",
+        "name",
+        "size",
+        "seed",
+        "transitions",
+        "episodes",
+        "return",
+        "behaviour",
+        "sac",
+        "sac_cache_hit",
+        "build_time_s",
+        "versions",
+    ):
         assert key in card, key
     assert card["env"] == "Hopper-v5" and card["size"] == "tiny" and card["transitions"] == n
     assert set(card["return"]) == {"mean", "std", "min", "max", "normalized_mean"}
     assert card["return"]["normalized_mean"] == pytest.approx(
-        100 * (card["return"]["mean"] + 20.272305) / 3254.572305, abs=0.01)
+        100 * (card["return"]["mean"] + 20.272305) / 3254.572305, abs=0.01
+    )
     assert card["return"]["min"] <= card["return"]["mean"] <= card["return"]["max"]
-    for key in ("medium_snapshot_step", "medium_eval_return", "expert_snapshot_step",
-                "expert_eval_return"):
+    for key in ("medium_snapshot_step", "medium_eval_return", "expert_snapshot_step", "expert_eval_return"):
         assert key in card["behaviour"], key
     assert {"gymnasium", "mujoco"} <= set(card["versions"])
     b = card["behaviour"]
     for part in ("medium", "expert"):  # D4RL: 100 (R + 20.272305) / (3234.3 + 20.272305)
         assert b[f"{part}_normalized"] == pytest.approx(
-            100 * (b[f"{part}_eval_return"] + 20.272305) / 3254.572305, abs=0.01)
+            100 * (b[f"{part}_eval_return"] + 20.272305) / 3254.572305, abs=0.01
+        )
     assert b["d4rl_reference"]["expert_return"] == 3234.3
     assert b["d4rl_reference"]["random_return"] == -20.272305
     assert b["target_return"] is None and b["target_reached"] is None  # tiny: fixed length

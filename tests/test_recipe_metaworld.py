@@ -51,8 +51,18 @@ def test_success_rates_per_kind(tiny):
 
 def test_card_fields(tiny):
     _, card = tiny
-    for key in ("recipe", "env", "episodes_per_kind", "transitions", "return", "success_rate_per_kind",
-                "build_time_s", "versions", "seed", "epsilon"):
+    for key in (
+        "recipe",
+        "env",
+        "episodes_per_kind",
+        "transitions",
+        "return",
+        "success_rate_per_kind",
+        "build_time_s",
+        "versions",
+        "seed",
+        "epsilon",
+    ):
         assert key in card
     assert card["env"] == "drawer-open-v3"
     assert card["episodes_per_kind"] == {k: 2 for k in metaworld.KINDS}

@@ -41,8 +41,7 @@ def test_target_return_stops_at_the_first_evaluation_reaching_it(full):
     target = returns[3]
     stop = next(s.step for s in full.snapshots if s.eval_return >= target)
     assert stop < CFG.total_steps
-    stopped = sac.train_sac("Hopper-v5", dataclasses.replace(CFG, target_return=target), 0,
-                            progress=False)
+    stopped = sac.train_sac("Hopper-v5", dataclasses.replace(CFG, target_return=target), 0, progress=False)
     assert stopped.snapshots[-1].step == stop and len(stopped.replay["rewards"]) == stop
     assert stopped.target_reached is True and full.target_reached is None
     _assert_same_run(full, stopped, steps=stop)  # the stop rule changes nothing before the stop
@@ -67,8 +66,7 @@ def test_a_killed_run_resumes_from_its_checkpoint_bit_for_bit(full, tmp_path):
             raise _Killed
 
     with pytest.raises(_Killed):
-        sac.train_sac("Hopper-v5", CFG, 0, progress=False, on_eval=kill_at_2500, checkpoint=ckpt,
-                      checkpoint_every=1000)
+        sac.train_sac("Hopper-v5", CFG, 0, progress=False, on_eval=kill_at_2500, checkpoint=ckpt, checkpoint_every=1000)
     assert ckpt.exists()  # written at steps 1000 and 2000; the run died after the 2500 evaluation
     other = tmp_path / "other.ckpt"
     other.write_bytes(ckpt.read_bytes())

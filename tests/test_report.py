@@ -4,9 +4,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from spot import SpotError, report, results, stats, tables
-from conftest import run_cli
 
 FIXTURE = Path(__file__).parent / "data" / "results_fixture.csv"
 
@@ -36,8 +36,7 @@ def test_claim1_effect_and_ci_against_an_independent_bootstrap(runs):
     x = [np.array([61.0, 64, 66]), np.array([65.0, 69, 64])]
     y = [np.array([50.0, 52, 57]), np.array([58.0, 61, 60])]
     rng = np.random.default_rng(7)
-    boot = [np.mean([rng.choice(x[i], 3).mean() - rng.choice(y[i], 3).mean() for i in range(2)])
-            for _ in range(20000)]
+    boot = [np.mean([rng.choice(x[i], 3).mean() - rng.choice(y[i], 3).mean() for i in range(2)]) for _ in range(20000)]
     lo, hi = np.percentile(boot, [2.5, 97.5])
     assert abs(r.effect.low - lo) < 0.3 and abs(r.effect.high - hi) < 0.3
     assert r.verdict == stats.SUPPORTED and r.n_x == 6 and r.n_y == 6
@@ -71,10 +70,21 @@ def test_claim4_difference_in_differences():
     for m, few, most in (("spot", [70.0, 72], [71.0, 73]), ("pt", [50.0, 52], [60.0, 62])):
         for q, vals in ((30, few), (100, most)):
             for s, v in enumerate(vals):
-                rows.append({"run_id": f"{m}{q}{s}", "experiment": "lab_table4", "status": "FINISHED",
-                             "method": m, "dataset": "h", "paper_dataset": "h", "seed": s,
-                             "config_hash": f"{m}{q}", "params.labels.num_queries": str(q),
-                             "metrics.eval/score_final": v, "metrics.eval/score_best": v})
+                rows.append(
+                    {
+                        "run_id": f"{m}{q}{s}",
+                        "experiment": "lab_table4",
+                        "status": "FINISHED",
+                        "method": m,
+                        "dataset": "h",
+                        "paper_dataset": "h",
+                        "seed": s,
+                        "config_hash": f"{m}{q}",
+                        "params.labels.num_queries": str(q),
+                        "metrics.eval/score_final": v,
+                        "metrics.eval/score_best": v,
+                    }
+                )
     r = _row(report.build(pd.DataFrame(rows)), "4", "(spot")
     # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9
     assert r.effect.value == pytest.approx(9.0)
@@ -99,8 +109,17 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
     client = MlflowClient(uri)
     exp = client.create_experiment("lab_table1")
     for seed, score in enumerate((10.0, 20.0)):
-        run = client.create_run(exp, tags={"method": "pt", "dataset": "hopper-medium-replay", "seed": str(seed),
-                                           "dataset_source": "recipe", "git_commit": "abc", "data_digest": "d1"})
+        run = client.create_run(
+            exp,
+            tags={
+                "method": "pt",
+                "dataset": "hopper-medium-replay",
+                "seed": str(seed),
+                "dataset_source": "recipe",
+                "git_commit": "abc",
+                "data_digest": "d1",
+            },
+        )
         client.log_param(run.info.run_id, "seed", str(seed))
         client.log_param(run.info.run_id, "iql.steps", "1000")
         client.log_metric(run.info.run_id, "eval/score_final", score)

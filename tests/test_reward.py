@@ -45,7 +45,6 @@ def synthetic_pairs(num_pairs: int, length: int, seed: int) -> dict[str, np.ndar
     return batch
 
 
-
 @pytest.fixture(scope="module")
 def pt_params() -> dict:
     return pt.init_params(jax.random.key(0), PT_TINY, OBS, ACT)
@@ -110,13 +109,16 @@ def test_pt_attention_by_hand(pt_params):
     np.testing.assert_allclose(logit, (w * r_hat).sum(axis=1), rtol=1e-5, atol=1e-6)
 
     # Recompute the preference-attention layer by hand from the transformer output.
-    hidden = jax.jit(lambda *a: pt.make_model(PT_TINY).apply(
-        pt_params, *a, True, False, method=pt.PreferenceTransformer._state_hidden))(obs, act, ts, mask)
+    hidden = jax.jit(
+        lambda *a: pt.make_model(PT_TINY).apply(
+            pt_params, *a, True, False, method=pt.PreferenceTransformer._state_hidden
+        )
+    )(obs, act, ts, mask)
     kernel = pt_params["params"]["pref_head"]["kernel"]
     bias = pt_params["params"]["pref_head"]["bias"]
     head = np.asarray(hidden) @ np.asarray(kernel) + np.asarray(bias)
     p = PT_TINY.pref_attn_dim
-    q, k, r = head[..., :p], head[..., p:2 * p], head[..., 2 * p]
+    q, k, r = head[..., :p], head[..., p : 2 * p], head[..., 2 * p]
     scores = np.einsum("btp,bjp->btj", q, k)  # no 1/sqrt(P)
     attn = np.exp(scores - scores.max(-1, keepdims=True))
     attn /= attn.sum(-1, keepdims=True)
@@ -202,8 +204,14 @@ def test_bad_batches_raise_spot_error():
     with pytest.raises(SpotError, match="labels must be"):
         train.pref_pairs({**batch, "label": np.full(8, 2.0, np.float32)})
     with pytest.raises(SpotError, match="max_timestep"):
-        train.train_reward_model(PT(PT_TINY), jax.random.key(0), {**batch, "timesteps_1": batch["timesteps_1"] + 60},
-                                 None, RewardConfig(steps=1), progress=False)
+        train.train_reward_model(
+            PT(PT_TINY),
+            jax.random.key(0),
+            {**batch, "timesteps_1": batch["timesteps_1"] + 60},
+            None,
+            RewardConfig(steps=1),
+            progress=False,
+        )
 
 
 # --------------------------------------------------------------------------- (e) learning
@@ -211,15 +219,15 @@ def test_bad_batches_raise_spot_error():
 def test_mr_learns_synthetic_preferences():
     train_b, eval_b = synthetic_pairs(256, 10, 0), synthetic_pairs(128, 10, 1)
     cfg = RewardConfig(steps=200, batch_size=32, eval_every=50)
-    params, history = train.train_reward_model(MR(MR_TINY), jax.random.key(0), train_b, eval_b, cfg,
-                                               progress=False)
+    params, history = train.train_reward_model(MR(MR_TINY), jax.random.key(0), train_b, eval_b, cfg, progress=False)
     assert history["best_eval_acc"] >= 0.9
     assert history["eval_loss"][-1] < history["eval_loss"][0] < math.log(2)
     # The returned parameters are the best-on-eval ones.
     f = train.model_fn(MR(MR_TINY), params)
     mask = np.ones(eval_b["timesteps_1"].shape, np.float32)
-    logits = [f(eval_b[f"obs_{s}"], eval_b[f"act_{s}"], eval_b[f"timesteps_{s}"], mask)[0].mean(axis=1)
-              for s in ("1", "2")]
+    logits = [
+        f(eval_b[f"obs_{s}"], eval_b[f"act_{s}"], eval_b[f"timesteps_{s}"], mask)[0].mean(axis=1) for s in ("1", "2")
+    ]
     loss, _ = train.pref_loss(*logits, jnp.asarray(eval_b["label"]))
     assert float(loss) == pytest.approx(history["best_eval_loss"], rel=1e-4)
 
@@ -228,8 +236,7 @@ def test_mr_learns_synthetic_preferences():
 def test_pt_learns_synthetic_preferences():
     train_b, eval_b = synthetic_pairs(512, 10, 0), synthetic_pairs(128, 10, 1)
     cfg = RewardConfig(steps=300, batch_size=32, eval_every=100)
-    pt_cfg = PTConfig(embd_dim=16, n_layer=1, n_head=2, pref_attn_dim=16, warmup_steps=10, lr=1e-3,
-                      max_timestep=50)
+    pt_cfg = PTConfig(embd_dim=16, n_layer=1, n_head=2, pref_attn_dim=16, warmup_steps=10, lr=1e-3, max_timestep=50)
     _, history = train.train_reward_model(PT(pt_cfg), jax.random.key(0), train_b, eval_b, cfg, progress=False)
     assert history["best_eval_acc"] >= 0.8
     assert history["best_eval_loss"] < 0.45
@@ -241,8 +248,9 @@ def test_relabel_mr_matches_per_step_reward():
     params = mr.init_params(jax.random.key(0), MR_TINY, OBS, ACT)
     direct = mr.per_step_reward(params, jnp.asarray(ds.observations), jnp.asarray(ds.actions), MR_TINY)
     for mode in ("chunked", "sliding"):
-        out = relabel.relabel_rewards(MR(MR_TINY), params, ds, RelabelConfig(mode=mode, window=4, batch_size=2),
-                                      progress=False)
+        out = relabel.relabel_rewards(
+            MR(MR_TINY), params, ds, RelabelConfig(mode=mode, window=4, batch_size=2), progress=False
+        )
         assert out.weights is None and out.rewards.dtype == np.float32
         np.testing.assert_allclose(out.rewards, direct, rtol=1e-6, atol=1e-7)
 
@@ -251,10 +259,12 @@ def test_relabel_pt_chunked_and_sliding(pt_params):
     lengths = [7, 2, 5]  # chunks of 3: (3, 3, 1), (2,), (3, 2); sliding windows of 1..3 steps
     ds = make_dataset(lengths, seed=1)
     window = 3
-    chunked = relabel.relabel_rewards(PT(PT_TINY), pt_params, ds, RelabelConfig(window=window, batch_size=3),
-                                      progress=False)
-    sliding = relabel.relabel_rewards(PT(PT_TINY), pt_params, ds, RelabelConfig(mode="sliding", window=window, batch_size=5),
-                                      progress=False)
+    chunked = relabel.relabel_rewards(
+        PT(PT_TINY), pt_params, ds, RelabelConfig(window=window, batch_size=3), progress=False
+    )
+    sliding = relabel.relabel_rewards(
+        PT(PT_TINY), pt_params, ds, RelabelConfig(mode="sliding", window=window, batch_size=5), progress=False
+    )
     f = train.model_fn(PT(PT_TINY), pt_params)
 
     def direct(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -304,8 +314,11 @@ def test_nan_loss_names_the_step():
     key = jax.random.key(3)
     # First step whose minibatch draws pair `bad` (same key schedule as train_reward_model).
     train_key = jax.random.split(key)[1]
-    drawn = jax.jit(jax.vmap(lambda s: train.batch_indices(
-        jax.random.split(jax.random.fold_in(train_key, s))[0], num_pairs, batch_size)))(jnp.arange(100))
+    drawn = jax.jit(
+        jax.vmap(
+            lambda s: train.batch_indices(jax.random.split(jax.random.fold_in(train_key, s))[0], num_pairs, batch_size)
+        )
+    )(jnp.arange(100))
     first = int(np.flatnonzero((np.asarray(drawn) == bad).any(axis=1))[0])
     cfg = RewardConfig(steps=100, batch_size=batch_size, eval_every=100)
     with pytest.raises(train.NonFiniteError) as err:
@@ -316,6 +329,5 @@ def test_nan_loss_names_the_step():
     eval_b = synthetic_pairs(4, 5, 1)
     eval_b["act_1"][0, 0, 0] = np.inf
     with pytest.raises(train.NonFiniteError) as err:
-        train.train_reward_model(MR(MR_TINY), key, synthetic_pairs(num_pairs, 5, 0), eval_b, cfg,
-                                 progress=False)
+        train.train_reward_model(MR(MR_TINY), key, synthetic_pairs(num_pairs, 5, 0), eval_b, cfg, progress=False)
     assert (err.value.step, err.value.loss_name) == (100, "reward/eval_loss")

@@ -11,8 +11,15 @@ import pytest
 from spot import SpotError, config, pipeline, stages, sweep, tracking
 from tests.conftest import run_cli
 
-TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=200", "eval.every=100", "eval.episodes=1",
-        "labels.num_queries=30", "labels.segment_length=25"]
+TINY = [
+    "budget=tiny",
+    "data.name=drawer-open",
+    "iql.steps=200",
+    "eval.every=100",
+    "eval.episodes=1",
+    "labels.num_queries=30",
+    "labels.segment_length=25",
+]
 
 
 @pytest.fixture()
@@ -71,8 +78,9 @@ def test_fig2_in_distribution_is_the_training_segments_only():
         def __init__(self, s1, s2):
             self.starts_1, self.starts_2, self.segment_length = np.array(s1), np.array(s2), 2
 
-    labelled = stages.Labelled(prefs=P([0, 10], [4, 14]), train_prefs=P([0], [4]), train_batch={},
-                               eval_batch=None, deps={})
+    labelled = stages.Labelled(
+        prefs=P([0, 10], [4, 14]), train_prefs=P([0], [4]), train_batch={}, eval_batch=None, deps={}
+    )
     # training segments [0, 1] and [4, 5]; the held-out query's [10, 11], [14, 15] are out of distribution
     assert np.flatnonzero(stages.in_distribution(16, labelled)).tolist() == [0, 1, 4, 5]
 
@@ -82,13 +90,20 @@ def test_normalisation_scales_returns_to_the_envs_episode_length(name, scale):
     from tests.conftest import make_dataset
 
     ds = make_dataset([5, 7, 3], seed=1)
-    ctx = stages.Context(config.resolve({"method": "oracle", "data.name": name}), ds, {}, name,
-                         tracking.MemoryTracker(), {})
+    ctx = stages.Context(
+        config.resolve({"method": "oracle", "data.name": name}), ds, {}, name, tracking.MemoryTracker(), {}
+    )
     r = stages.true_rewards(ctx, None).normalised  # oracle: relabel.normalize=iql, r * scale / spread
     returns = np.add.reduceat(r.astype(np.float64), [0, 5, 12])
     assert returns.max() - returns.min() == pytest.approx(scale, rel=1e-5)
-    fixed = stages.Context(config.resolve({"method": "oracle", "data.name": name, "relabel.scale": 7}), ds, {},
-                           name, tracking.MemoryTracker(), {})
+    fixed = stages.Context(
+        config.resolve({"method": "oracle", "data.name": name, "relabel.scale": 7}),
+        ds,
+        {},
+        name,
+        tracking.MemoryTracker(),
+        {},
+    )
     returns = np.add.reduceat(stages.true_rewards(fixed, None).normalised.astype(np.float64), [0, 5, 12])
     assert returns.max() - returns.min() == pytest.approx(7, rel=1e-5)
 
@@ -102,19 +117,22 @@ def constant_rewards(ctx, model):
 
 
 def register_toy():
-    stages.register("toy", stages.RewardKind(stages.true_reward, constant_rewards, uses_labels=False),
-                    preset={"relabel.normalize": "none"})
+    stages.register(
+        "toy",
+        stages.RewardKind(stages.true_reward, constant_rewards, uses_labels=False),
+        preset={"relabel.normalize": "none"},
+    )
 
 
 @pytest.mark.slow
-def test_a_registered_method_runs_end_to_end_through_spot_run(tmp_path, spot_dirs, tiny_drawer, fresh_cache,
-                                                               method_registry, capsys):
+def test_a_registered_method_runs_end_to_end_through_spot_run(
+    tmp_path, spot_dirs, tiny_drawer, fresh_cache, method_registry, capsys
+):
     from spot import cli
 
     register_toy()
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    assert cli.main(["run", "--quiet", "method=toy", *TINY, f"tracking.uri={uri}",
-                     "tracking.experiment=toy"]) == 0
+    assert cli.main(["run", "--quiet", "method=toy", *TINY, f"tracking.uri={uri}", "tracking.experiment=toy"]) == 0
     mlflow.set_tracking_uri(uri)
     runs = mlflow.search_runs(experiment_names=["toy"])
     assert len(runs) == 1 and runs["status"].iloc[0] == "FINISHED" and runs["tags.method"].iloc[0] == "toy"
@@ -130,13 +148,15 @@ def test_an_unknown_method_is_refused_with_the_registered_ones():
 
 def test_methods_from_other_packages_load_through_entry_points(tmp_path):
     """A package that declares a ``spot.methods`` entry point is picked up by the CLI."""
-    (tmp_path / "toy_plugin.py").write_text(textwrap.dedent("""
+    (tmp_path / "toy_plugin.py").write_text(
+        textwrap.dedent("""
         from spot import stages
 
         def register():
             stages.register("plug", stages.RewardKind(stages.true_reward, stages.true_rewards,
                                                       uses_labels=False))
-    """))
+    """)
+    )
     dist = tmp_path / "toy_plugin-1.0.dist-info"
     dist.mkdir()
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: toy-plugin\nVersion: 1.0\n")
@@ -149,12 +169,15 @@ def test_methods_from_other_packages_load_through_entry_points(tmp_path):
 
 
 # --------------------------------------------------------------------------- cross-field rules
-@pytest.mark.parametrize(("overrides", "message"), [
-    ({"method": "mr", "shaping.kind": "cosine"}, "shaping.kind='cosine' needs reward.kind=pt"),
-    ({"iql.chunk": 1000, "eval.every": 2500}, "eval.every=2500 must be a multiple of iql.chunk=1000"),
-    ({"method": "pt", "labels.source": "human"}, "labels.source=human needs labels.path"),
-    ({"method": "hpl", "labels.segment_length": 80, "hpl.seq_len": 64}, "exceeds hpl.seq_len=64"),
-])
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"method": "mr", "shaping.kind": "cosine"}, "shaping.kind='cosine' needs reward.kind=pt"),
+        ({"iql.chunk": 1000, "eval.every": 2500}, "eval.every=2500 must be a multiple of iql.chunk=1000"),
+        ({"method": "pt", "labels.source": "human"}, "labels.source=human needs labels.path"),
+        ({"method": "hpl", "labels.segment_length": 80, "hpl.seq_len": 64}, "exceeds hpl.seq_len=64"),
+    ],
+)
 def test_cross_field_rules_are_checked_when_resolving(overrides, message):
     with pytest.raises(SpotError, match=message.replace("(", r"\(").replace(")", r"\)")):
         config.resolve(overrides)

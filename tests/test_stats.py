@@ -8,8 +8,7 @@ from spot import stats
 def test_probability_of_improvement_by_hand():
     # task 1: x = 1, 2, 3 vs y = 2, 2: pairs (1,2)x2 -> 0, (2,2)x2 -> 1/2 each, (3,2)x2 -> 1 each
     #   = 3 / 6 = 0.5;  task 2: 5 vs 1 -> 1.  Mean over tasks: 0.75.
-    got = stats.probability_of_improvement(np.array([1.0, 2, 3]), np.array([5.0]), np.array([2.0, 2]),
-                                           np.array([1.0]))
+    got = stats.probability_of_improvement(np.array([1.0, 2, 3]), np.array([5.0]), np.array([2.0, 2]), np.array([1.0]))
     assert got == 0.75
 
 
@@ -50,8 +49,9 @@ def test_difference_ci_matches_an_independent_computation():
     y = [np.array([4.0, 4.5, 5]), np.array([1.0, 1.5, 2])]  # means 4.5, 1.5
     est = stats.estimate([*x, *y], stats.mean_difference)
     assert est.value == np.mean([6 - 4.5, 2 - 1.5])
-    want = _independent_stratified_bootstrap([*x, *y], lambda ss: np.mean(
-        [ss[0].mean() - ss[2].mean(), ss[1].mean() - ss[3].mean()]))
+    want = _independent_stratified_bootstrap(
+        [*x, *y], lambda ss: np.mean([ss[0].mean() - ss[2].mean(), ss[1].mean() - ss[3].mean()])
+    )
     width = want[1] - want[0]
     assert abs(est.low - want[0]) < 0.06 * width and abs(est.high - want[1]) < 0.06 * width
     assert est.n == 12

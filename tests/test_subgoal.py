@@ -85,8 +85,12 @@ def test_preferred_segments():
 
 def test_take_preferred_picks_rows():
     q, t = 3, 4
-    seg = [extract.Segments(obs=np.full((q, t, 2), v), act=np.full((q, t, 1), v),
-                            reward=np.full((q, t), v), weight=np.full((q, t), v)) for v in (1.0, 2.0)]
+    seg = [
+        extract.Segments(
+            obs=np.full((q, t, 2), v), act=np.full((q, t, 1), v), reward=np.full((q, t), v), weight=np.full((q, t), v)
+        )
+        for v in (1.0, 2.0)
+    ]
     pref = extract.take_preferred(seg[0], seg[1], np.array([0.0, 0.5, 1.0]))
     assert pref.obs.shape == (2, t, 2)
     np.testing.assert_array_equal(pref.reward[:, 0], [1.0, 2.0])
@@ -101,8 +105,12 @@ def test_make_triplets_by_hand():
     np.testing.assert_array_equal(s[:, 0], [0, 1, 2, 3, 4, 10, 11, 12])
     np.testing.assert_array_equal(a[:, 0], -s[:, 0])
     np.testing.assert_array_equal(g[:, 0], [1, 1, 4, 4, 4, 12, 12, 12])
-    assert info == {"subgoal/num_segments": 3.0, "subgoal/num_subgoals": 3.0,
-                    "subgoal/num_triplets": 8.0, "subgoal/segments_without_subgoal": 1.0}
+    assert info == {
+        "subgoal/num_segments": 3.0,
+        "subgoal/num_subgoals": 3.0,
+        "subgoal/num_triplets": 8.0,
+        "subgoal/segments_without_subgoal": 1.0,
+    }
 
 
 def test_extract_end_to_end():
@@ -192,8 +200,7 @@ def test_non_finite_loss_raises():
     s, a, g = _toy_triplets(64)
     g[:] = np.nan
     with pytest.raises(NonFiniteError) as err:  # 4 chunks of 5 steps: the chunk of the test above
-        cvae.train_cvae(jax.random.key(0), s, a, g, SMALL, cvae.obs_stats(s), progress=False,
-                        log_every=5, holdout=0.0)
+        cvae.train_cvae(jax.random.key(0), s, a, g, SMALL, cvae.obs_stats(s), progress=False, log_every=5, holdout=0.0)
     assert err.value.step == 5 and err.value.loss_name == "cvae/loss"
 
 
@@ -201,8 +208,7 @@ def test_non_finite_loss_raises():
 def test_cvae_learns_deterministic_subgoal():
     s, a, g = _toy_triplets(2000)
     cfg = CVAEConfig(latent_dim=4, hidden=(64, 64), lr=3e-3, batch_size=128, steps=600)
-    params, history = cvae.train_cvae(jax.random.key(0), s, a, g, cfg, cvae.obs_stats(s),
-                                      progress=False, log_every=200)
+    params, history = cvae.train_cvae(jax.random.key(0), s, a, g, cfg, cvae.obs_stats(s), progress=False, log_every=200)
     assert [h["step"] for h in history] == [200, 400, 600]
     assert history[-1]["cvae/heldout_loss"] < history[0]["cvae/heldout_loss"]
     s_test, a_test, g_test = _toy_triplets(500, seed=1)
@@ -241,26 +247,31 @@ OBS = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
 
 def test_shape_reward_by_hand():
     np.testing.assert_allclose(shaping.shape_reward("cosine", NEXT_OBS, G_HAT), [1.0, 0.0, 0.5], atol=1e-6)
-    np.testing.assert_allclose(shaping.shape_reward("neg_distance", NEXT_OBS, G_HAT),
-                               [0.0, -3.0, -math.sqrt(2)], atol=1e-6)
+    np.testing.assert_allclose(
+        shaping.shape_reward("neg_distance", NEXT_OBS, G_HAT), [0.0, -3.0, -math.sqrt(2)], atol=1e-6
+    )
     # Φ(s') = [0, -3, -√2], Φ(s) = [-1, -1, 0]; γ Φ(s') - Φ(s) with γ = 0.9
-    np.testing.assert_allclose(shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, gamma=0.9),
-                               [1.0, -1.7, -0.9 * math.sqrt(2)], atol=1e-6)
+    np.testing.assert_allclose(
+        shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, gamma=0.9), [1.0, -1.7, -0.9 * math.sqrt(2)], atol=1e-6
+    )
     np.testing.assert_allclose(
         shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, 0.9, terminals=np.array([0, 1, 0], bool)),
-        [1.0, 1.0, -0.9 * math.sqrt(2)], atol=1e-6)
+        [1.0, 1.0, -0.9 * math.sqrt(2)],
+        atol=1e-6,
+    )
     # The authors' potential Φ(x) = +||x - ĝ||: Φ(s') = [0, 3, √2], Φ(s) = [1, 1, 0]
     np.testing.assert_allclose(
         shaping.shape_reward("potential", NEXT_OBS, G_HAT, OBS, 0.9, potential_sign="pos"),
-        [-1.0, 1.7, 0.9 * math.sqrt(2)], atol=1e-6)
+        [-1.0, 1.7, 0.9 * math.sqrt(2)],
+        atol=1e-6,
+    )
     np.testing.assert_allclose(shaping.shape_reward("none", NEXT_OBS, G_HAT), [0.0, 0.0, 0.0])
     rand = np.random.default_rng(0).standard_normal((2, 100, 4))
     cos = np.asarray(shaping.shape_reward("cosine", rand[0], rand[1]))
     assert cos.min() >= 0.0 and cos.max() <= 1.0
     with pytest.raises(SpotError, match="needs obs"):
         shaping.shape_reward("potential", NEXT_OBS, G_HAT)
-    np.testing.assert_allclose(shaping.final_reward(np.array([1.0, 2.0]), np.array([0.5, 0.25]), -0.5),
-                               [0.75, 1.875])
+    np.testing.assert_allclose(shaping.final_reward(np.array([1.0, 2.0]), np.array([0.5, 0.25]), -0.5), [0.75, 1.875])
 
 
 def test_shaped_rewards_whole_dataset(small_params):
@@ -314,16 +325,15 @@ def test_precision_recall():
 
 def test_plot_projection(tmp_path):
     rng = np.random.default_rng(0)
-    png = diagnostics.plot_projection(rng.standard_normal((300, 5)), rng.standard_normal((50, 5)),
-                                      tmp_path / "proj" / "pca.png")
+    png = diagnostics.plot_projection(
+        rng.standard_normal((300, 5)), rng.standard_normal((50, 5)), tmp_path / "proj" / "pca.png"
+    )
     assert png.exists() and png.read_bytes()[:4] == b"\x89PNG"
 
 
 # --------------------------------------------------------------------------- fidelity keys (docs/fidelity.md)
 # One segment of T = 3, preference attention A (rows: queries t, columns: keys j) and r_hat:
-A3 = np.array([[0.2, 0.7, 0.1],
-               [0.1, 0.5, 0.4],
-               [0.2, 0.2, 0.6]])
+A3 = np.array([[0.2, 0.7, 0.1], [0.1, 0.5, 0.4], [0.2, 0.2, 0.6]])
 R3 = np.array([1.0, 2.0, 4.0])
 # Hand-computed: column means w = (.5, 1.4, 1.1) / 3; diagonal w = (.2, .5, .6);
 # z_t = sum_j A_tj r_j = (.2 + 1.4 + .4, .1 + 1. + 1.6, .2 + .4 + 2.4) = (2.0, 2.7, 3.0).
@@ -346,12 +356,15 @@ def test_step_scores_by_hand():
         extract.step_scores(R3[None], A3)
 
 
-@pytest.mark.parametrize("weight,filter_on,expected", [
-    ("column_mean", "r_hat", [False, False, False]),  # step 1 has the top weight, r_hat below mean
-    ("column_mean", "z", [False, True, False]),       # ... but z above mean
-    ("diagonal", "r_hat", [False, False, True]),      # the diagonal ranks step 2 first
-    ("diagonal", "z", [False, False, True]),
-])
+@pytest.mark.parametrize(
+    "weight,filter_on,expected",
+    [
+        ("column_mean", "r_hat", [False, False, False]),  # step 1 has the top weight, r_hat below mean
+        ("column_mean", "z", [False, True, False]),  # ... but z above mean
+        ("diagonal", "r_hat", [False, False, True]),  # the diagonal ranks step 2 first
+        ("diagonal", "z", [False, False, True]),
+    ],
+)
 def test_weight_and_filter_on_select_different_subgoals(weight, filter_on, expected):
     w, r = extract.step_scores(R3[None], A3[None], weight, filter_on)
     mask = extract.subgoal_mask(w, r, 34.0)
@@ -414,11 +427,17 @@ def test_interval_triplets_by_hand():
 def test_extract_with_authors_keys():
     # Preferred segment 2 of T = 3 (A3, R3): diagonal weight, z filter, K = 34 -> step 2; the last
     # step is step 2 as well; intervals [0, 2) -> step 2.
-    seg = extract.segments(np.arange(3.0)[None, :, None], np.zeros((1, 3, 1)), R3[None], A3[None],
-                           SubgoalConfig(weight="diagonal", filter_on="z"))
+    seg = extract.segments(
+        np.arange(3.0)[None, :, None],
+        np.zeros((1, 3, 1)),
+        R3[None],
+        A3[None],
+        SubgoalConfig(weight="diagonal", filter_on="z"),
+    )
     other = extract.Segments(np.zeros((1, 3, 1)), np.zeros((1, 3, 1)), np.zeros((1, 3)), np.ones((1, 3)) / 3)
-    cfg = SubgoalConfig(top_k=34.0, weight="diagonal", filter_on="z", last_step=True,
-                        triplets="interval", interval_draws=4)
+    cfg = SubgoalConfig(
+        top_k=34.0, weight="diagonal", filter_on="z", last_step=True, triplets="interval", interval_draws=4
+    )
     (s, _, g), states, info = extract.extract(other, seg, np.array([1.0]), cfg, rng=np.random.default_rng(0))
     np.testing.assert_array_equal(states[:, 0], [2.0])
     np.testing.assert_array_equal(g[:, 0], [2.0] * 4)
@@ -435,8 +454,9 @@ def test_pt_learning_rate_schedules_by_hand():
     # PT repo: lr 1e-4 -> 1e-3 over 10 % of 100 steps, then cosine back to 1e-4:
     # step 5: 1e-4 + 9e-4 * 5/10 = 5.5e-4; step 55: 1e-4 + 9e-4 * (1 + cos(pi/2)) / 2 = 5.5e-4.
     cos = pt.learning_rate(PTConfig(lr=1e-4, schedule="warmup_cosine", warmup_fraction=0.1), 100)
-    np.testing.assert_allclose([cos(0), cos(5), cos(10), cos(55), cos(100)],
-                               [1e-4, 5.5e-4, 1e-3, 5.5e-4, 1e-4], rtol=1e-5)
+    np.testing.assert_allclose(
+        [cos(0), cos(5), cos(10), cos(55), cos(100)], [1e-4, 5.5e-4, 1e-3, 5.5e-4, 1e-4], rtol=1e-5
+    )
     with pytest.raises(ValueError, match="total number of steps"):
         pt.learning_rate(PTConfig(schedule="warmup_cosine"))
     # b2: two AdamW steps (lr 1, no decay) with gradients 1 then 0; the second update is
@@ -469,14 +489,27 @@ def test_cvae_authors_loss_by_hand():
     loss, _ = cvae.loss_fn(params, extract.Triplets(*(jnp.asarray(x, jnp.float32) for x in (s, a, g))), key, cfg)
 
     def net(method, *args):
-        return np.asarray(params.module.apply({"params": params.net}, *(jnp.asarray(x, jnp.float32) for x in args),
-                                              method=method), np.float64)
+        return np.asarray(
+            params.module.apply({"params": params.net}, *(jnp.asarray(x, jnp.float32) for x in args), method=method),
+            np.float64,
+        )
 
-    q_mean, q_log_std = (np.asarray(x, np.float64) for x in params.module.apply(
-        {"params": params.net}, jnp.asarray(g, jnp.float32), jnp.asarray(s, jnp.float32),
-        jnp.asarray(a, jnp.float32), method=cvae.CVAE.posterior))
-    p_mean, p_log_std = (np.asarray(x, np.float64) for x in params.module.apply(
-        {"params": params.net}, jnp.asarray(s, jnp.float32), jnp.asarray(a, jnp.float32), method=cvae.CVAE.prior))
+    q_mean, q_log_std = (
+        np.asarray(x, np.float64)
+        for x in params.module.apply(
+            {"params": params.net},
+            jnp.asarray(g, jnp.float32),
+            jnp.asarray(s, jnp.float32),
+            jnp.asarray(a, jnp.float32),
+            method=cvae.CVAE.posterior,
+        )
+    )
+    p_mean, p_log_std = (
+        np.asarray(x, np.float64)
+        for x in params.module.apply(
+            {"params": params.net}, jnp.asarray(s, jnp.float32), jnp.asarray(a, jnp.float32), method=cvae.CVAE.prior
+        )
+    )
     z = q_mean + np.exp(q_log_std) * np.asarray(jax.random.normal(key, q_mean.shape), np.float64)
     g_hat = net(cvae.CVAE.decode, z, s, a)
     sim = (g_hat * g).sum(-1) / (np.linalg.norm(g_hat, axis=-1) * np.linalg.norm(g, axis=-1))
@@ -490,10 +523,19 @@ def test_cvae_raw_inputs_use_identity_statistics():
     cfg = CVAEConfig(latent_dim=2, hidden=(8,), steps=2, batch_size=4, inputs="raw")
     rng = np.random.default_rng(0)
     s, a, g = rng.standard_normal((8, 3)) * 5 + 7, rng.uniform(-1, 1, (8, 2)), rng.standard_normal((8, 3))
-    params, _ = cvae.train_cvae(jax.random.PRNGKey(0), s, a, g, cfg, (np.full(3, 7.0), np.full(3, 5.0)),
-                                progress=False, log_every=2)
+    params, _ = cvae.train_cvae(
+        jax.random.PRNGKey(0), s, a, g, cfg, (np.full(3, 7.0), np.full(3, 5.0)), progress=False, log_every=2
+    )
     np.testing.assert_array_equal(params.obs_mean, np.zeros(3))
     np.testing.assert_array_equal(params.obs_std, np.ones(3))
-    params, _ = cvae.train_cvae(jax.random.PRNGKey(0), s, a, g, dataclasses.replace(cfg, inputs="zscore"),
-                                (np.full(3, 7.0), np.full(3, 5.0)), progress=False, log_every=2)
+    params, _ = cvae.train_cvae(
+        jax.random.PRNGKey(0),
+        s,
+        a,
+        g,
+        dataclasses.replace(cfg, inputs="zscore"),
+        (np.full(3, 7.0), np.full(3, 5.0)),
+        progress=False,
+        log_every=2,
+    )
     np.testing.assert_array_equal(params.obs_mean, np.full(3, 7.0))

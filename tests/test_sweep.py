@@ -34,29 +34,44 @@ def _write(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
 
 
 # --------------------------------------------------------------------------- (a) validation
-@pytest.mark.parametrize("text, match", [
-    ("bsae: {method: pt}\n", r"'bsae': unknown key; did you mean 'base'"),
-    ("base: {methd: pt}\n", r"'base': unknown config key 'methd'; did you mean 'method'"),
-    ("grid: {shaping.wieght: [0.1]}\n", r"'grid': unknown config key 'shaping.wieght'; did you mean 'shaping.weight'"),
-    ("smoke: {base: [1]}\n", r"'smoke.base': expected a mapping of config keys, got list"),
-    ("grid: {shaping.weight: 0.1}\n", r"'grid.shaping.weight': expected a non-empty list"),
-    ("table: 5\n", r"'table': expected one of 1, 2, 3, 4, 7, 8, got 5"),
-    ("grid: {shaping.weight: [0.1, 0.1]}\n", r"'grid.shaping.weight': repeats a value"),
-    ("zip: {data.name: [hopper-medium-replay, walker2d-medium-replay], labels.num_queries: [100]}\n",
-     r"'zip': paired axes need lists of equal length"),
-    ("base: {seed: 3}\n", r"'base.seed': may not be set here: give seeds in 'seeds:'"),
-    ("base: {tracking: {uri: 'x'}}\n", r"'base.tracking.uri': may not be set here"),
-    ("seeds: [0, -1]\n", r"'seeds': expected a non-empty list of non-negative integers"),
-    ("seed_mode: pmap\n", r"'seed_mode': expected one of trials, vmap"),
-    ("resources: {cpus: 1}\n", r"'resources.cpus': unknown key"),
-    ("base: {method: pt}\ngrid: {method: [pt, spot]}\n", r"'base.method': is also an axis"),
-    ("grid: {method: [pt]}\nsmoke: {grid: {shaping.weight: [0.1]}}\n", r"'smoke.grid.shaping.weight': is not an axis"),
-    ("grid: {shaping.weight: [0.5, 2.0]}\n",
-     r"trial shaping.weight=2.0: config key 'shaping.weight': value 2.0 is out of range"),
-    ("zip: {data.name: [hopper-medium-replay, hoper-medium], labels.num_queries: [1, 2]}\n",
-     r"trial data.name=hoper-medium labels.num_queries=2: unknown dataset 'hoper-medium'"),
-    ("zip: {method: [pt, pt], labels.num_queries: [5, 5]}\n", r"trial method=pt labels.num_queries=5 occurs twice"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("bsae: {method: pt}\n", r"'bsae': unknown key; did you mean 'base'"),
+        ("base: {methd: pt}\n", r"'base': unknown config key 'methd'; did you mean 'method'"),
+        (
+            "grid: {shaping.wieght: [0.1]}\n",
+            r"'grid': unknown config key 'shaping.wieght'; did you mean 'shaping.weight'",
+        ),
+        ("smoke: {base: [1]}\n", r"'smoke.base': expected a mapping of config keys, got list"),
+        ("grid: {shaping.weight: 0.1}\n", r"'grid.shaping.weight': expected a non-empty list"),
+        ("table: 5\n", r"'table': expected one of 1, 2, 3, 4, 7, 8, got 5"),
+        ("grid: {shaping.weight: [0.1, 0.1]}\n", r"'grid.shaping.weight': repeats a value"),
+        (
+            "zip: {data.name: [hopper-medium-replay, walker2d-medium-replay], labels.num_queries: [100]}\n",
+            r"'zip': paired axes need lists of equal length",
+        ),
+        ("base: {seed: 3}\n", r"'base.seed': may not be set here: give seeds in 'seeds:'"),
+        ("base: {tracking: {uri: 'x'}}\n", r"'base.tracking.uri': may not be set here"),
+        ("seeds: [0, -1]\n", r"'seeds': expected a non-empty list of non-negative integers"),
+        ("seed_mode: pmap\n", r"'seed_mode': expected one of trials, vmap"),
+        ("resources: {cpus: 1}\n", r"'resources.cpus': unknown key"),
+        ("base: {method: pt}\ngrid: {method: [pt, spot]}\n", r"'base.method': is also an axis"),
+        (
+            "grid: {method: [pt]}\nsmoke: {grid: {shaping.weight: [0.1]}}\n",
+            r"'smoke.grid.shaping.weight': is not an axis",
+        ),
+        (
+            "grid: {shaping.weight: [0.5, 2.0]}\n",
+            r"trial shaping.weight=2.0: config key 'shaping.weight': value 2.0 is out of range",
+        ),
+        (
+            "zip: {data.name: [hopper-medium-replay, hoper-medium], labels.num_queries: [1, 2]}\n",
+            r"trial data.name=hoper-medium labels.num_queries=2: unknown dataset 'hoper-medium'",
+        ),
+        ("zip: {method: [pt, pt], labels.num_queries: [5, 5]}\n", r"trial method=pt labels.num_queries=5 occurs twice"),
+    ],
+)
 def test_bad_sweep_files_name_file_and_key(tmp_path, text, match):
     path = _write(tmp_path, text)
     with pytest.raises(SpotError, match=match) as info:
@@ -95,8 +110,12 @@ def test_expansion_grid_x_zip_x_seeds(tmp_path):
     assert len(trials) == 2 * 3 * 2 * 2 and all(len(t.seeds) == 1 for t in trials)
     # Seeds vary slowest, then the grid (first axis slowest), then the zip rows.
     assert [t.seeds[0] for t in trials] == [0] * 12 + [1] * 12
-    assert trials[0].axes == {"shaping.kind": "cosine", "shaping.weight": -0.5,
-                              "data.name": "hopper-medium-expert", "labels.num_queries": 100}
+    assert trials[0].axes == {
+        "shaping.kind": "cosine",
+        "shaping.weight": -0.5,
+        "data.name": "hopper-medium-expert",
+        "labels.num_queries": 100,
+    }
     assert trials[1].axes["data.name"] == "walker2d-medium-replay" and trials[1].axes["labels.num_queries"] == 500
     assert trials[2].axes["shaping.weight"] == 0.1 and trials[6].axes["shaping.kind"] == "potential"
     assert trials[0].overrides == {"method": "spot", "budget": "small", **trials[0].axes}
@@ -157,8 +176,10 @@ def _finished_child_runs(db: Path) -> int:
         return 0
     try:
         with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
-            return con.execute("select count(*) from runs r join tags t on r.run_uuid = t.run_uuid "
-                               "where t.key = 'trial_key' and r.status = 'FINISHED'").fetchone()[0]
+            return con.execute(
+                "select count(*) from runs r join tags t on r.run_uuid = t.run_uuid "
+                "where t.key = 'trial_key' and r.status = 'FINISHED'"
+            ).fetchone()[0]
     except sqlite3.OperationalError:  # tables not created yet
         return 0
 
@@ -170,8 +191,13 @@ def killed_and_resumed(tmp_path_factory):
     broken = root / "broken.hdf5"
     broken.write_bytes(b"not an hdf5 file")
     path = _write(root, KILL_SWEEP.replace("{broken}", str(broken)), "killtest.yaml")
-    env = {**os.environ, "SPOT_DATA_DIR": str(root / "data"), "SPOT_CACHE_DIR": str(root / "cache"),
-           "JAX_COMPILATION_CACHE_DIR": str(root / "jax"), "PYTHONUNBUFFERED": "1"}
+    env = {
+        **os.environ,
+        "SPOT_DATA_DIR": str(root / "data"),
+        "SPOT_CACHE_DIR": str(root / "cache"),
+        "JAX_COMPILATION_CACHE_DIR": str(root / "jax"),
+        "PYTHONUNBUFFERED": "1",
+    }
     env.pop("MLFLOW_TRACKING_URI", None)
     cmd = [sys.executable, "-m", "spot.cli", "sweep", str(path), "--smoke"]
     db = root / "spot_runs" / "mlflow.db"
@@ -179,7 +205,9 @@ def killed_and_resumed(tmp_path_factory):
         proc = subprocess.Popen(cmd, cwd=root, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
         deadline = time.monotonic() + 400
         while _finished_child_runs(db) < 1:
-            assert proc.poll() is None, "sweep ended before it was killed:\n" + (root / "launch.log").read_text()[-3000:]
+            assert proc.poll() is None, (
+                "sweep ended before it was killed:\n" + (root / "launch.log").read_text()[-3000:]
+            )
             assert time.monotonic() < deadline, "no run finished in time:\n" + (root / "launch.log").read_text()[-3000:]
             time.sleep(0.5)
         os.killpg(proc.pid, signal.SIGKILL)
@@ -188,8 +216,15 @@ def killed_and_resumed(tmp_path_factory):
     resumed = subprocess.run([*cmd, "--resume"], cwd=root, env=env, capture_output=True, text=True, timeout=500)
     assert "runs finished" in resumed.stdout, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     state = json.loads((root / "spot_runs" / "ray" / "killtest-smoke.json").read_text())
-    return {"root": root, "db": db, "state": state, "resumed": resumed, "first_port": first_port,
-            "sweep": sweep.load(path, smoke=True), "broken": str(broken)}
+    return {
+        "root": root,
+        "db": db,
+        "state": state,
+        "resumed": resumed,
+        "first_port": first_port,
+        "sweep": sweep.load(path, smoke=True),
+        "broken": str(broken),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -255,20 +290,36 @@ def test_trial_skips_a_config_and_seed_that_already_finished(killed_and_resumed,
     _, exp, runs = store
     state, s = killed_and_resumed["state"], killed_and_resumed["sweep"]
     monkeypatch.setenv("MLFLOW_TRACKING_URI", "")
-    ctx = sweep.SweepContext(state["sweep_id"], "killtest", "killtest-smoke", exp.experiment_id,
-                             state["parent_run_id"], sqlite_uri(killed_and_resumed["db"]), s.axis_keys)
+    ctx = sweep.SweepContext(
+        state["sweep_id"],
+        "killtest",
+        "killtest-smoke",
+        exp.experiment_id,
+        state["parent_run_id"],
+        sqlite_uri(killed_and_resumed["db"]),
+        s.axis_keys,
+    )
     trial = next(t for t in s.trials() if t.axes["data.name"] == "drawer-open" and t.seeds == (1,))
-    (done,) = [r for r in runs if r.data.tags.get("trial_key") == sweep.run_key(trial.overrides, 1)
-               and r.info.status == "FINISHED"]
+    (done,) = [
+        r
+        for r in runs
+        if r.data.tags.get("trial_key") == sweep.run_key(trial.overrides, 1) and r.info.status == "FINISHED"
+    ]
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished (config, seed) ran again")
 
     reports: list[dict] = []
     sweep.run_trial(trial.overrides, [1], ctx, trial_id="again", report=reports.append, run_fn=must_not_run)
-    assert reports == [{"seed": 1, "run_id": done.info.run_id, "skipped": 1,
-                        "score_final": done.data.metrics["eval/score_final"],
-                        "score_best": done.data.metrics["eval/score_best"]}]
+    assert reports == [
+        {
+            "seed": 1,
+            "run_id": done.info.run_id,
+            "skipped": 1,
+            "score_final": done.data.metrics["eval/score_final"],
+            "score_best": done.data.metrics["eval/score_best"],
+        }
+    ]
 
 
 def test_smoke_asks_for_no_gpu_unless_its_block_does(tmp_path):

@@ -28,30 +28,62 @@ _CLOCK = [1_700_000_000_000]
 
 def _params(method: str, seed: int, **over: str) -> dict[str, str]:
     shaped = method == "spot"
-    p = {"method": method, "seed": str(seed), "budget": "tiny", "iql.steps": "200",
-         "reward.kind": "none" if method == "oracle" else ("mr" if method == "mr" else "pt"),
-         "shaping.kind": "cosine" if shaped else "none", "shaping.weight": "1.0", "subgoal.group": "top",
-         "subgoal.top_k": "10.0", "labels.num_queries": "40", "cvae.loss": "mse_cos",
-         "tracking.experiment": "whatever"}
+    p = {
+        "method": method,
+        "seed": str(seed),
+        "budget": "tiny",
+        "iql.steps": "200",
+        "reward.kind": "none" if method == "oracle" else ("mr" if method == "mr" else "pt"),
+        "shaping.kind": "cosine" if shaped else "none",
+        "shaping.weight": "1.0",
+        "subgoal.group": "top",
+        "subgoal.top_k": "10.0",
+        "labels.num_queries": "40",
+        "cvae.loss": "mse_cos",
+        "tracking.experiment": "whatever",
+    }
     p.update(over)
     return p
 
 
 def _bins(offset: float) -> dict:
     """An extrapolation_error.json payload: 3 bins, in-distribution error 0.1*b, OOD 1 + offset - 0.2*b."""
-    return {"edges": [0.0, 0.25, 0.5, 0.75], "count": [[5, 5, 5], [10, 10, 10]],
-            "mean_error": [[0.0, 0.1, 0.2], [1 + offset, 0.8 + offset, 0.6 + offset]],
-            "groups": ["in_distribution", "ood"]}
+    return {
+        "edges": [0.0, 0.25, 0.5, 0.75],
+        "count": [[5, 5, 5], [10, 10, 10]],
+        "mean_error": [[0.0, 0.1, 0.2], [1 + offset, 0.8 + offset, 0.6 + offset]],
+        "groups": ["in_distribution", "ood"],
+    }
 
 
-def _run(client, exp_id: str, *, method: str, dataset: str, seed: int, score: float | None,
-         source: str = "recipe", status: str = "FINISHED", params: dict | None = None,
-         times: dict | None = None, bins: dict | None = None, png: Path | None = None) -> str:
+def _run(
+    client,
+    exp_id: str,
+    *,
+    method: str,
+    dataset: str,
+    seed: int,
+    score: float | None,
+    source: str = "recipe",
+    status: str = "FINISHED",
+    params: dict | None = None,
+    times: dict | None = None,
+    bins: dict | None = None,
+    png: Path | None = None,
+) -> str:
     from mlflow.entities import Metric, Param, RunTag
 
     _CLOCK[0] += 1000
-    tags = {"method": method, "dataset": dataset, "dataset_source": source, "dataset_size": "tiny",
-            "label_source": "script", "seed": str(seed), "budget": "tiny", "git_commit": "fixture"}
+    tags = {
+        "method": method,
+        "dataset": dataset,
+        "dataset_source": source,
+        "dataset_size": "tiny",
+        "label_source": "script",
+        "seed": str(seed),
+        "budget": "tiny",
+        "git_commit": "fixture",
+    }
     run = client.create_run(exp_id, start_time=_CLOCK[0], tags=tags)
     rid = run.info.run_id
     values = {} if score is None else {"eval/score_final": score, "eval/score_best": score + 1}
@@ -59,13 +91,19 @@ def _run(client, exp_id: str, *, method: str, dataset: str, seed: int, score: fl
     metrics = [Metric(k, float(v), _CLOCK[0], 0) for k, v in values.items()]
     if bins is not None:
         for b in range(3):
-            metrics += [Metric("diag/extrap_bin_in", bins["mean_error"][0][b], _CLOCK[0], b),
-                        Metric("diag/extrap_bin_ood", bins["mean_error"][1][b], _CLOCK[0], b)]
+            metrics += [
+                Metric("diag/extrap_bin_in", bins["mean_error"][0][b], _CLOCK[0], b),
+                Metric("diag/extrap_bin_ood", bins["mean_error"][1][b], _CLOCK[0], b),
+            ]
         client.log_dict(rid, bins, "extrapolation_error.json")
     if png is not None:
         client.log_artifact(rid, str(png))
-    client.log_batch(rid, metrics=metrics, params=[Param(k, v) for k, v in (params or _params(method, seed)).items()],
-                     tags=[RunTag("failure_reason", "boom")] if status == "FAILED" else [])
+    client.log_batch(
+        rid,
+        metrics=metrics,
+        params=[Param(k, v) for k, v in (params or _params(method, seed)).items()],
+        tags=[RunTag("failure_reason", "boom")] if status == "FAILED" else [],
+    )
     client.set_terminated(rid, status=status, end_time=_CLOCK[0] + 500)
     return rid
 
@@ -73,8 +111,15 @@ def _run(client, exp_id: str, *, method: str, dataset: str, seed: int, score: fl
 def _times(seed: int, reward: bool = True) -> dict[str, float]:
     t = {"time/iql_s": 100.0, "time/eval_s": 20.0, "time/total_s": 150.0 + seed}
     if reward:
-        t.update({"time/reward_s": 10.0 * (seed + 1), "time/relabel_s": 1.0, "time/subgoals_s": 2.0,
-                  "time/cvae_s": 3.0, "time/shaping_s": 4.0})
+        t.update(
+            {
+                "time/reward_s": 10.0 * (seed + 1),
+                "time/relabel_s": 1.0,
+                "time/subgoals_s": 2.0,
+                "time/cvae_s": 3.0,
+                "time/shaping_s": 4.0,
+            }
+        )
     return t
 
 
@@ -89,8 +134,9 @@ def store(tmp_path_factory):
     ids = {name: tracking.experiment_id(name, uri) for name in ("t1", "t2", "t3", "t4", "t7", "mixed")}
     # a run as `spot sweep` leaves it: artifacts served as mlflow-artifacts:/, on disk beside the db
     served = client.create_experiment("served", artifact_location="mlflow-artifacts:/7")
-    rid = client.create_run(served, tags={"method": "pt", "dataset": "hopper-medium-replay",
-                                          "dataset_source": "recipe", "seed": "0"}).info.run_id
+    rid = client.create_run(
+        served, tags={"method": "pt", "dataset": "hopper-medium-replay", "dataset_source": "recipe", "seed": "0"}
+    ).info.run_id
     client.set_terminated(rid)
     on_disk = root / "artifacts" / "7" / rid / "artifacts"
     on_disk.mkdir(parents=True)
@@ -102,8 +148,17 @@ def store(tmp_path_factory):
     png = root / "subgoal_projection.png"
     Figure(figsize=(1, 1)).savefig(png)
     for seed, score in enumerate((80.0, 85.0, 90.0)):
-        _run(client, e, method="spot", dataset=hmr, seed=seed, score=score, times=_times(seed),
-             bins=_bins(-0.5 + 0.1 * seed), png=png if seed == 0 else None)
+        _run(
+            client,
+            e,
+            method="spot",
+            dataset=hmr,
+            seed=seed,
+            score=score,
+            times=_times(seed),
+            bins=_bins(-0.5 + 0.1 * seed),
+            png=png if seed == 0 else None,
+        )
     for seed, score in enumerate((50.0, 52.0, 60.0)):
         _run(client, e, method="pt", dataset=hmr, seed=seed, score=score, times=_times(seed), bins=_bins(0.0))
     for seed, score in enumerate((95.0, 97.0)):
@@ -121,25 +176,66 @@ def store(tmp_path_factory):
     hme = "hopper-medium-expert"
     for group, scores in (("top", (98.0, 100.0)), ("bottom", (50.0, 60.0))):
         for seed, score in enumerate(scores):
-            _run(client, ids["t2"], method="spot", dataset=hme, seed=seed, score=score,
-                 params=_params("spot", seed, **{"subgoal.group": group}))
-    for kind, weight, scores in (("cosine", "0.5", (75.0, 77.0)), ("cosine", "1.0", (78.0, 80.0)),
-                                 ("potential", "0.5", (70.0, 72.0))):
+            _run(
+                client,
+                ids["t2"],
+                method="spot",
+                dataset=hme,
+                seed=seed,
+                score=score,
+                params=_params("spot", seed, **{"subgoal.group": group}),
+            )
+    for kind, weight, scores in (
+        ("cosine", "0.5", (75.0, 77.0)),
+        ("cosine", "1.0", (78.0, 80.0)),
+        ("potential", "0.5", (70.0, 72.0)),
+    ):
         for seed, score in enumerate(scores):
-            _run(client, ids["t3"], method="spot", dataset="walker2d-medium-replay", seed=seed, score=score,
-                 params=_params("spot", seed, **{"shaping.kind": kind, "shaping.weight": weight}))
-    for method, queries, scores in (("pt", "100", (74.0, 76.0)), ("spot", "100", (98.0, 102.0)),
-                                    ("spot", "50", (84.0, 86.0))):
+            _run(
+                client,
+                ids["t3"],
+                method="spot",
+                dataset="walker2d-medium-replay",
+                seed=seed,
+                score=score,
+                params=_params("spot", seed, **{"shaping.kind": kind, "shaping.weight": weight}),
+            )
+    for method, queries, scores in (
+        ("pt", "100", (74.0, 76.0)),
+        ("spot", "100", (98.0, 102.0)),
+        ("spot", "50", (84.0, 86.0)),
+    ):
         for seed, score in enumerate(scores):
-            _run(client, ids["t4"], method=method, dataset=hme, seed=seed, score=score,
-                 params=_params(method, seed, **{"labels.num_queries": queries}))
+            _run(
+                client,
+                ids["t4"],
+                method=method,
+                dataset=hme,
+                seed=seed,
+                score=score,
+                params=_params(method, seed, **{"labels.num_queries": queries}),
+            )
     for loss, scores in (("mse", (40.0, 38.0)), ("mse_cos", (60.0, 59.0))):
         for seed, score in enumerate(scores):
-            _run(client, ids["t7"], method="spot", dataset="can_mh_low_dim", seed=seed, score=score,
-                 params=_params("spot", seed, **{"cvae.loss": loss}))
+            _run(
+                client,
+                ids["t7"],
+                method="spot",
+                dataset="can_mh_low_dim",
+                seed=seed,
+                score=score,
+                params=_params("spot", seed, **{"cvae.loss": loss}),
+            )
     for seed, steps in ((0, "200"), (1, "20000")):
-        _run(client, ids["mixed"], method="spot", dataset=hmr, seed=seed, score=80.0,
-             params=_params("spot", seed, **{"iql.steps": steps}))
+        _run(
+            client,
+            ids["mixed"],
+            method="spot",
+            dataset=hmr,
+            seed=seed,
+            score=80.0,
+            params=_params("spot", seed, **{"iql.steps": steps}),
+        )
     return uri
 
 
@@ -191,7 +287,12 @@ def test_table1_cells(t1_runs):
     assert np.isnan(avg[("oracle", "mean")])  # oracle ran on one dataset only
     notes = " ".join(t.attrs["notes"])
     assert "2 runs not FINISHED (FAILED: 1, KILLED: 1)" in notes
-    assert "same cell and seed: 1" in notes and "runs: 15 from experiment(s) t1" in notes and "sample std (ddof=1)" in notes and "dataset source file" in notes
+    assert (
+        "same cell and seed: 1" in notes
+        and "runs: 15 from experiment(s) t1" in notes
+        and "sample std (ddof=1)" in notes
+        and "dataset source file" in notes
+    )
 
 
 def test_table1_population_std(t1_runs):
@@ -314,7 +415,10 @@ def test_fig2_from_metrics(store, t1_runs, tmp_path):
     pt_run = t1_runs.loc[(t1_runs["method"] == "pt") & (t1_runs["dataset"] == "hopper-medium-replay"), "run_id"].iloc[0]
     bins = figures._bins_from_metrics(MlflowClient(store), pt_run)
     assert [(b["group"], b["bin"], b["mean_error"]) for b in bins][:3] == [
-        ("in_distribution", 0, 0.0), ("in_distribution", 1, 0.1), ("in_distribution", 2, 0.2)]
+        ("in_distribution", 0, 0.0),
+        ("in_distribution", 1, 0.1),
+        ("in_distribution", 2, 0.2),
+    ]
     frame = pd.DataFrame([{**b, "run_id": "x", "method": "pt", "dataset": "d", "source": "recipe"} for b in bins])
     assert figures.plot_fig2(frame, tmp_path / "fig2m.png").exists()
 
@@ -325,17 +429,54 @@ def test_cli_tables(store, capsys, tmp_path):
     assert cli.main(["tables", "--table", "1", "--experiment", "t1", "--tracking-uri", store]) == 0
     assert "| dataset | source |" in capsys.readouterr().out
     out = tmp_path / "t7.tex"
-    assert cli.main(["tables", "--table", "7", "--experiment", "t7", "--tracking-uri", store,
-                     "--format", "latex", "--out", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "tables",
+                "--table",
+                "7",
+                "--experiment",
+                "t7",
+                "--tracking-uri",
+                store,
+                "--format",
+                "latex",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     assert "\\begin{tabular}" in out.read_text()
     assert cli.main(["tables", "--table", "1", "--experiment", "mixed", "--tracking-uri", store]) == 2
     assert "--allow-mixed" in capsys.readouterr().err
     png = tmp_path / "f2.png"
-    assert cli.main(["figures", "fig2", "--experiment", "t1", "--tracking-uri", store,
-                     "--source", "recipe", "--out", str(png)]) == 2  # two datasets: pick one
+    assert (
+        cli.main(
+            ["figures", "fig2", "--experiment", "t1", "--tracking-uri", store, "--source", "recipe", "--out", str(png)]
+        )
+        == 2
+    )  # two datasets: pick one
     assert "--dataset" in capsys.readouterr().err
-    assert cli.main(["figures", "fig2", "--experiment", "t1", "--tracking-uri", store, "--source", "recipe",
-                     "--dataset", "hopper-medium-replay", "--out", str(png)]) == 0
+    assert (
+        cli.main(
+            [
+                "figures",
+                "fig2",
+                "--experiment",
+                "t1",
+                "--tracking-uri",
+                store,
+                "--source",
+                "recipe",
+                "--dataset",
+                "hopper-medium-replay",
+                "--out",
+                str(png),
+            ]
+        )
+        == 0
+    )
     assert png.exists()
     runs = tables.load_runs(store, ["t1"])
     with_png = runs.loc[(runs["method"] == "spot") & (runs["metrics.eval/score_final"] == 80.0), "run_id"].item()
@@ -369,13 +510,13 @@ def test_fig3_render(tmp_path):
         "runtime.configure()\n"
         "env = gym.make('Hopper-v5'); o, _ = env.reset(seed=0)\n"
         "o2 = o.copy(); o2[1] = -0.5\n"
-        f"figures.render_state_and_subgoal('hopper-medium-expert', o, o2, r'{tmp_path / 'fig3.png'}', width=96, height=96)\n"
+        f"figures.render_state_and_subgoal('hopper-medium-expert', o, o2, r'{tmp_path / 'fig3.png'}', "
+        "width=96, height=96)\n"
         "img = figures.render_observations('Hopper-v5', np.stack([o, o2]), width=64, height=64)\n"
         "assert img.shape == (2, 64, 64, 3) and not np.array_equal(img[0], img[1])\n"
     )
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env,
-                         cwd=ROOT)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env, cwd=ROOT)
     assert out.returncode == 0, out.stderr[-2000:]
     assert (tmp_path / "fig3.png").read_bytes()[:4] == b"\x89PNG"
 

@@ -46,10 +46,17 @@ def test_json_artifacts_are_strict_json(tmp_path):
     assert json.loads(got, parse_constant=refuse) == {"mean_error": [[0.5, None], [None, 1.0]]}
 
 
-@pytest.mark.parametrize("method, dropped", [
-    ("oracle", ("mr.", "pt.", "hpl.", "ipl.")), ("mr", ("pt.", "hpl.", "ipl.")), ("pt", ("mr.", "hpl.", "ipl.")),
-    ("spot", ("mr.", "hpl.", "ipl.")), ("ipl", ("mr.", "pt.", "hpl.")), ("hpl", ("mr.", "pt.", "ipl.")),
-])
+@pytest.mark.parametrize(
+    "method, dropped",
+    [
+        ("oracle", ("mr.", "pt.", "hpl.", "ipl.")),
+        ("mr", ("pt.", "hpl.", "ipl.")),
+        ("pt", ("mr.", "hpl.", "ipl.")),
+        ("spot", ("mr.", "hpl.", "ipl.")),
+        ("ipl", ("mr.", "pt.", "hpl.")),
+        ("hpl", ("mr.", "pt.", "ipl.")),
+    ],
+)
 def test_only_the_active_methods_params(method, dropped):
     cfg = config.load(None, [f"method={method}"])
     flat, active = config.to_flat(cfg), tracking.active_params(cfg)
@@ -57,11 +64,14 @@ def test_only_the_active_methods_params(method, dropped):
     assert active == {k: v for k, v in flat.items() if not k.startswith(dropped)}  # the rest, all of it
 
 
-@pytest.mark.parametrize("overrides", [
-    ["method=spot", "budget=tiny", "data.name=drawer-open", "seed=3", "iql.hidden=[8, 8]", "shaping.weight=0.5"],
-    ["method=oracle", "variant=authors", "labels.teacher=discounted", "eval.every=3000"],
-    ["method=hpl", "budget=small", "data.name=walker2d-medium-replay", "tracking.experiment=x"],
-])
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["method=spot", "budget=tiny", "data.name=drawer-open", "seed=3", "iql.hidden=[8, 8]", "shaping.weight=0.5"],
+        ["method=oracle", "variant=authors", "labels.teacher=discounted", "eval.every=3000"],
+        ["method=hpl", "budget=small", "data.name=walker2d-medium-replay", "tracking.experiment=x"],
+    ],
+)
 def test_reproduce_command_resolves_to_the_same_config(overrides):
     import shlex
 
@@ -91,8 +101,6 @@ def test_mlflow_tracker_batches_and_marks_failures(tmp_path):
     assert failed.info.status == "FAILED" and failed.data.tags["failure_reason"] == "RuntimeError: boom"
 
 
-
-
 # --------------------------------------------------------------------------- store and queries
 def test_resolve_uri_for_writing_and_reading(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -118,8 +126,10 @@ def test_quote_picks_the_quote_the_value_lacks():
     assert tracking.quote("ab") == "'ab'" and tracking.quote("it's") == '"it\'s"' and tracking.quote('a"b') == "'a\"b'"
     with pytest.raises(SpotError, match="both quote characters"):
         tracking.quote("'\"")
-    assert (tracking.tag_filter({"sweep_id": "s", "axis.data.name": "x"}, "RUNNING")
-            == "tags.`sweep_id` = 's' and tags.`axis.data.name` = 'x' and attributes.status = 'RUNNING'")
+    assert (
+        tracking.tag_filter({"sweep_id": "s", "axis.data.name": "x"}, "RUNNING")
+        == "tags.`sweep_id` = 's' and tags.`axis.data.name` = 'x' and attributes.status = 'RUNNING'"
+    )
 
 
 @pytest.fixture(scope="module")
@@ -132,8 +142,9 @@ def test_queries_page_find_finished_and_close_orphans(client, monkeypatch):
 
     e1, e2 = client.create_experiment("q1"), client.create_experiment("q2")
     ids = {}
-    for i, (exp, status) in enumerate([(e1, "FINISHED"), (e1, "RUNNING"), (e1, "RUNNING"), (e2, "FAILED"),
-                                       (e2, "RUNNING")]):
+    for i, (exp, status) in enumerate(
+        [(e1, "FINISHED"), (e1, "RUNNING"), (e1, "RUNNING"), (e2, "FAILED"), (e2, "RUNNING")]
+    ):
         run = client.create_run(exp, tags={"sweep_id": "it's", "n": str(i)})
         if status != "RUNNING":
             client.set_terminated(run.info.run_id, status)

@@ -110,9 +110,7 @@ def validate_raw(raw: RawDataset, where: str) -> None:
             )
     for key, rank in (("observations", 2), ("actions", 2), ("rewards", 1), ("terminals", 1), ("timeouts", 1)):
         if getattr(raw, key).ndim != rank:
-            raise SpotError(
-                f"{where}: '{key}' has shape {getattr(raw, key).shape}; expected rank {rank}"
-            )
+            raise SpotError(f"{where}: '{key}' has shape {getattr(raw, key).shape}; expected rank {rank}")
     if raw.next_observations is not None and raw.next_observations.shape != raw.observations.shape:
         raise SpotError(
             f"{where}: 'next_observations' has shape {raw.next_observations.shape}; expected "
@@ -123,9 +121,7 @@ def validate_raw(raw: RawDataset, where: str) -> None:
     for key, arr in raw.infos.items():
         if not isinstance(arr, np.ndarray) or arr.ndim < 1 or arr.shape[0] != n:
             shape = arr.shape if isinstance(arr, np.ndarray) else type(arr).__name__
-            raise SpotError(
-                f"{where}: 'infos/{key}' has shape {shape}; expected {n} rows like 'observations'"
-            )
+            raise SpotError(f"{where}: 'infos/{key}' has shape {shape}; expected {n} rows like 'observations'")
     for key in ("observations", "actions", "rewards", "next_observations"):
         arr = getattr(raw, key)
         if arr is not None:
@@ -178,8 +174,11 @@ class Dataset:
         raw row indices and each ``infos`` array, with their names, dtypes and shapes. What
         identifies the data in stage-cache keys; the name and metadata are not part of it."""
         h = hashlib.sha256()
-        arrays = [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)
-                  if isinstance(getattr(self, f.name), np.ndarray)]
+        arrays = [
+            (f.name, getattr(self, f.name))
+            for f in dataclasses.fields(self)
+            if isinstance(getattr(self, f.name), np.ndarray)
+        ]
         arrays += [(f"infos/{k}", np.asarray(v)) for k, v in sorted(self.infos.items())]
         for name, arr in arrays:
             h.update(f"|{name}|{arr.dtype.str}|{arr.shape}|".encode())
@@ -219,8 +218,9 @@ class Dataset:
         return ends - starts
 
     # ----------------------------------------------------------------- segments
-    def segment_index(self, starts: np.ndarray, length: int, *, allow_cross_episode: bool = True,
-                      what: str = "segment") -> np.ndarray:
+    def segment_index(
+        self, starts: np.ndarray, length: int, *, allow_cross_episode: bool = True, what: str = "segment"
+    ) -> np.ndarray:
         """Row indices ``[len(starts), length]`` of segments ``[start, start + length)``.
 
         Raises :class:`SpotError` if a segment runs past the end of the dataset, or crosses an
@@ -268,8 +268,9 @@ class Dataset:
         }
 
 
-def raw_from_episodes(episodes: list[dict[str, np.ndarray]], name: str,
-                      metadata: dict[str, Any] | None = None) -> RawDataset:
+def raw_from_episodes(
+    episodes: list[dict[str, np.ndarray]], name: str, metadata: dict[str, Any] | None = None
+) -> RawDataset:
     """Stack episodes into the raw D4RL layout.
 
     Each episode is a dict with ``observations [T, o]``, ``actions [T, a]``, ``rewards [T]``,

@@ -114,9 +114,14 @@ def _source(name: str, entry: Any, label: str) -> Source:
     files = entry.get("files")
     if not isinstance(files, list) or not files:
         raise SpotError(f"{where}: 'files' must be a non-empty list")
-    return Source(name, kind, str(entry.get("description", "")),
-                  tuple(_source_file(f, f"{where}, files[{i}]") for i, f in enumerate(files)),
-                  str(entry.get("labels", "")), str(entry.get("labels_for", "")))
+    return Source(
+        name,
+        kind,
+        str(entry.get("description", "")),
+        tuple(_source_file(f, f"{where}, files[{i}]") for i, f in enumerate(files)),
+        str(entry.get("labels", "")),
+        str(entry.get("labels_for", "")),
+    )
 
 
 def _source_file(f: Any, where: str) -> SourceFile:
@@ -126,8 +131,11 @@ def _source_file(f: Any, where: str) -> SourceFile:
     if not isinstance(path, str) or not path or Path(path).is_absolute() or ".." in Path(path).parts:
         raise SpotError(f"{where}: 'path' is {path!r}; expected a relative path inside the destination")
     urls = f.get("urls")
-    if not isinstance(urls, list) or not urls or not all(
-            isinstance(u, str) and u.startswith(("http://", "https://")) for u in urls):
+    if (
+        not isinstance(urls, list)
+        or not urls
+        or not all(isinstance(u, str) and u.startswith(("http://", "https://")) for u in urls)
+    ):
         raise SpotError(f"{where}: 'urls' must be a non-empty list of http(s) URLs")
     trust = f.get("trust")
     if trust not in TRUST:
@@ -161,8 +169,9 @@ def resolve(name: str, sources: dict[str, Source]) -> Source:
 
     close = difflib.get_close_matches(name, list(sources), n=3, cutoff=0.5)
     hint = f"; did you mean {', '.join(close)}?" if close else ""
-    raise SpotError(f"unknown fetch name '{name}'{hint} (`spot data fetch --list` shows them; "
-                    "Minari datasets: minari:<dataset id>)")
+    raise SpotError(
+        f"unknown fetch name '{name}'{hint} (`spot data fetch --list` shows them; Minari datasets: minari:<dataset id>)"
+    )
 
 
 def default_dest() -> Path:
@@ -176,8 +185,10 @@ def default_lock() -> Path:
 
 
 # --------------------------------------------------------------------------- lock file (TOFU)
-_LOCK_ABOUT = ("Trust-on-first-use checksums recorded by `spot data fetch` for files without a "
-               "published checksum. Commit this file: later downloads must match it.")
+_LOCK_ABOUT = (
+    "Trust-on-first-use checksums recorded by `spot data fetch` for files without a "
+    "published checksum. Commit this file: later downloads must match it."
+)
 
 
 def read_lock(path: Path) -> dict[str, dict[str, Any]]:
@@ -199,8 +210,7 @@ def _record_lock(path: Path, key: str, record: dict[str, Any]) -> None:
         files = read_lock(path)
         files[key] = record
         tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-        tmp.write_text(json.dumps({"about": _LOCK_ABOUT, "files": dict(sorted(files.items()))},
-                                  indent=2) + "\n")
+        tmp.write_text(json.dumps({"about": _LOCK_ABOUT, "files": dict(sorted(files.items()))}, indent=2) + "\n")
         os.replace(tmp, path)
 
 
@@ -247,8 +257,9 @@ def verify_fetched(path: str | Path) -> bool:
             record = json.loads(side.read_text())
             want_sha, want_size = str(record["sha256"]), int(record["size"])
         except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
-            raise SpotError(f"fetch sidecar '{side}' is unreadable ({err}); delete '{target}' and "
-                            "its sidecar and fetch it again") from None
+            raise SpotError(
+                f"fetch sidecar '{side}' is unreadable ({err}); delete '{target}' and its sidecar and fetch it again"
+            ) from None
         if not target.is_file():
             raise SpotError(f"fetched file '{target}' is missing (its sidecar '{side}' exists)")
         size = target.stat().st_size
@@ -286,10 +297,18 @@ class _Mismatch(Exception):
     """A URL served something that failed verification (deleted; try the next URL)."""
 
 
-def fetch(name: str, dest: str | Path | None = None, *, mirrors: Sequence[str] = (),
-          registry: str | Path | None = None, lock: str | Path | None = None,
-          progress: bool = True, retries: int = 3, timeout: float = 60.0,
-          backoff: float = 1.0) -> FetchResult:
+def fetch(
+    name: str,
+    dest: str | Path | None = None,
+    *,
+    mirrors: Sequence[str] = (),
+    registry: str | Path | None = None,
+    lock: str | Path | None = None,
+    progress: bool = True,
+    retries: int = 3,
+    timeout: float = 60.0,
+    backoff: float = 1.0,
+) -> FetchResult:
     """Download every file of a registered source into ``dest``, verified.
 
     Args:
@@ -309,8 +328,7 @@ def fetch(name: str, dest: str | Path | None = None, *, mirrors: Sequence[str] =
     lock_path = Path(lock).expanduser() if lock else default_lock()
     result = FetchResult(source, lock=lock_path)
     for sf in source.files:
-        result.files.append(_fetch_file(source, sf, dest, lock_path, mirrors, progress,
-                                        retries, timeout, backoff))
+        result.files.append(_fetch_file(source, sf, dest, lock_path, mirrors, progress, retries, timeout, backoff))
     return result
 
 
@@ -318,9 +336,17 @@ def _lock_key(source: Source, sf: SourceFile) -> str:
     return f"{source.name}:{sf.path}"
 
 
-def _fetch_file(source: Source, sf: SourceFile, dest: Path, lock_path: Path,
-                mirrors: Sequence[str], progress: bool, retries: int, timeout: float,
-                backoff: float) -> FileResult:
+def _fetch_file(
+    source: Source,
+    sf: SourceFile,
+    dest: Path,
+    lock_path: Path,
+    mirrors: Sequence[str],
+    progress: bool,
+    retries: int,
+    timeout: float,
+    backoff: float,
+) -> FileResult:
     final = dest / sf.path
     key = _lock_key(source, sf)
     sha, size, pinned_by = sf.sha256, sf.size, sf.trust
@@ -346,8 +372,9 @@ def _fetch_file(source: Source, sf: SourceFile, dest: Path, lock_path: Path,
                 if size is not None and got_size != size:
                     raise _Mismatch(f"got {got_size} bytes; expected {size}")
                 if sha is not None and got_sha != sha:
-                    raise _Mismatch(f"sha256 mismatch: expected {sha}, got {got_sha} "
-                                    f"(expected sum from: {_trust_words(pinned_by)})")
+                    raise _Mismatch(
+                        f"sha256 mismatch: expected {sha}, got {got_sha} (expected sum from: {_trust_words(pinned_by)})"
+                    )
             except _Mismatch as err:
                 part.unlink(missing_ok=True)
                 failures.append(f"{url}: {err}")
@@ -357,11 +384,13 @@ def _fetch_file(source: Source, sf: SourceFile, dest: Path, lock_path: Path,
                 continue
             status = "downloaded"
             if sha is None:  # TOFU, first use: record what was verified against nothing but size
-                _record_lock(lock_path, key, {"sha256": got_sha, "size": got_size, "url": url,
-                                              "recorded": _now(), "trust": "tofu"})
+                _record_lock(
+                    lock_path,
+                    key,
+                    {"sha256": got_sha, "size": got_size, "url": url, "recorded": _now(), "trust": "tofu"},
+                )
                 status = "recorded"
-            _write_sidecar(final, source, sf, got_sha, got_size, url,
-                           "tofu" if sf.trust == "tofu" else sf.trust)
+            _write_sidecar(final, source, sf, got_sha, got_size, url, "tofu" if sf.trust == "tofu" else sf.trust)
             os.replace(part, final)
             return FileResult(final, got_sha, got_size, sf.trust, url, status)
         raise SpotError(
@@ -383,11 +412,17 @@ def _now() -> str:
     return datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
 
 
-def _write_sidecar(final: Path, source: Source, sf: SourceFile, sha: str, size: int, url: str,
-                   trust: str) -> None:
+def _write_sidecar(final: Path, source: Source, sf: SourceFile, sha: str, size: int, url: str, trust: str) -> None:
     side = sidecar_path(final)
-    record = {"source": source.name, "path": sf.path, "sha256": sha, "size": size,
-              "trust": trust, "url": url, "verified": _now()}
+    record = {
+        "source": source.name,
+        "path": sf.path,
+        "sha256": sha,
+        "size": size,
+        "trust": trust,
+        "url": url,
+        "verified": _now(),
+    }
     tmp = side.with_name(f"{side.name}.tmp-{os.getpid()}")
     tmp.write_text(json.dumps(record, indent=2) + "\n")
     os.replace(tmp, side)
@@ -397,8 +432,9 @@ class _Unreachable(Exception):
     """A URL could not deliver the file (HTTP error, connection failures past the retries)."""
 
 
-def _download(url: str, part: Path, size: int | None, progress: bool, retries: int,
-              timeout: float, backoff: float) -> tuple[str, int]:
+def _download(
+    url: str, part: Path, size: int | None, progress: bool, retries: int, timeout: float, backoff: float
+) -> tuple[str, int]:
     """Download ``url`` into ``part``, resuming what it holds; return (sha256, size).
 
     Raises ``_Unreachable`` for HTTP errors and connections that keep failing (the partial file
@@ -436,22 +472,29 @@ def _download(url: str, part: Path, size: int | None, progress: bool, retries: i
                 if r.status_code == 200 and have:
                     mode, have = "wb", 0  # the server ignored the Range header: start over
                 elif r.status_code == 206 and not _range_starts_at(r, have):
-                    raise _Unreachable(f"server answered Range bytes={have}- with "
-                                       f"'{r.headers.get('Content-Range')}'")
-                bar = tqdm(total=size or total, initial=have, unit="B", unit_scale=True,
-                           unit_divisor=1024, desc=part.name[: -len(PART_SUFFIX)],
-                           disable=not progress, leave=False)
+                    raise _Unreachable(f"server answered Range bytes={have}- with '{r.headers.get('Content-Range')}'")
+                bar = tqdm(
+                    total=size or total,
+                    initial=have,
+                    unit="B",
+                    unit_scale=True,
+                    unit_divisor=1024,
+                    desc=part.name[: -len(PART_SUFFIX)],
+                    disable=not progress,
+                    leave=False,
+                )
                 with bar, open(part, mode) as fh:
                     for chunk in r.iter_content(_NET_CHUNK):
                         fh.write(chunk)
                         bar.update(len(chunk))
             break
-        except (requests.ConnectionError, requests.Timeout,
-                requests.exceptions.ChunkedEncodingError) as err:
+        except (requests.ConnectionError, requests.Timeout, requests.exceptions.ChunkedEncodingError) as err:
             attempt += 1
             if attempt > retries:
-                raise _Unreachable(f"connection failed {attempt} times ({type(err).__name__}: "
-                                   f"{err}); the partial download is kept for a resume") from None
+                raise _Unreachable(
+                    f"connection failed {attempt} times ({type(err).__name__}: "
+                    f"{err}); the partial download is kept for a resume"
+                ) from None
             time.sleep(backoff * 2 ** (attempt - 1))
     got = part.stat().st_size
     if announced is not None and got != announced:
@@ -477,8 +520,7 @@ def _range_starts_at(r: Any, have: int) -> bool:
 
 
 # --------------------------------------------------------------------------- Minari
-def fetch_minari(dataset_id: str, *, lock: str | Path | None = None,
-                 force: bool = False) -> tuple[Path, str, str]:
+def fetch_minari(dataset_id: str, *, lock: str | Path | None = None, force: bool = False) -> tuple[Path, str, str]:
     """Download a Minari dataset with Minari's own API and check it against the lock file.
 
     Minari publishes no checksums: the first fetch records the digest of the dataset folder
@@ -489,13 +531,16 @@ def fetch_minari(dataset_id: str, *, lock: str | Path | None = None,
         import minari
         from minari.storage import get_dataset_path
     except ImportError:
-        raise SpotError("fetching Minari datasets needs the optional 'minari' extra: "
-                        "pip install 'spot-pbrl[minari]'") from None
+        raise SpotError(
+            "fetching Minari datasets needs the optional 'minari' extra: pip install 'spot-pbrl[minari]'"
+        ) from None
     try:
         minari.download_dataset(dataset_id, force_download=force)
     except ImportError as err:
-        raise SpotError(f"Minari download of '{dataset_id}' needs a package that is missing "
-                        f"({err}); pip install 'spot-pbrl[minari]'") from None
+        raise SpotError(
+            f"Minari download of '{dataset_id}' needs a package that is missing "
+            f"({err}); pip install 'spot-pbrl[minari]'"
+        ) from None
     except Exception as err:  # noqa: BLE001 - minari raises ValueError, HTTP and OS errors
         raise SpotError(f"Minari could not download '{dataset_id}': {type(err).__name__}: {err}") from None
     folder = Path(get_dataset_path(dataset_id))
@@ -504,8 +549,7 @@ def fetch_minari(dataset_id: str, *, lock: str | Path | None = None,
     key = MINARI_PREFIX + dataset_id
     recorded = read_lock(lock_path).get(key)
     if recorded is None:
-        _record_lock(lock_path, key, {"sha256": digest, "folder_digest": True,
-                                      "recorded": _now(), "trust": "tofu"})
+        _record_lock(lock_path, key, {"sha256": digest, "folder_digest": True, "recorded": _now(), "trust": "tofu"})
         return folder, digest, "recorded"
     if recorded.get("sha256") != digest:
         raise SpotError(
@@ -517,8 +561,7 @@ def fetch_minari(dataset_id: str, *, lock: str | Path | None = None,
 
 def tree_digest(folder: Path) -> str:
     """sha256 over ``<relative path> <sha256>`` lines of every file under ``folder``, sorted."""
-    lines = [f"{p.relative_to(folder).as_posix()} {sha256_file(p)}\n"
-             for p in sorted(folder.rglob("*")) if p.is_file()]
+    lines = [f"{p.relative_to(folder).as_posix()} {sha256_file(p)}\n" for p in sorted(folder.rglob("*")) if p.is_file()]
     if not lines:
         raise SpotError(f"Minari dataset folder '{folder}' holds no files")
     return hashlib.sha256("".join(lines).encode()).hexdigest()

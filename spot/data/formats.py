@@ -77,9 +77,7 @@ def _array(group: h5py.Group, key: str, path: Path, rank: int | None = None) -> 
     if not (np.issubdtype(node.dtype, np.number) or node.dtype == np.bool_):
         raise SpotError(f"dataset file '{path}': '{where}' has dtype {node.dtype}; expected numbers")
     if rank is not None and node.ndim != rank:
-        raise SpotError(
-            f"dataset file '{path}': '{where}' has shape {node.shape}; expected rank {rank}"
-        )
+        raise SpotError(f"dataset file '{path}': '{where}' has shape {node.shape}; expected rank {rank}")
     return node[()]
 
 
@@ -125,6 +123,7 @@ def _d4rl_metadata(f: h5py.File, path: Path) -> dict[str, Any]:
             meta[name] = _plain(value)
     group = f.get("metadata")
     if isinstance(group, h5py.Group):
+
         def visit(name: str, node: Any) -> None:
             if isinstance(node, h5py.Dataset) and (node.ndim == 0 or node.dtype.kind in "SOU"):
                 meta[name] = _plain(node[()])
@@ -170,9 +169,14 @@ def _d4rl_infos(f: h5py.File, n: int, path: Path) -> dict[str, np.ndarray]:
     group = f.get("infos")
     if not isinstance(group, h5py.Group):
         return {}
-    return {key: _array(group, key, path) for key, node in group.items()
-            if isinstance(node, h5py.Dataset) and node.ndim >= 1 and node.shape[0] == n
-            and (np.issubdtype(node.dtype, np.number) or node.dtype == np.bool_)}
+    return {
+        key: _array(group, key, path)
+        for key, node in group.items()
+        if isinstance(node, h5py.Dataset)
+        and node.ndim >= 1
+        and node.shape[0] == n
+        and (np.issubdtype(node.dtype, np.number) or node.dtype == np.bool_)
+    }
 
 
 def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | None = None) -> None:
@@ -234,8 +238,9 @@ def robomimic_object_order(env_args: dict[str, Any], path: str | Path = "") -> n
     return None if (int(match[1]), int(match[2])) >= (1, 5) else _CAN_OBJECT_TO_V15
 
 
-def _concat_obs(group: h5py.Group, keys: tuple[str, ...], path: Path,
-                object_order: np.ndarray | None = None) -> np.ndarray:
+def _concat_obs(
+    group: h5py.Group, keys: tuple[str, ...], path: Path, object_order: np.ndarray | None = None
+) -> np.ndarray:
     parts = []
     for k in keys:
         part = _array(group, k, path)
@@ -299,13 +304,20 @@ def read_robomimic_hdf5(path: str | Path, obs_keys: tuple[str, ...] | None = Non
         timeouts=cat["timeouts"],
         next_observations=cat["next_observations"].astype(np.float32) if with_next else None,
         name=path.stem,
-        metadata={"format": "robomimic", "env_name": env_name, "env_args": env_args,
-                  "obs_keys": list(keys), "demos": len(demos), "object_reordered": order is not None},
+        metadata={
+            "format": "robomimic",
+            "env_name": env_name,
+            "env_args": env_args,
+            "obs_keys": list(keys),
+            "demos": len(demos),
+            "object_reordered": order is not None,
+        },
     )
 
 
-def _robomimic_demo(demo: h5py.Group, keys: tuple[str, ...], with_next: bool, path: Path,
-                    object_order: np.ndarray | None) -> dict[str, np.ndarray]:
+def _robomimic_demo(
+    demo: h5py.Group, keys: tuple[str, ...], with_next: bool, path: Path, object_order: np.ndarray | None
+) -> dict[str, np.ndarray]:
     if not isinstance(demo.get("obs"), h5py.Group):
         raise SpotError(f"dataset file '{path}': missing group '{demo.name.lstrip('/')}/obs'")
     ep = {
@@ -353,8 +365,7 @@ def read_minari(dataset_id_or_path: str | Path) -> RawDataset:
         import minari
     except ImportError:
         raise SpotError(
-            "reading Minari datasets needs the optional 'minari' package: "
-            "pip install 'spot-pbrl[minari]'"
+            "reading Minari datasets needs the optional 'minari' package: pip install 'spot-pbrl[minari]'"
         ) from None
     source = str(dataset_id_or_path)
     folder = Path(dataset_id_or_path)
@@ -365,12 +376,11 @@ def read_minari(dataset_id_or_path: str | Path) -> RawDataset:
             dataset = minari.load_dataset(source)
     except (FileNotFoundError, ValueError, KeyError) as err:
         expected = (
-            "a Minari dataset folder (with data/metadata.json)" if folder.is_dir() else
-            f"a dataset id under MINARI_DATASETS_PATH (download it with `minari download {source}`)"
+            "a Minari dataset folder (with data/metadata.json)"
+            if folder.is_dir()
+            else f"a dataset id under MINARI_DATASETS_PATH (download it with `minari download {source}`)"
         )
-        raise SpotError(
-            f"Minari dataset '{source}' could not be loaded ({err}); expected {expected}"
-        ) from None
+        raise SpotError(f"Minari dataset '{source}' could not be loaded ({err}); expected {expected}") from None
     episodes = []
     for ep in dataset.iterate_episodes():
         steps = len(ep)
@@ -379,18 +389,21 @@ def read_minari(dataset_id_or_path: str | Path) -> RawDataset:
         timeouts = np.asarray(ep.truncations, bool).copy()
         terminals = np.asarray(ep.terminations, bool)
         timeouts[-1] |= not terminals[-1]
-        episodes.append({
-            "observations": obs[:-1], "next_observations": obs[1:],
-            "actions": _flat(ep.actions, steps, f"{where}, actions"),
-            "rewards": np.asarray(ep.rewards, np.float32), "terminals": terminals,
-            "timeouts": timeouts,
-        })
+        episodes.append(
+            {
+                "observations": obs[:-1],
+                "next_observations": obs[1:],
+                "actions": _flat(ep.actions, steps, f"{where}, actions"),
+                "rewards": np.asarray(ep.rewards, np.float32),
+                "terminals": terminals,
+                "timeouts": timeouts,
+            }
+        )
     if not episodes:
         raise SpotError(f"Minari dataset '{source}' has no episodes")
     cat = {k: np.concatenate([ep[k] for ep in episodes]) for k in episodes[0]}
     try:
-        return RawDataset(**cat, name=dataset.id,
-                          metadata={"format": "minari", "minari_id": dataset.id})
+        return RawDataset(**cat, name=dataset.id, metadata={"format": "minari", "minari_id": dataset.id})
     except SpotError as err:
         raise SpotError(f"Minari dataset '{source}': {err}") from None
 

@@ -62,24 +62,18 @@ class Preferences:
         q = arrays["labels"].shape
         for key, arr in arrays.items():
             if arr.ndim != 1 or arr.shape != q:
-                raise SpotError(
-                    f"preferences '{self.source}': '{key}' has shape {arr.shape}; expected {q}"
-                )
+                raise SpotError(f"preferences '{self.source}': '{key}' has shape {arr.shape}; expected {q}")
         for key in ("starts_1", "starts_2"):
             if arrays[key].size and arrays[key].dtype.kind not in "iu":
                 raise SpotError(
-                    f"preferences '{self.source}': '{key}' has dtype {arrays[key].dtype}; "
-                    "expected integers"
+                    f"preferences '{self.source}': '{key}' has dtype {arrays[key].dtype}; expected integers"
                 )
         if not np.isin(arrays["labels"], (0.0, 0.5, 1.0)).all():
             raise SpotError(
-                f"preferences '{self.source}': labels {np.unique(arrays['labels'])}; expected "
-                "values in {0, 0.5, 1}"
+                f"preferences '{self.source}': labels {np.unique(arrays['labels'])}; expected values in {{0, 0.5, 1}}"
             )
         if self.segment_length < 1:
-            raise SpotError(
-                f"preferences '{self.source}': segment_length {self.segment_length}; expected >= 1"
-            )
+            raise SpotError(f"preferences '{self.source}': segment_length {self.segment_length}; expected >= 1")
         object.__setattr__(self, "starts_1", arrays["starts_1"].astype(np.int64))
         object.__setattr__(self, "starts_2", arrays["starts_2"].astype(np.int64))
         object.__setattr__(self, "labels", arrays["labels"].astype(np.float32))
@@ -102,8 +96,12 @@ class Preferences:
         try:
             with open(tmp, "wb") as fh:
                 np.savez(
-                    fh, starts_1=self.starts_1, starts_2=self.starts_2, labels=self.labels,
-                    segment_length=np.int64(self.segment_length), source=np.str_(self.source),
+                    fh,
+                    starts_1=self.starts_1,
+                    starts_2=self.starts_2,
+                    labels=self.labels,
+                    segment_length=np.int64(self.segment_length),
+                    source=np.str_(self.source),
                 )
             os.replace(tmp, path)
         except BaseException:
@@ -129,15 +127,21 @@ class Preferences:
         if missing:
             raise SpotError(f"preference file '{path}': missing keys {missing}; found {sorted(fields)}")
         try:
-            return cls(fields["starts_1"], fields["starts_2"], fields["labels"],
-                       int(fields["segment_length"]), str(fields["source"]))
+            return cls(
+                fields["starts_1"],
+                fields["starts_2"],
+                fields["labels"],
+                int(fields["segment_length"]),
+                str(fields["source"]),
+            )
         except SpotError as err:
             raise SpotError(f"preference file '{path}': {err}") from None
 
 
 # --------------------------------------------------------------------------- scripted teacher
-def _sample_starts(ds: Dataset, num: int, length: int, allow_cross_episode: bool,
-                   rng: np.random.Generator) -> np.ndarray:
+def _sample_starts(
+    ds: Dataset, num: int, length: int, allow_cross_episode: bool, rng: np.random.Generator
+) -> np.ndarray:
     """``num`` segment starts drawn uniformly from every start whose segment fits.
 
     Every valid start is equally likely (PT's sampler instead picks a trajectory first, which
@@ -146,8 +150,7 @@ def _sample_starts(ds: Dataset, num: int, length: int, allow_cross_episode: bool
     if allow_cross_episode:
         if len(ds) < length:
             raise SpotError(
-                f"dataset '{ds.name}' has {len(ds)} transitions; expected at least "
-                f"segment_length = {length}"
+                f"dataset '{ds.name}' has {len(ds)} transitions; expected at least segment_length = {length}"
             )
         return rng.integers(0, len(ds) - length + 1, size=num)
     starts, ends = ds.episode_bounds()
@@ -192,9 +195,19 @@ def score_rewards(ds: Dataset, score: str) -> np.ndarray:
     return dense
 
 
-def scripted_teacher(ds: Dataset, num_queries: int, segment_length: int, *, teacher: str = "sum",
-                     discount: float = 0.99, tie_threshold: float = -1.0, mistake_rate: float = 0.0,
-                     allow_cross_episode: bool = False, seed: int = 0, score: str = "reward") -> Preferences:
+def scripted_teacher(
+    ds: Dataset,
+    num_queries: int,
+    segment_length: int,
+    *,
+    teacher: str = "sum",
+    discount: float = 0.99,
+    tie_threshold: float = -1.0,
+    mistake_rate: float = 0.0,
+    allow_cross_episode: bool = False,
+    seed: int = 0,
+    score: str = "reward",
+) -> Preferences:
     """Label random segment pairs by comparing their true-reward scores.
 
     Args:
@@ -216,15 +229,11 @@ def scripted_teacher(ds: Dataset, num_queries: int, segment_length: int, *, teac
       ``Preferences`` with ``source="script"``.
     """
     if num_queries < 1 or segment_length < 1:
-        raise SpotError(
-            f"num_queries {num_queries} and segment_length {segment_length}; expected both >= 1"
-        )
+        raise SpotError(f"num_queries {num_queries} and segment_length {segment_length}; expected both >= 1")
     if teacher not in TEACHERS:
         raise SpotError(f"unknown teacher '{teacher}'; expected one of {', '.join(TEACHERS)}")
     if not 0.0 <= discount <= 1.0 or not 0.0 <= mistake_rate <= 1.0:
-        raise SpotError(
-            f"discount {discount} and mistake_rate {mistake_rate}; expected both in [0, 1]"
-        )
+        raise SpotError(f"discount {discount} and mistake_rate {mistake_rate}; expected both in [0, 1]")
     rewards = score_rewards(ds, score)
     rng = np.random.default_rng(seed)
     starts_1 = _sample_starts(ds, num_queries, segment_length, allow_cross_episode, rng)
@@ -284,9 +293,7 @@ def _unpickle_ints(path: Path) -> np.ndarray:
     elif isinstance(value, list):
         integers = all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in value)
     else:
-        raise SpotError(
-            f"label file '{path}' holds a {type(value).__name__}; expected a list or numpy array"
-        )
+        raise SpotError(f"label file '{path}' holds a {type(value).__name__}; expected a list or numpy array")
     if not integers:
         raise SpotError(f"label file '{path}' holds other values; expected a 1-D sequence of integers")
     return np.asarray(value, dtype=np.int64)
@@ -298,8 +305,7 @@ def _find(folder: Path, pattern: str) -> tuple[Path, re.Match]:
     found = [(name, m) for name in names if (m := re.fullmatch(pattern, name))]
     if len(found) != 1:
         raise SpotError(
-            f"label folder '{folder}': {len(found)} files match '{pattern}'; expected exactly one "
-            f"(files: {names})"
+            f"label folder '{folder}': {len(found)} files match '{pattern}'; expected exactly one (files: {names})"
         )
     return folder / found[0][0], found[0][1]
 
@@ -335,32 +341,28 @@ def read_pt_labels(folder: str | Path, num_queries: int | None = None) -> Prefer
         )
     starts_1, starts_2, raw_labels = (_unpickle_ints(p) for p in (path_1, path_2, path_y))
     if starts_1.size != starts_2.size:
-        raise SpotError(
-            f"label file '{path_2}' has {starts_2.size} entries but '{path_1}' has {starts_1.size}"
-        )
+        raise SpotError(f"label file '{path_2}' has {starts_2.size} entries but '{path_1}' has {starts_1.size}")
     if raw_labels.size > starts_1.size:
         raise SpotError(
-            f"label file '{path_y}' has {raw_labels.size} labels but '{path_1}' only "
-            f"{starts_1.size} index entries"
+            f"label file '{path_y}' has {raw_labels.size} labels but '{path_1}' only {starts_1.size} index entries"
         )
     if not np.isin(raw_labels, (0, 1, -1)).all():
-        raise SpotError(
-            f"label file '{path_y}' has values {sorted(set(raw_labels.tolist()))}; expected 0, 1, -1"
-        )
+        raise SpotError(f"label file '{path_y}' has values {sorted(set(raw_labels.tolist()))}; expected 0, 1, -1")
     for path, starts in ((path_1, starts_1), (path_2, starts_2)):
         if (starts < 0).any():
             raise SpotError(f"label file '{path}' has negative start indices")
     n = raw_labels.size
     num = n if num_queries is None else num_queries
     if not 1 <= num <= n:
-        raise SpotError(
-            f"label folder '{folder}': num_queries {num}; expected 1..{n} (labels in the file)"
-        )
+        raise SpotError(f"label folder '{folder}': num_queries {num}; expected 1..{n} (labels in the file)")
     query_range = np.arange(n - num, n)
     labels = np.where(raw_labels == -1, 0.5, raw_labels).astype(np.float32)
     return Preferences(
-        starts_1[query_range], starts_2[query_range], labels[query_range],
-        int(m_1.group(1) or PT_DEFAULT_SEGMENT_LENGTH), str(folder),
+        starts_1[query_range],
+        starts_2[query_range],
+        labels[query_range],
+        int(m_1.group(1) or PT_DEFAULT_SEGMENT_LENGTH),
+        str(folder),
     )
 
 
@@ -373,8 +375,9 @@ def check_against(prefs: Preferences, ds: Dataset, allow_cross_episode: bool = T
     """
     for which, starts in (("1", prefs.starts_1), ("2", prefs.starts_2)):
         try:
-            ds.segment_index(starts, prefs.segment_length, allow_cross_episode=allow_cross_episode,
-                             what=f"segment {which} of query")
+            ds.segment_index(
+                starts, prefs.segment_length, allow_cross_episode=allow_cross_episode, what=f"segment {which} of query"
+            )
         except SpotError as err:
             raise SpotError(f"labels '{prefs.source}': {err}") from None
 
@@ -414,8 +417,6 @@ def split_eval(prefs: Preferences, fraction: float, seed: int) -> tuple[Preferen
     if fraction > 0:
         n_eval = max(n_eval, 1)
     if n_eval >= len(prefs):
-        raise SpotError(
-            f"eval fraction {fraction} of {len(prefs)} queries leaves none for training"
-        )
+        raise SpotError(f"eval fraction {fraction} of {len(prefs)} queries leaves none for training")
     perm = np.random.default_rng(seed).permutation(len(prefs))
     return prefs.subset(np.sort(perm[n_eval:])), prefs.subset(np.sort(perm[:n_eval]))

@@ -109,8 +109,7 @@ def _lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True,
-          force: bool = False) -> Path:
+def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True, force: bool = False) -> Path:
     """Build a registered dataset with its local recipe (once) and return the file path.
 
     A cached build is reused unless ``force`` or its card's ``recipe_version`` differs from the
@@ -130,8 +129,10 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
             if version is None or built == version:
                 return path
             if progress:
-                print(f"spot: {path.name} was built by recipe version {built}; rebuilding with "
-                      f"version {version}", file=sys.stderr)
+                print(
+                    f"spot: {path.name} was built by recipe version {built}; rebuilding with version {version}",
+                    file=sys.stderr,
+                )
         raw, card = recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
         card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
         if version is not None:
@@ -150,8 +151,9 @@ def read_card(path: Path) -> dict[str, Any]:
     return {}
 
 
-def load_raw(name: str, size: str = "small", seed: int = 0, *, source: str = "auto",
-             progress: bool = True) -> tuple[RawDataset, dict[str, Any]]:
+def load_raw(
+    name: str, size: str = "small", seed: int = 0, *, source: str = "auto", progress: bool = True
+) -> tuple[RawDataset, dict[str, Any]]:
     """A registered name (built if missing) or a file path -> (raw dataset, card)."""
     from spot.data import formats
 
@@ -163,8 +165,12 @@ def load_raw(name: str, size: str = "small", seed: int = 0, *, source: str = "au
 
         verify_fetched(as_path)  # a file from `spot data fetch`: recheck its size and sha256
         raw = formats.load_dataset_file(as_path)
-        card = {"name": as_path.stem, "source": "file", "path": str(as_path.resolve()),
-                **raw.metadata.get("spot_card", {})}
+        card = {
+            "name": as_path.stem,
+            "source": "file",
+            "path": str(as_path.resolve()),
+            **raw.metadata.get("spot_card", {}),
+        }
         card["source"] = "file"
         return raw, card
     path = build(name, size, seed, progress=progress)
@@ -172,8 +178,9 @@ def load_raw(name: str, size: str = "small", seed: int = 0, *, source: str = "au
     return raw, read_card(path)
 
 
-def load(name: str, size: str = "small", seed: int = 0, *, source: str = "auto",
-         progress: bool = True) -> tuple[Dataset, dict[str, Any]]:
+def load(
+    name: str, size: str = "small", seed: int = 0, *, source: str = "auto", progress: bool = True
+) -> tuple[Dataset, dict[str, Any]]:
     """Like :func:`load_raw` but returns the ``qlearning_dataset`` view."""
     raw, card = load_raw(name, size, seed, source=source, progress=progress)
     ds = raw.qlearning()

@@ -99,8 +99,10 @@ def feedback_from(batch: Mapping[str, np.ndarray], where: str = "IPL feedback") 
     for s in ("1", "2"):
         obs, act = np.shape(batch[f"obs_{s}"]), np.shape(batch[f"act_{s}"])
         if len(obs) != 3 or len(act) != 3 or obs[:2] != (q, t) or act[:2] != (q, t):
-            raise SpotError(f"{where}: segment {s} has obs {obs} and act {act}; expected "
-                            f"[{q}, {t}, obs_dim] and [{q}, {t}, act_dim]")
+            raise SpotError(
+                f"{where}: segment {s} has obs {obs} and act {act}; expected "
+                f"[{q}, {t}, obs_dim] and [{q}, {t}, act_dim]"
+            )
         if f"mask_{s}" in batch and not np.all(np.asarray(batch[f"mask_{s}"]) == 1):
             raise SpotError(f"{where}: segment {s} has padded steps (mask_{s} = 0); IPL needs whole segments")
     if t < 2:
@@ -116,8 +118,7 @@ def target_clip_bound(discount: float, chi2_coeff: float) -> float:
     return 1.0 / (chi2_coeff * (1.0 - discount))
 
 
-def mix(loss_1: jax.Array, loss_2: jax.Array, loss_replay: jax.Array | None,
-        replay_weight: float) -> jax.Array:
+def mix(loss_1: jax.Array, loss_2: jax.Array, loss_replay: jax.Array | None, replay_weight: float) -> jax.Array:
     """``(1 - w) 1/2 (mean loss_1 + mean loss_2) + w mean loss_replay``; without replay the
     feedback term alone (the mean over both segments, which have equal sizes)."""
     feedback = 0.5 * (loss_1.mean() + loss_2.mean())
@@ -142,11 +143,13 @@ def preference_loss(r_1: jax.Array, r_2: jax.Array, label: jax.Array) -> jax.Arr
     return optax.sigmoid_binary_cross_entropy(logits, jnp.broadcast_to(label, logits.shape)).mean()
 
 
-def chi2_loss(r_1: jax.Array, r_2: jax.Array, r_replay: jax.Array | None, coeff: float,
-              replay_weight: float) -> jax.Array:
+def chi2_loss(
+    r_1: jax.Array, r_2: jax.Array, r_replay: jax.Array | None, coeff: float, replay_weight: float
+) -> jax.Array:
     """``c mix_w(r^2)``: the chi^2 regulariser on implicit rewards of both segments and replay."""
-    return coeff * mix(jnp.square(r_1), jnp.square(r_2), None if r_replay is None else jnp.square(r_replay),
-                       replay_weight)
+    return coeff * mix(
+        jnp.square(r_1), jnp.square(r_2), None if r_replay is None else jnp.square(r_replay), replay_weight
+    )
 
 
 def _accuracy(logits: jax.Array, label: jax.Array) -> jax.Array:
@@ -158,6 +161,7 @@ def _accuracy(logits: jax.Array, label: jax.Array) -> jax.Array:
 
 def _transitions(fb: FeedbackPairs) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Both segments as flat transitions ``[2 B (S-1), dim]``: segment 1's rows, then segment 2's."""
+
     def flat(x: jax.Array) -> jax.Array:
         return x.reshape(-1, x.shape[-1])  # shape is (B * (S - 1), dim)
 
@@ -181,17 +185,20 @@ def init_state(key: jax.Array, obs_dim: int, act_dim: int, iql_cfg: IQLConfig) -
     return iql.init_state(key, obs_dim, act_dim, iql_cfg, optimizers=_optimizers(iql_cfg))
 
 
-def _update_rows(fb: FeedbackPairs, replay: Transitions | None, gamma: float,
-                 use_replay: bool) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+def _update_rows(
+    fb: FeedbackPairs, replay: Transitions | None, gamma: float, use_replay: bool
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
     """The rows one update trains on: ``obs, act, next_obs, discount``, segment 1's transitions,
     then segment 2's (discount ``gamma``, no terminals inside segments), then the replay rows
     (``gamma * mask``) when ``use_replay``."""
     if fb.obs_1.ndim != 3 or fb.obs_1.shape != fb.obs_2.shape or fb.label.shape != fb.obs_1.shape[:1]:
-        raise ValueError(f"expected obs_1, obs_2 [B, S, o] and label [B], got {fb.obs_1.shape}, "
-                         f"{fb.obs_2.shape}, {fb.label.shape}")
+        raise ValueError(
+            f"expected obs_1, obs_2 [B, S, o] and label [B], got {fb.obs_1.shape}, {fb.obs_2.shape}, {fb.label.shape}"
+        )
     if use_replay and (replay is None or replay.obs.ndim != 2 or replay.obs.shape[1] != fb.obs_1.shape[2]):
-        raise ValueError(f"use_replay needs replay obs [R, {fb.obs_1.shape[2]}], got "
-                         f"{None if replay is None else replay.obs.shape}")
+        raise ValueError(
+            f"use_replay needs replay obs [R, {fb.obs_1.shape[2]}], got {None if replay is None else replay.obs.shape}"
+        )
     obs, act, next_obs = _transitions(fb)
     discount = jnp.full((obs.shape[0],), gamma, jnp.float32)
     if use_replay:
@@ -202,8 +209,15 @@ def _update_rows(fb: FeedbackPairs, replay: Transitions | None, gamma: float,
     return obs, act, next_obs, discount
 
 
-def _critic_objective(q: jax.Array, discount: jax.Array, next_v: jax.Array, split: Callable, label: jax.Array,
-                      segments: tuple[int, int], ipl_cfg: IPLConfig) -> tuple[jax.Array, dict[str, jax.Array]]:
+def _critic_objective(
+    q: jax.Array,
+    discount: jax.Array,
+    next_v: jax.Array,
+    split: Callable,
+    label: jax.Array,
+    segments: tuple[int, int],
+    ipl_cfg: IPLConfig,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
     """``L_pref + L_chi2`` of the critics' outputs ``q [n_critics, N]`` (module docstring, step 2),
     with the implicit reward ``q - discount * next_v``; ``segments = (B, S - 1)``."""
     reward = q - discount * next_v
@@ -214,9 +228,13 @@ def _critic_objective(q: jax.Array, discount: jax.Array, next_v: jax.Array, spli
     chi2 = chi2_loss(r_1, r_2, r_replay, ipl_cfg.chi2_coeff, ipl_cfg.chi2_replay_weight)
     logits = (r_2.sum(axis=-1) - r_1.sum(axis=-1)).mean(axis=0)
     info = {
-        "ipl/pref_loss": pref, "ipl/chi2_loss": chi2, "ipl/critic_loss": pref + chi2,
-        "ipl/pref_acc": _accuracy(logits, label), "ipl/q_mean": q.mean(),
-        "ipl/reward_mean": reward.mean(), "ipl/reward_std": reward.std(),
+        "ipl/pref_loss": pref,
+        "ipl/chi2_loss": chi2,
+        "ipl/critic_loss": pref + chi2,
+        "ipl/pref_acc": _accuracy(logits, label),
+        "ipl/q_mean": q.mean(),
+        "ipl/reward_mean": reward.mean(),
+        "ipl/reward_std": reward.std(),
         "ipl/reward_feedback_mean": 0.5 * (r_1.mean() + r_2.mean()),
     }
     if r_replay is not None:
@@ -224,8 +242,9 @@ def _critic_objective(q: jax.Array, discount: jax.Array, next_v: jax.Array, spli
     return pref + chi2, info
 
 
-def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_cfg: IQLConfig,
-           ipl_cfg: IPLConfig) -> tuple[IQLState, dict[str, jax.Array]]:
+def update(
+    state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_cfg: IQLConfig, ipl_cfg: IPLConfig
+) -> tuple[IQLState, dict[str, jax.Array]]:
     """One IPL-IQL update (value, critics, actor, target), pure.
 
     Args:
@@ -247,7 +266,7 @@ def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_c
 
     def split(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array | None]:
         """Last axis -> (segment 1, segment 2, replay or None)."""
-        return x[..., :n_fb], x[..., n_fb:2 * n_fb], x[..., 2 * n_fb:] if use_replay else None
+        return x[..., :n_fb], x[..., n_fb : 2 * n_fb], x[..., 2 * n_fb :] if use_replay else None
 
     # Target critics once: the value loss and the actor's advantages both use min_i Qbar_i(s, a).
     target_q = jnp.min(state.critic.apply_fn(state.target_critic_params, obs, act), axis=0)
@@ -290,9 +309,13 @@ def update(state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_c
     target_params = optax.incremental_update(critic.params, state.target_critic_params, iql_cfg.tau)
 
     metrics = {
-        **value_info, **critic_info, **actor_info,
-        "ipl/adv_mean": adv.mean(), "ipl/awr_weight_mean": weights.mean(),
-        "ipl/awr_clip_frac": jnp.mean(weights >= iql.AWR_WEIGHT_MAX), "ipl/next_v_clip_frac": clip_frac,
+        **value_info,
+        **critic_info,
+        **actor_info,
+        "ipl/adv_mean": adv.mean(),
+        "ipl/awr_weight_mean": weights.mean(),
+        "ipl/awr_clip_frac": jnp.mean(weights >= iql.AWR_WEIGHT_MAX),
+        "ipl/next_v_clip_frac": clip_frac,
     }
     return IQLState(actor, critic, value, target_params, state.step + 1), metrics
 
@@ -322,8 +345,9 @@ def sampled_update(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tupl
     (:func:`sample_feedback`) and, with replay, ``iql_cfg.batch_size`` dataset rows, both drawn from
     ``fold_in(key, state.step)``."""
 
-    def step(state: IQLState, replay_data: Transitions | None, feedback: FeedbackPairs,
-             key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
+    def step(
+        state: IQLState, replay_data: Transitions | None, feedback: FeedbackPairs, key: jax.Array
+    ) -> tuple[IQLState, dict[str, jax.Array]]:
         if ipl_cfg.use_replay and replay_data is None:
             raise SpotError("ipl.use_replay is on but no replay data was given")
         fb_key, replay_key = jax.random.split(jax.random.fold_in(key, state.step))
@@ -349,8 +373,9 @@ def make_train_chunk(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tu
 
 
 @functools.partial(jax.jit, static_argnames=("iql_cfg", "ipl_cfg"))
-def implied_reward(state: IQLState, obs: jax.Array, act: jax.Array, next_obs: jax.Array,
-                   iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> jax.Array:
+def implied_reward(
+    state: IQLState, obs: jax.Array, act: jax.Array, next_obs: jax.Array, iql_cfg: IQLConfig, ipl_cfg: IPLConfig
+) -> jax.Array:
     """Implicit reward ``mean_i Q_i(s, a) - gamma V(s')`` (``V`` clipped as in training, no
     terminal), shape ``[...]`` for inputs ``[..., dim]``."""
     q = state.critic.apply_fn(state.critic.params, obs, act).mean(axis=0)
@@ -361,17 +386,20 @@ def implied_reward(state: IQLState, obs: jax.Array, act: jax.Array, next_obs: ja
     return q - iql_cfg.discount * next_v
 
 
-def segment_returns(state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLConfig,
-                    ipl_cfg: IPLConfig) -> tuple[jax.Array, jax.Array]:
+def segment_returns(
+    state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLConfig, ipl_cfg: IPLConfig
+) -> tuple[jax.Array, jax.Array]:
     """Implicit returns ``sum_t r(s_t, a_t, s_{t+1})`` of whole segments, ``([Q], [Q])``."""
+
     def ret(obs: jax.Array, act: jax.Array) -> jax.Array:
         return implied_reward(state, obs[:, :-1], act[:, :-1], obs[:, 1:], iql_cfg, ipl_cfg).sum(axis=-1)
 
     return ret(feedback.obs_1, feedback.act_1), ret(feedback.obs_2, feedback.act_2)
 
 
-def evaluate_preferences(state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLConfig,
-                         ipl_cfg: IPLConfig) -> dict[str, float]:
+def evaluate_preferences(
+    state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLConfig, ipl_cfg: IPLConfig
+) -> dict[str, float]:
     """Held-out ``ipl/eval_pref_loss`` and ``ipl/eval_pref_acc`` (non-tie pairs) on whole
     segments, from the ensemble-mean implicit reward."""
     ret_1, ret_2 = segment_returns(state, feedback, iql_cfg, ipl_cfg)
@@ -380,9 +408,14 @@ def evaluate_preferences(state: IQLState, feedback: FeedbackPairs, iql_cfg: IQLC
     return {"ipl/eval_pref_loss": float(loss), "ipl/eval_pref_acc": float(_accuracy(logits, feedback.label))}
 
 
-def train_ipl(key: jax.Array, data: Transitions | None, feedback: FeedbackPairs, iql_cfg: IQLConfig,
-              ipl_cfg: IPLConfig, on_chunk: Callable[[int, IQLState, dict], Any] | None = None,
-              ) -> tuple[IQLState, list[dict[str, float]]]:
+def train_ipl(
+    key: jax.Array,
+    data: Transitions | None,
+    feedback: FeedbackPairs,
+    iql_cfg: IQLConfig,
+    ipl_cfg: IPLConfig,
+    on_chunk: Callable[[int, IQLState, dict], Any] | None = None,
+) -> tuple[IQLState, list[dict[str, float]]]:
     """Train IPL for exactly ``iql_cfg.steps`` updates in chunks of ``iql_cfg.chunk``.
 
     Args:
@@ -399,6 +432,12 @@ def train_ipl(key: jax.Array, data: Transitions | None, feedback: FeedbackPairs,
     init_key, train_key = jax.random.split(key)
     state = init_state(init_key, feedback.obs_1.shape[-1], feedback.act_1.shape[-1], iql_cfg)
     callback = None if on_chunk is None else (lambda row, st: on_chunk(row["step"], st, row))
-    out = loop.run(make_train_chunk(iql_cfg, ipl_cfg), state, (data, feedback, train_key), steps=iql_cfg.steps,
-                   length=iql_cfg.chunk, on_chunk=callback)
+    out = loop.run(
+        make_train_chunk(iql_cfg, ipl_cfg),
+        state,
+        (data, feedback, train_key),
+        steps=iql_cfg.steps,
+        length=iql_cfg.chunk,
+        on_chunk=callback,
+    )
     return out.state, out.rows

@@ -27,7 +27,8 @@ same model the policies are evaluated in.
 
 Sizes (per env): ``tiny`` for tests (3k SAC steps with 32x32 nets, 2k-row datasets; seconds),
 ``small`` (80k SAC steps with 128x128 nets, 100k-row datasets; minutes on 2 CPU cores),
-``paper`` (D4RL: SAC with the paper's settings until the expert level, 1M-row datasets). The same seed gives the same arrays on the same
+``paper`` (D4RL: SAC with the paper's settings until the expert level, 1M-row datasets). The same seed gives the same
+arrays on the same
 machine: environments are reset with derived seeds, and every random draw comes from a jax key
 or a numpy generator made from the seed.
 """
@@ -93,18 +94,36 @@ PAPER_STOP = {"hopper": (3000.0, 2_000_000), "walker2d": (4000.0, 3_000_000)}
 
 SIZES: dict[str, SizeSpec] = {
     "tiny": SizeSpec(
-        sac.SACConfig(hidden_dims=(32, 32), batch_size=64, total_steps=3000, start_steps=1000,
-                      update_every=500, eval_every=500, eval_episodes=2),
-        transitions=2000, checkpoint_every=1000,
+        sac.SACConfig(
+            hidden_dims=(32, 32),
+            batch_size=64,
+            total_steps=3000,
+            start_steps=1000,
+            update_every=500,
+            eval_every=500,
+            eval_episodes=2,
+        ),
+        transitions=2000,
+        checkpoint_every=1000,
     ),
     # 128x128 nets, batch 128 and lr 1e-3 learn Hopper faster per CPU second than the paper's
     # 256x256 / 256 / 3e-4: on 2 busy shared cores, 80k steps took ~7 min and reached an eval
     # return of ~820, where the paper's settings reached ~700 after 60k steps in 10 min.
     "small": SizeSpec(
-        sac.SACConfig(hidden_dims=(128, 128), batch_size=128, actor_lr=1e-3, critic_lr=1e-3,
-                      temperature_lr=1e-3, total_steps=80_000, start_steps=5000, update_every=1000,
-                      eval_every=2000, eval_episodes=5),
-        transitions=100_000, checkpoint_every=20_000,
+        sac.SACConfig(
+            hidden_dims=(128, 128),
+            batch_size=128,
+            actor_lr=1e-3,
+            critic_lr=1e-3,
+            temperature_lr=1e-3,
+            total_steps=80_000,
+            start_steps=5000,
+            update_every=1000,
+            eval_every=2000,
+            eval_episodes=5,
+        ),
+        transitions=100_000,
+        checkpoint_every=20_000,
     ),
     "paper": SizeSpec(sac.SACConfig(), transitions=1_000_000, stop=PAPER_STOP, checkpoint_every=50_000),
 }
@@ -134,18 +153,29 @@ def sac_cache_path(cache_dir: Path, env: str, size: str, seed: int) -> Path:
     Its checkpoint, while it trains, is the same name with the suffix ``.ckpt``.
     """
     env_id = ENV_IDS[env]
-    deps = {"recipe_version": RECIPE_VERSION, "env_id": env_id, "seed": seed,
-            "model": envs.LOCOMOTION_MODELS.get(env), "sac": dataclasses.asdict(SIZES[size].sac_config(env)),
-            "versions": _versions()}
+    deps = {
+        "recipe_version": RECIPE_VERSION,
+        "env_id": env_id,
+        "seed": seed,
+        "model": envs.LOCOMOTION_MODELS.get(env),
+        "sac": dataclasses.asdict(SIZES[size].sac_config(env)),
+        "versions": _versions(),
+    }
     digest = hashlib.sha256(json.dumps(deps, sort_keys=True).encode()).hexdigest()[:12]
     return Path(cache_dir) / "sac" / f"{env_id}__{size}__seed{seed}__{digest}.msgpack"
 
 
 def _save(result: sac.SACResult, path: Path) -> None:
     payload = {
-        "snapshots": {str(i): {"step": s.step, "eval_return": s.eval_return,
-                               "eval_return_std": s.eval_return_std, "actor_params": s.actor_params}
-                      for i, s in enumerate(result.snapshots)},
+        "snapshots": {
+            str(i): {
+                "step": s.step,
+                "eval_return": s.eval_return,
+                "eval_return_std": s.eval_return_std,
+                "actor_params": s.actor_params,
+            }
+            for i, s in enumerate(result.snapshots)
+        },
         "replay": result.replay,
         "timing": result.timing,
         "resumed_from": np.asarray(result.resumed_from, np.int64),
@@ -161,15 +191,24 @@ def _save(result: sac.SACResult, path: Path) -> None:
 def _load(path: Path, env_id: str, seed: int, cfg: sac.SACConfig) -> sac.SACResult:
     payload = serialization.msgpack_restore(path.read_bytes())
     snaps = [payload["snapshots"][str(i)] for i in range(len(payload["snapshots"]))]
-    snapshots = [sac.Snapshot(int(s["step"]), float(s["eval_return"]), float(s["eval_return_std"]),
-                              s["actor_params"]) for s in snaps]
-    return sac.SACResult(env_id, seed, cfg, snapshots, dict(payload["replay"]),
-                         {k: float(v) for k, v in payload["timing"].items()},
-                         tuple(int(x) for x in payload["resumed_from"]))
+    snapshots = [
+        sac.Snapshot(int(s["step"]), float(s["eval_return"]), float(s["eval_return_std"]), s["actor_params"])
+        for s in snaps
+    ]
+    return sac.SACResult(
+        env_id,
+        seed,
+        cfg,
+        snapshots,
+        dict(payload["replay"]),
+        {k: float(v) for k, v in payload["timing"].items()},
+        tuple(int(x) for x in payload["resumed_from"]),
+    )
 
 
-def train_or_load_sac(env: str, size: str, seed: int, cache_dir: Path,
-                      progress: bool = True) -> tuple[sac.SACResult, bool]:
+def train_or_load_sac(
+    env: str, size: str, seed: int, cache_dir: Path, progress: bool = True
+) -> tuple[sac.SACResult, bool]:
     """The SAC run of ``(env, size, seed)``: from the cache if there, else trained and cached.
 
     Returns the result and whether it came from the cache. A file lock makes concurrent builds
@@ -186,12 +225,17 @@ def train_or_load_sac(env: str, size: str, seed: int, cache_dir: Path,
                 return _load(path, env_id, seed, cfg), True
             checkpoint = path.with_suffix(".ckpt")
             if progress and checkpoint.exists():
-                print(f"spot: resuming SAC {env_id} ({size}, seed {seed}) from {checkpoint}",
-                      file=sys.stderr)
-            result = sac.train_sac(env_id, cfg, seed, on_eval=_print_eval(env_id) if progress else None,
-                                   progress=progress, checkpoint=checkpoint,
-                                   checkpoint_every=SIZES[size].checkpoint_every,
-                                   make_kwargs=_make_kwargs(env))
+                print(f"spot: resuming SAC {env_id} ({size}, seed {seed}) from {checkpoint}", file=sys.stderr)
+            result = sac.train_sac(
+                env_id,
+                cfg,
+                seed,
+                on_eval=_print_eval(env_id) if progress else None,
+                progress=progress,
+                checkpoint=checkpoint,
+                checkpoint_every=SIZES[size].checkpoint_every,
+                make_kwargs=_make_kwargs(env),
+            )
             _save(result, path)
             checkpoint.unlink(missing_ok=True)
             return result, False
@@ -203,9 +247,12 @@ def _print_eval(env_id: str):
     start = time.perf_counter()
 
     def on_eval(step: int, metrics: dict[str, float]) -> None:
-        print(f"spot: SAC {env_id} step {step}: eval return {metrics['eval/return_mean']:.1f} "
-              f"± {metrics['eval/return_std']:.1f} ({time.perf_counter() - start:.0f} s this session)",
-              file=sys.stderr, flush=True)
+        print(
+            f"spot: SAC {env_id} step {step}: eval return {metrics['eval/return_mean']:.1f} "
+            f"± {metrics['eval/return_std']:.1f} ({time.perf_counter() - start:.0f} s this session)",
+            file=sys.stderr,
+            flush=True,
+        )
 
     return on_eval
 
@@ -217,8 +264,9 @@ def pick_medium(snapshots: list[sac.Snapshot], fraction: float) -> sac.Snapshot:
     return next(s for s in snapshots if s.eval_return >= threshold)
 
 
-def _rollouts(env_name: str, params: Any, cfg: sac.SACConfig, transitions: int, seed: int, tag: int,
-              desc: str, progress: bool) -> list[dict[str, np.ndarray]]:
+def _rollouts(
+    env_name: str, params: Any, cfg: sac.SACConfig, transitions: int, seed: int, tag: int, desc: str, progress: bool
+) -> list[dict[str, np.ndarray]]:
     """Stochastic-policy episodes until exactly ``transitions`` rows (the last cut, as a timeout)."""
     env = sac.make_env(ENV_IDS[env_name], cfg, **_make_kwargs(env_name))
     key = jax.random.fold_in(jax.random.key(seed), tag)
@@ -227,8 +275,9 @@ def _rollouts(env_name: str, params: Any, cfg: sac.SACConfig, transitions: int, 
     total = 0
     with tqdm(total=transitions, desc=desc, unit="step", disable=not progress) as bar:
         while total < transitions:
-            ep = sac.run_episode(env, params, jax.random.fold_in(key, len(episodes)), False, cfg,
-                                 seed=env_seed if not episodes else None)
+            ep = sac.run_episode(
+                env, params, jax.random.fold_in(key, len(episodes)), False, cfg, seed=env_seed if not episodes else None
+            )
             keep = min(len(ep["rewards"]), transitions - total)
             if keep < len(ep["rewards"]):
                 ep = {k: v[:keep] for k, v in ep.items()}
@@ -250,8 +299,7 @@ def _replay_episodes(replay: dict[str, np.ndarray], end: int) -> list[dict[str, 
     return [{k: replay[k][a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def build(name: str, size: str, seed: int, cache_dir: Path,
-          progress: bool = True) -> tuple[RawDataset, dict[str, Any]]:
+def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = True) -> tuple[RawDataset, dict[str, Any]]:
     """Build a D4RL-style locomotion dataset in the real simulator.
 
     Args:
@@ -273,9 +321,12 @@ def build(name: str, size: str, seed: int, cache_dir: Path,
     expert = result.snapshots[-1]
     medium = pick_medium(result.snapshots, spec.medium_fraction)
     if progress and result.target_reached is False:
-        print(f"spot: warning: SAC {ENV_IDS[env]} stopped at its cap of {result.config.total_steps} "
-              f"steps with eval return {expert.eval_return:.0f}, below the target "
-              f"{result.config.target_return:.0f}", file=sys.stderr)
+        print(
+            f"spot: warning: SAC {ENV_IDS[env]} stopped at its cap of {result.config.total_steps} "
+            f"steps with eval return {expert.eval_return:.0f}, below the target "
+            f"{result.config.target_return:.0f}",
+            file=sys.stderr,
+        )
 
     episodes: list[dict[str, np.ndarray]] = []
     episode_kind: list[str] = []
@@ -284,8 +335,16 @@ def build(name: str, size: str, seed: int, cache_dir: Path,
         episode_kind = ["replay"] * len(episodes)
     for part, snap in (("medium", medium), ("expert", expert)):
         if kind in (part, "medium-expert"):
-            eps = _rollouts(env, snap.actor_params, result.config, spec.transitions, seed,
-                            _ROLLOUT_TAGS[part], f"{name} ({size}): {part} rollouts", progress)
+            eps = _rollouts(
+                env,
+                snap.actor_params,
+                result.config,
+                spec.transitions,
+                seed,
+                _ROLLOUT_TAGS[part],
+                f"{name} ({size}): {part} rollouts",
+                progress,
+            )
             episodes += eps
             episode_kind += [part] * len(eps)
 
@@ -303,8 +362,16 @@ def normalized(env: str, returns: Any) -> Any:
     return 100.0 * (np.asarray(returns, np.float64) - lo) / (hi - lo)
 
 
-def make_card(name: str, size: str, seed: int, raw: RawDataset, episodes: list[dict[str, np.ndarray]],
-              result: sac.SACResult, medium: sac.Snapshot, medium_fraction: float) -> dict[str, Any]:
+def make_card(
+    name: str,
+    size: str,
+    seed: int,
+    raw: RawDataset,
+    episodes: list[dict[str, np.ndarray]],
+    result: sac.SACResult,
+    medium: sac.Snapshot,
+    medium_fraction: float,
+) -> dict[str, Any]:
     """The data card: layout, episode returns (raw and D4RL-normalised), the behaviour policies'
     evaluation returns and normalised scores beside D4RL's references, and SAC's length, time and
     memory. ``build`` adds ``sac_cache_hit``, ``build_time_s`` and ``peak_rss_mb`` (the build
@@ -327,9 +394,13 @@ def make_card(name: str, size: str, seed: int, raw: RawDataset, episodes: list[d
         "obs_dim": int(raw.observations.shape[1]),
         "act_dim": int(raw.actions.shape[1]),
         "terminal_episodes": int(raw.terminals.sum()),
-        "return": {"mean": float(returns.mean()), "std": float(returns.std()),
-                   "min": float(returns.min()), "max": float(returns.max()),
-                   "normalized_mean": round(float(normalized(env, returns).mean()), 2)},
+        "return": {
+            "mean": float(returns.mean()),
+            "std": float(returns.std()),
+            "min": float(returns.min()),
+            "max": float(returns.max()),
+            "normalized_mean": round(float(normalized(env, returns).mean()), 2),
+        },
         "episode_length_mean": float(lengths.mean()),
         "behaviour": {
             "rollout_policy": "stochastic",
@@ -342,14 +413,22 @@ def make_card(name: str, size: str, seed: int, raw: RawDataset, episodes: list[d
             "expert_normalized": round(float(normalized(env, expert.eval_return)), 2),
             "target_return": cfg.target_return,
             "target_reached": result.target_reached,
-            "d4rl_reference": {"random_return": lo, "expert_return": hi,
-                               "source": "d4rl/infos.py REF_MIN_SCORE / REF_MAX_SCORE"},
+            "d4rl_reference": {
+                "random_return": lo,
+                "expert_return": hi,
+                "source": "d4rl/infos.py REF_MIN_SCORE / REF_MAX_SCORE",
+            },
             "eval_episodes": cfg.eval_episodes,
             "eval_curve": [[s.step, round(s.eval_return, 1)] for s in result.snapshots],
         },
-        "sac": {"steps": expert.step, "step_cap": cfg.total_steps, "hidden_dims": list(cfg.hidden_dims),
-                "batch_size": cfg.batch_size, "train_time_s": round(result.timing["total"], 1),
-                "peak_rss_mb": round(result.timing.get("peak_rss_mb", 0.0), 1),
-                "resumed_from": list(result.resumed_from)},
+        "sac": {
+            "steps": expert.step,
+            "step_cap": cfg.total_steps,
+            "hidden_dims": list(cfg.hidden_dims),
+            "batch_size": cfg.batch_size,
+            "train_time_s": round(result.timing["total"], 1),
+            "peak_rss_mb": round(result.timing.get("peak_rss_mb", 0.0), 1),
+            "resumed_from": list(result.resumed_from),
+        },
         "versions": _versions(),
     }

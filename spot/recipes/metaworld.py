@@ -52,8 +52,9 @@ SUCCESS_STEPS = 25  # an episode ends at its 25th successful step (IPL)
 ACTION_BOUND = 1.0 - 1e-5
 
 
-def _episode(env: Any, policy_env: Any | None, policy: Any | None, epsilon: float,
-             rng: np.random.Generator) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def _episode(
+    env: Any, policy_env: Any | None, policy: Any | None, epsilon: float, rng: np.random.Generator
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """One episode in ``env``; ``policy`` observes ``policy_env`` (or ``env`` when it is None).
 
     ``policy=None`` takes uniform random actions. Returns the episode in the
@@ -84,8 +85,9 @@ def _episode(env: Any, policy_env: Any | None, policy: Any | None, epsilon: floa
     return episode, np.asarray(successes)
 
 
-def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = True,
-          epsilon: float = 1.0) -> tuple[RawDataset, dict[str, Any]]:
+def build(
+    name: str, size: str, seed: int, cache_dir: Path, progress: bool = True, epsilon: float = 1.0
+) -> tuple[RawDataset, dict[str, Any]]:
     """Build the IPL Meta-World dataset for task ``name`` (e.g. ``"drawer-open"``).
 
     Args:
@@ -147,8 +149,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         e.close()
 
     first_success = [int(np.argmax(s)) if s.any() else -1 for s in successes]
-    raw = raw_from_episodes(episodes, name=f"{name}-{size}",
-                            metadata={"episode_kind": kinds, "episode_first_success": first_success})
+    raw = raw_from_episodes(
+        episodes, name=f"{name}-{size}", metadata={"episode_kind": kinds, "episode_first_success": first_success}
+    )
     returns = np.array([ep["rewards"].sum() for ep in episodes])
     lengths = np.array([len(ep["rewards"]) for ep in episodes])
     ever = np.array([s.any() for s in successes])
@@ -178,7 +181,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "success_rate_per_kind": {k: float(ever[kind_arr == k].mean()) for k in KINDS},
         "cross_tasks": cross_tasks,
         "build_time_s": round(time.perf_counter() - start, 2),
-        "versions": {"spot": spot.__version__,
-                     **{p: version(p) for p in ("metaworld", "mujoco", "gymnasium", "numpy")}},
+        "versions": {
+            "spot": spot.__version__,
+            **{p: version(p) for p in ("metaworld", "mujoco", "gymnasium", "numpy")},
+        },
     }
     return raw, card

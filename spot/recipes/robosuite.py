@@ -90,9 +90,21 @@ class Operator:
     max_fumbles: int  # the attempt is abandoned at the next fumble (missed grasp or drop)
 
 
-PROFICIENT = Operator("ph", "proficient", noise=0.03, rot_noise=0.01, noise_corr=0.5, gain=12.0,
-                      speed=1.0, jitter=0.002, tol=0.01, pause_prob=0.0, pause_steps=(1, 2),
-                      grip_steps=8, max_fumbles=3)
+PROFICIENT = Operator(
+    "ph",
+    "proficient",
+    noise=0.03,
+    rot_noise=0.01,
+    noise_corr=0.5,
+    gain=12.0,
+    speed=1.0,
+    jitter=0.002,
+    tol=0.01,
+    pause_prob=0.0,
+    pause_steps=(1, 2),
+    grip_steps=8,
+    max_fumbles=3,
+)
 MH_OPERATORS = (
     Operator("better_operator_1", "better", 0.08, 0.03, 0.7, 12.0, 1.0, 0.004, 0.010, 0.005, (3, 8), 8, 3),
     Operator("better_operator_2", "better", 0.10, 0.03, 0.7, 9.0, 0.8, 0.005, 0.012, 0.010, (3, 8), 9, 3),
@@ -121,8 +133,12 @@ def _obs_layout(task: str) -> dict[str, slice]:
     n_obj = {"lift": 10, "can": 14}[task]
     obj_pos = slice(0, 3) if task == "lift" else slice(7, 10)  # cube_pos | Can_pos
     eef = n_obj + 28  # after object and joint pos/cos/sin/vel (7 each)
-    return {"object_pos": obj_pos, "eef_pos": slice(eef, eef + 3),
-            "eef_quat": slice(eef + 3, eef + 7), "gripper_qpos": slice(eef + 7, eef + 9)}
+    return {
+        "object_pos": obj_pos,
+        "eef_pos": slice(eef, eef + 3),
+        "eef_quat": slice(eef + 3, eef + 7),
+        "gripper_qpos": slice(eef + 7, eef + 9),
+    }
 
 
 def _rotation_error(quat: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -140,8 +156,9 @@ def _rotation_error(quat: np.ndarray, ref: np.ndarray) -> np.ndarray:
 class _Script:
     """One operator's phase machine for one episode (host-side, stateful by nature)."""
 
-    def __init__(self, task: str, op: Operator, rng: np.random.Generator, place_xy: np.ndarray | None,
-                 obs0: np.ndarray) -> None:
+    def __init__(
+        self, task: str, op: Operator, rng: np.random.Generator, place_xy: np.ndarray | None, obs0: np.ndarray
+    ) -> None:
         self.task, self.op, self.rng, self.place_xy = task, op, rng, place_xy
         self.idx = _obs_layout(task)
         self.ref_quat = obs0[self.idx["eef_quat"]].copy()
@@ -288,8 +305,10 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     del cache_dir
     task, _, kind = name.partition("-")
     if task not in TASKS or kind not in ("ph", "mh"):
-        raise SpotError(f"unknown robosuite dataset '{name}'; expected one of "
-                        f"{', '.join(f'{t}-{k}' for t in TASKS for k in ('ph', 'mh'))}")
+        raise SpotError(
+            f"unknown robosuite dataset '{name}'; expected one of "
+            f"{', '.join(f'{t}-{k}' for t in TASKS for k in ('ph', 'mh'))}"
+        )
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}' for dataset '{name}'; expected one of {', '.join(SIZES)}")
     start = time.perf_counter()
@@ -307,8 +326,10 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
             done = 0
             while done < n:
                 if attempts[op.name] >= MAX_ATTEMPTS_FACTOR * n:
-                    raise SpotError(f"robosuite recipe '{name}': operator {op.name} succeeded {done} "
-                                    f"times in {attempts[op.name]} attempts; expected {n}")
+                    raise SpotError(
+                        f"robosuite recipe '{name}': operator {op.name} succeeded {done} "
+                        f"times in {attempts[op.name]} attempts; expected {n}"
+                    )
                 ep, success, fumbled = run_episode(env, task, op, rng)
                 attempts[op.name] += 1
                 if not success:
@@ -324,8 +345,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         bar.close()
         env.close()
 
-    raw = raw_from_episodes(episodes, name=f"{name}-{size}",
-                            metadata={"episode_operator": op_names, "episode_skill": skills})
+    raw = raw_from_episodes(
+        episodes, name=f"{name}-{size}", metadata={"episode_operator": op_names, "episode_skill": skills}
+    )
     lengths = np.array([len(ep["rewards"]) for ep in episodes])
     dense_returns = np.array([ep["infos"][DENSE_REWARD_KEY].sum() for ep in episodes], dtype=np.float64)
     names, skill_arr, fumbles = np.array(op_names), np.array(skills), np.array(fumbles)
@@ -350,25 +372,25 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
         "successful_only": True,
         "recipe_version": RECIPE_VERSION,
         "rewards": "sparse: 1 at the success step (the last of each demo), else 0",
-        "infos": {DENSE_REWARD_KEY: "robosuite's staged reward (reward_shaping=True) of each step's "
-                                    "next state, in [0, 1]; 1 at success"},
+        "infos": {
+            DENSE_REWARD_KEY: "robosuite's staged reward (reward_shaping=True) of each step's "
+            "next state, in [0, 1]; 1 at success"
+        },
         "dense_reward_return": stats(dense_returns),
         "operators": [asdict(o) for o in ops],
         "episodes_per_operator": {o.name: int((names == o.name).sum()) for o in ops},
         "attempts_per_operator": attempts,
-        "success_rate_per_operator": {o.name: float((names == o.name).sum() / attempts[o.name])
-                                      for o in ops},
+        "success_rate_per_operator": {o.name: float((names == o.name).sum() / attempts[o.name]) for o in ops},
         "failures_per_operator": failures,
         "success_rate_per_skill": {
-            s: float((skill_arr == s).sum() / sum(attempts[o.name] for o in ops if o.skill == s))
-            for s in levels},
+            s: float((skill_arr == s).sum() / sum(attempts[o.name] for o in ops if o.skill == s)) for s in levels
+        },
         "success_rate": float(len(episodes) / sum(attempts.values())),
         "episode_length": stats(lengths),
         "episode_length_per_operator": {o.name: float(lengths[names == o.name].mean()) for o in ops},
         "episode_length_per_skill": {s: float(lengths[skill_arr == s].mean()) for s in levels},
         "fumbles_per_demo_per_operator": {o.name: float(fumbles[names == o.name].mean()) for o in ops},
         "build_time_s": round(time.perf_counter() - start, 2),
-        "versions": {"spot": spot.__version__,
-                     **{p: version(p) for p in ("robosuite", "mujoco", "numpy")}},
+        "versions": {"spot": spot.__version__, **{p: version(p) for p in ("robosuite", "mujoco", "numpy")}},
     }
     return raw, card

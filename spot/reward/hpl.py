@@ -26,7 +26,8 @@ Relabelling: r_hat(s, a) = (1/N) sum_i r(s, a, z_i), z_i ~ p(z | s, a), N = ``pr
 
 Reference facts followed [typoverflow/WiseRL : wiserl/algorithm/hpl/hpl.py] (reference/algorithms.md
 §4; the networks' are listed in :mod:`spot.reward.hpl_nets`): the decoder gets the clipped D;
-reconstruction ``sum(-1).mean()``; KL balancing with detached logits; posterior z sampled for the reward loss (``stoc_encoding`` default); logit = difference of *summed* rewards, ``BCEWithLogits``
+reconstruction ``sum(-1).mean()``; KL balancing with detached logits; posterior z sampled for the reward loss
+(``stoc_encoding`` default); logit = difference of *summed* rewards, ``BCEWithLogits``
 with y in {0, 0.5, 1}; Huber(delta = 1) of the prior-latent reward toward 0 on the extra batch
 repeated ``prior_sample`` times (skipped when reg_coef = 0); Adam(lr) for every net; no gradient clipping.
 
@@ -130,8 +131,9 @@ def sample_segments(key: jax.Array, data: Unlabelled, batch: int, length: int) -
     return x, valid.astype(jnp.float32)
 
 
-def vae_objective(params: Params, cfg: HPLConfig, x: jax.Array, valid: jax.Array,
-                  key: jax.Array) -> tuple[jax.Array, dict]:
+def vae_objective(
+    params: Params, cfg: HPLConfig, x: jax.Array, valid: jax.Array, key: jax.Array
+) -> tuple[jax.Array, dict]:
     """The VAE loss of segments ``x [B, T, D]`` (module docstring), with dropout and sampled z, D."""
     enc_key, z_key, delta_key = jax.random.split(key, 3)
     logits_q = encode(params, cfg, x, valid, enc_key)
@@ -139,8 +141,9 @@ def vae_objective(params: Params, cfg: HPLConfig, x: jax.Array, valid: jax.Array
     target_idx, delta = decoder_targets(delta_key, valid, cfg.future_len)
     target = jnp.take_along_axis(x, target_idx[..., None], axis=1)
     pred = Decoder(cfg, x.shape[-1]).apply(params["decoder"], x, z.reshape(*z.shape[:-2], -1), delta)
-    return vae_loss(pred, target, logits_q, prior_logits(params, cfg, x), valid,
-                    kl_coef=cfg.kl_coef, kl_balance=cfg.kl_balance)
+    return vae_loss(
+        pred, target, logits_q, prior_logits(params, cfg, x), valid, kl_coef=cfg.kl_coef, kl_balance=cfg.kl_balance
+    )
 
 
 def make_vae_update(cfg: HPLConfig) -> Callable[[HPLState, Unlabelled, jax.Array], tuple[HPLState, dict]]:
@@ -166,8 +169,9 @@ def make_vae_chunk(cfg: HPLConfig, length: int) -> Callable:
 
 
 # --------------------------------------------------------------------------- phase 2: reward
-def _pair_returns(reward_params: Params, cfg: HPLConfig, pairs: LabelledPairs, key: jax.Array
-                  ) -> tuple[jax.Array, jax.Array]:
+def _pair_returns(
+    reward_params: Params, cfg: HPLConfig, pairs: LabelledPairs, key: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     """Masked sums over t of ``r(x_t, z_t)``, ``z_t`` sampled from the stored posterior logits."""
     post = jnp.concatenate([pairs.post_1, pairs.post_2])
     z = jax.lax.stop_gradient(sample_latent(key, post))
@@ -180,12 +184,24 @@ def _counts(ret_1: jax.Array, ret_2: jax.Array, label: jax.Array, weight: jax.Ar
     """``[sum w bce, sum w, sum w' correct, sum w']`` with w' = w on non-tie pairs."""
     non_tie = weight * (label != 0.5)
     correct = (ret_2 > ret_1) == (label > 0.5)
-    return jnp.stack([jnp.sum(weight * preference_bce(ret_1, ret_2, label)), jnp.sum(weight),
-                      jnp.sum(non_tie * correct), jnp.sum(non_tie)])
+    return jnp.stack(
+        [
+            jnp.sum(weight * preference_bce(ret_1, ret_2, label)),
+            jnp.sum(weight),
+            jnp.sum(non_tie * correct),
+            jnp.sum(non_tie),
+        ]
+    )
 
 
-def reward_objective(reward_params: Params, prior_params: Params, cfg: HPLConfig, pairs: LabelledPairs,
-                     extra_x: jax.Array, key: jax.Array) -> tuple[jax.Array, dict]:
+def reward_objective(
+    reward_params: Params,
+    prior_params: Params,
+    cfg: HPLConfig,
+    pairs: LabelledPairs,
+    extra_x: jax.Array,
+    key: jax.Array,
+) -> tuple[jax.Array, dict]:
     """``mean BCE + reg_coef * mean Huber(r(x_j, z_prior))`` (module docstring) and
     ``{bce, reg, acc}``."""
     z_key, prior_key = jax.random.split(key)
@@ -207,14 +223,16 @@ def make_reward_update(cfg: HPLConfig, batch_size: int) -> Callable:
     one reward step on ``batch_size`` distinct pairs; ``state.params`` = the reward net's."""
     tx = optax.adam(cfg.lr)
 
-    def update(state: HPLState, pairs: LabelledPairs, prior_params: Params, x_all: jax.Array,
-               key: jax.Array) -> tuple[HPLState, dict]:
+    def update(
+        state: HPLState, pairs: LabelledPairs, prior_params: Params, x_all: jax.Array, key: jax.Array
+    ) -> tuple[HPLState, dict]:
         batch_key, extra_key, loss_key = jax.random.split(jax.random.fold_in(key, state.step), 3)
         idx = jnp.argsort(random_bits(batch_key, pairs.label.shape))[:batch_size]  # distinct pairs
         mb = jax.tree.map(lambda a: a[idx], pairs)
         extra_x = x_all[randint(extra_key, (cfg.extra_batch,), x_all.shape[0])]
         (loss, info), grads = jax.value_and_grad(reward_objective, has_aux=True)(
-            state.params, prior_params, cfg, mb, extra_x, loss_key)
+            state.params, prior_params, cfg, mb, extra_x, loss_key
+        )
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         return HPLState(optax.apply_updates(state.params, updates), opt_state, state.step + 1), {"loss": loss, **info}
 
@@ -233,8 +251,9 @@ def make_evaluate(cfg: HPLConfig) -> Callable:
     """``evaluate(reward_params, prior_params, pairs [M, b, ...], weight [M, b], key)`` ->
     ``(loss, acc, prior_loss, prior_acc)``: posterior-z and prior-marginalised BCE / non-tie accuracy."""
 
-    def evaluate(reward_params: Params, prior_params: Params, pairs: LabelledPairs, weight: jax.Array,
-                 key: jax.Array) -> tuple[jax.Array, ...]:
+    def evaluate(
+        reward_params: Params, prior_params: Params, pairs: LabelledPairs, weight: jax.Array, key: jax.Array
+    ) -> tuple[jax.Array, ...]:
         params = {"prior": prior_params, "reward": reward_params}
 
         def one(args: tuple) -> jax.Array:
@@ -262,8 +281,10 @@ def _checked_pairs(batch: Mapping[str, np.ndarray], cfg: HPLConfig, ds: Any, whe
     pairs = pref_pairs(batch, where)
     t, o, a = pairs.obs_1.shape[1], pairs.obs_1.shape[2], pairs.act_1.shape[2]
     if t > cfg.seq_len:
-        raise SpotError(f"{where}: segments of {t} steps exceed hpl.seq_len {cfg.seq_len}; the hindsight "
-                        "encoder's positional embedding covers seq_len steps (set hpl.seq_len >= segment length)")
+        raise SpotError(
+            f"{where}: segments of {t} steps exceed hpl.seq_len {cfg.seq_len}; the hindsight "
+            "encoder's positional embedding covers seq_len steps (set hpl.seq_len >= segment length)"
+        )
     if (o, a) != (ds.obs_dim, ds.act_dim):
         raise SpotError(f"{where}: obs/act dims {o}/{a}; dataset '{ds.name}' has {ds.obs_dim}/{ds.act_dim}")
     return pairs
@@ -279,21 +300,28 @@ def _labelled(params: Params, cfg: HPLConfig, pairs: PrefPairs) -> LabelledPairs
         mask = getattr(pairs, f"mask_{s}")
         (x_mb, mask_mb), _ = loop.pad_minibatches((x, mask), size)
         post = _encode_minibatches(params, cfg, jnp.asarray(x_mb), jnp.asarray(mask_mb))
-        fields.update({f"x_{s}": jnp.asarray(x), f"mask_{s}": jnp.asarray(mask),
-                       f"post_{s}": post.reshape(-1, *post.shape[2:])[:q]})
+        fields.update(
+            {
+                f"x_{s}": jnp.asarray(x),
+                f"mask_{s}": jnp.asarray(mask),
+                f"post_{s}": post.reshape(-1, *post.shape[2:])[:q],
+            }
+        )
     return LabelledPairs(**fields)
 
 
 def unlabelled(ds: Any) -> Unlabelled:
-    """The dataset's (:class:`spot.data.dataset.Dataset`, qlearning view) transitions as device arrays for segment / transition sampling."""
+    """The dataset's (:class:`spot.data.dataset.Dataset`, qlearning view) transitions as device arrays for segment /
+    transition sampling."""
     starts, ends = ds.episode_bounds()
     x = np.concatenate([ds.observations, ds.actions], axis=-1).astype(np.float32)
     return Unlabelled(jnp.asarray(x), jnp.asarray(np.repeat(ends, ends - starts).astype(np.int32)))
 
 
 # --------------------------------------------------------------------------- driver
-def _train_vae(cfg: HPLConfig, params: Params, data: Unlabelled, key: jax.Array,
-               progress: bool) -> tuple[Params, dict[str, Any]]:
+def _train_vae(
+    cfg: HPLConfig, params: Params, data: Unlabelled, key: jax.Array, progress: bool
+) -> tuple[Params, dict[str, Any]]:
     """Phase 1: the encoder, prior and decoder for exactly ``cfg.vae_steps`` steps."""
     t0 = time.perf_counter()
     vae_params = {k: params[k] for k in ("encoder", "prior", "decoder")}
@@ -301,17 +329,36 @@ def _train_vae(cfg: HPLConfig, params: Params, data: Unlabelled, key: jax.Array,
     length = loop.chunk_length(cfg.vae_steps, cfg.chunk)
     chunk = make_vae_chunk(cfg, length)
     compile_s = loop.compile_seconds(chunk, state, length, data, key)
-    out = loop.run(chunk, state, (data, key), steps=cfg.vae_steps, length=length,
-                   losses={"loss": "hpl/vae_loss"}, progress=progress, desc="hpl vae")
-    history = {"vae_step": loop.column(out.rows, "step"),
-               **{f"vae_{name}": loop.column(out.rows, name) for name in ("loss", "recon", "kl")},
-               "vae_compile_s": compile_s, "vae_loop_s": out.loop_s, "vae_s": time.perf_counter() - t0}
+    out = loop.run(
+        chunk,
+        state,
+        (data, key),
+        steps=cfg.vae_steps,
+        length=length,
+        losses={"loss": "hpl/vae_loss"},
+        progress=progress,
+        desc="hpl vae",
+    )
+    history = {
+        "vae_step": loop.column(out.rows, "step"),
+        **{f"vae_{name}": loop.column(out.rows, name) for name in ("loss", "recon", "kl")},
+        "vae_compile_s": compile_s,
+        "vae_loop_s": out.loop_s,
+        "vae_s": time.perf_counter() - t0,
+    }
     return out.state.params, history
 
 
-def _train_reward(cfg: HPLConfig, params: Params, train_pairs: PrefPairs, eval_pairs: PrefPairs | None,
-                  x_all: jax.Array, key: jax.Array, eval_key: jax.Array,
-                  progress: bool) -> tuple[Params, dict[str, Any]]:
+def _train_reward(
+    cfg: HPLConfig,
+    params: Params,
+    train_pairs: PrefPairs,
+    eval_pairs: PrefPairs | None,
+    x_all: jax.Array,
+    key: jax.Array,
+    eval_key: jax.Array,
+    progress: bool,
+) -> tuple[Params, dict[str, Any]]:
     """Phase 2: the reward net for exactly ``cfg.reward_steps`` steps; returns the best held-out one."""
     t0 = time.perf_counter()
     train = _labelled(params, cfg, train_pairs)
@@ -323,28 +370,49 @@ def _train_reward(cfg: HPLConfig, params: Params, train_pairs: PrefPairs, eval_p
     length = loop.chunk_length(cfg.reward_steps, cfg.chunk)
     chunk, evaluate = make_reward_chunk(cfg, batch_size, length), make_evaluate(cfg)
     args = (train, params["prior"], x_all, key)
-    compile_s = (loop.compile_seconds(chunk, state, length, *args)
-                 + loop.compile_seconds(evaluate, state.params, params["prior"], eval_data, eval_weight, eval_key))
+    compile_s = loop.compile_seconds(chunk, state, length, *args) + loop.compile_seconds(
+        evaluate, state.params, params["prior"], eval_data, eval_weight, eval_key
+    )
     names = ("eval_loss", "eval_acc", "eval_prior_loss", "eval_prior_acc")
     out = loop.run(
-        chunk, state, args, steps=cfg.reward_steps, length=length, losses={"loss": "hpl/reward_loss"},
-        evaluate=lambda st: dict(zip(names, evaluate(st.params, params["prior"], eval_data, eval_weight, eval_key),
-                                     strict=True)),
-        eval_loss=("eval_loss", "hpl/eval_loss"), best_by="eval_loss", progress=progress, desc="hpl reward")
-    history = {"reward_step": loop.column(out.rows, "step"),
-               **{f"train_{name}": loop.column(out.rows, name) for name in ("loss", "bce", "reg", "acc")},
-               **{name: loop.column(out.rows, name) for name in names},
-               "best_step": out.best["step"], "best_eval_loss": out.best["eval_loss"],
-               "best_eval_acc": out.best["eval_acc"], "batch_size": batch_size, "reward_compile_s": compile_s,
-               "reward_loop_s": out.loop_s}
+        chunk,
+        state,
+        args,
+        steps=cfg.reward_steps,
+        length=length,
+        losses={"loss": "hpl/reward_loss"},
+        evaluate=lambda st: dict(
+            zip(names, evaluate(st.params, params["prior"], eval_data, eval_weight, eval_key), strict=True)
+        ),
+        eval_loss=("eval_loss", "hpl/eval_loss"),
+        best_by="eval_loss",
+        progress=progress,
+        desc="hpl reward",
+    )
+    history = {
+        "reward_step": loop.column(out.rows, "step"),
+        **{f"train_{name}": loop.column(out.rows, name) for name in ("loss", "bce", "reg", "acc")},
+        **{name: loop.column(out.rows, name) for name in names},
+        "best_step": out.best["step"],
+        "best_eval_loss": out.best["eval_loss"],
+        "best_eval_acc": out.best["eval_acc"],
+        "batch_size": batch_size,
+        "reward_compile_s": compile_s,
+        "reward_loop_s": out.loop_s,
+    }
     best = jax.device_put(out.best_params)
     history["reward_s"] = time.perf_counter() - t0
     return best, history
 
 
-def train_hpl(key: jax.Array, ds: Any, train_batch: Mapping[str, np.ndarray],
-              eval_batch: Mapping[str, np.ndarray] | None, cfg: HPLConfig,
-              progress: bool = False) -> tuple[Params, dict[str, Any]]:
+def train_hpl(
+    key: jax.Array,
+    ds: Any,
+    train_batch: Mapping[str, np.ndarray],
+    eval_batch: Mapping[str, np.ndarray] | None,
+    cfg: HPLConfig,
+    progress: bool = False,
+) -> tuple[Params, dict[str, Any]]:
     """Train HPL: the VAE on unlabelled segments of ``ds``, then the reward on preference pairs.
 
     Args:
@@ -381,10 +449,14 @@ def train_hpl(key: jax.Array, ds: Any, train_batch: Mapping[str, np.ndarray],
     params = init_params(init_key, cfg, ds.obs_dim, ds.act_dim)
     vae_params, vae_history = _train_vae(cfg, params, data, vae_key, progress)
     params.update(vae_params)
-    params["reward"], history = _train_reward(cfg, params, train_pairs, eval_pairs, data.x, reward_key, eval_key,
-                                              progress)
+    params["reward"], history = _train_reward(
+        cfg, params, train_pairs, eval_pairs, data.x, reward_key, eval_key, progress
+    )
     history.update(vae_history, eval_on=eval_on)
     vae_loop_s, reward_loop_s = history.pop("vae_loop_s"), history.pop("reward_loop_s")
-    history.update(vae_steps_per_s=cfg.vae_steps / vae_loop_s, reward_steps_per_s=cfg.reward_steps / reward_loop_s,
-                   steps_per_s=(cfg.vae_steps + cfg.reward_steps) / (vae_loop_s + reward_loop_s))
+    history.update(
+        vae_steps_per_s=cfg.vae_steps / vae_loop_s,
+        reward_steps_per_s=cfg.reward_steps / reward_loop_s,
+        steps_per_s=(cfg.vae_steps + cfg.reward_steps) / (vae_loop_s + reward_loop_s),
+    )
     return params, history

@@ -100,10 +100,12 @@ class HindsightEncoder(nn.Module):
         mask = jnp.asarray(window_mask(t, cfg.future_len))[None] & (valid[:, None, :] > 0)  # [B, T, T]
         for i in range(cfg.n_layer):
             h = TransformerBlock(cfg.embd_dim, cfg.n_head, cfg.dropout, activation=_gelu, name=f"block_{i}")(
-                h, mask, deterministic=deterministic)
+                h, mask, deterministic=deterministic
+            )
         h = nn.LayerNorm(epsilon=LN_EPS, name="out_ln")(h)
         return nn.Dense(cfg.latent_groups * cfg.latent_classes, name="proj")(h).reshape(
-            b, t, cfg.latent_groups, cfg.latent_classes)
+            b, t, cfg.latent_groups, cfg.latent_classes
+        )
 
 
 class Decoder(nn.Module):
@@ -115,8 +117,14 @@ class Decoder(nn.Module):
     @nn.compact
     def __call__(self, x: jax.Array, z: jax.Array, delta: jax.Array) -> jax.Array:
         e = self.cfg.decoder_embd
-        h = jnp.concatenate([nn.Dense(e, name="x_embed")(x), nn.Dense(e, name="z_embed")(z),
-                             nn.Embed(self.cfg.future_len + 1, e, name="delta_embed")(delta)], axis=-1)
+        h = jnp.concatenate(
+            [
+                nn.Dense(e, name="x_embed")(x),
+                nn.Dense(e, name="z_embed")(z),
+                nn.Embed(self.cfg.future_len + 1, e, name="delta_embed")(delta),
+            ],
+            axis=-1,
+        )
         return MLP(self.cfg.decoder_hidden, self.out_dim, name="unify")(nn.relu(h))
 
 
@@ -129,8 +137,19 @@ def _reward_net(cfg: HPLConfig) -> MLP:
 
 
 # The HPLConfig fields that shape the parameters.
-_ARCH_FIELDS = ("seq_len", "future_len", "latent_groups", "latent_classes", "embd_dim", "n_layer", "n_head",
-                "decoder_hidden", "decoder_embd", "prior_hidden", "reward_hidden")
+_ARCH_FIELDS = (
+    "seq_len",
+    "future_len",
+    "latent_groups",
+    "latent_classes",
+    "embd_dim",
+    "n_layer",
+    "n_head",
+    "decoder_hidden",
+    "decoder_embd",
+    "prior_hidden",
+    "reward_hidden",
+)
 
 
 def init_params(key: jax.Array, cfg: HPLConfig, obs_dim: int, act_dim: int) -> Params:
@@ -158,8 +177,9 @@ def _init_program(cfg: HPLConfig, obs_dim: int, act_dim: int) -> Callable[[jax.A
     return jax.jit(init, compiler_options={"xla_backend_optimization_level": 0})
 
 
-def encode(params: Params, cfg: HPLConfig, x: jax.Array, valid: jax.Array,
-           dropout_key: jax.Array | None = None) -> jax.Array:
+def encode(
+    params: Params, cfg: HPLConfig, x: jax.Array, valid: jax.Array, dropout_key: jax.Array | None = None
+) -> jax.Array:
     """Posterior logits ``[B, T, G, C]``; dropout on iff ``dropout_key`` is given."""
     rngs = {} if dropout_key is None else {"dropout": dropout_key}
     return HindsightEncoder(cfg).apply(params["encoder"], x, valid, dropout_key is None, rngs=rngs)
@@ -203,8 +223,16 @@ def balanced_kl(logits_q: jax.Array, logits_p: jax.Array, alpha: float) -> jax.A
     return alpha * categorical_kl(sg(logits_q), logits_p) + (1.0 - alpha) * categorical_kl(logits_q, sg(logits_p))
 
 
-def vae_loss(pred: jax.Array, target: jax.Array, logits_q: jax.Array, logits_p: jax.Array,
-             weight: jax.Array, *, kl_coef: float, kl_balance: float) -> tuple[jax.Array, dict]:
+def vae_loss(
+    pred: jax.Array,
+    target: jax.Array,
+    logits_q: jax.Array,
+    logits_p: jax.Array,
+    weight: jax.Array,
+    *,
+    kl_coef: float,
+    kl_balance: float,
+) -> tuple[jax.Array, dict]:
     """``mean_w sum_dims (pred - target)^2 + kl_coef * mean_w balanced_kl(q, p)``.
 
     Args:
@@ -215,8 +243,10 @@ def vae_loss(pred: jax.Array, target: jax.Array, logits_q: jax.Array, logits_p: 
       ``(loss, {"recon", "kl"})``, the two terms as weighted means over steps.
     """
     if pred.shape != target.shape or weight.shape != pred.shape[:2] or logits_q.shape[:2] != weight.shape:
-        raise ValueError(f"shapes pred {pred.shape}, target {target.shape}, logits {logits_q.shape}, "
-                         f"weight {weight.shape}; expected [B, T, D], [B, T, D], [B, T, G, C], [B, T]")
+        raise ValueError(
+            f"shapes pred {pred.shape}, target {target.shape}, logits {logits_q.shape}, "
+            f"weight {weight.shape}; expected [B, T, D], [B, T, D], [B, T, G, C], [B, T]"
+        )
     denom = jnp.maximum(weight.sum(), 1.0)
     recon = jnp.sum(weight * jnp.sum(jnp.square(pred - target), axis=-1)) / denom
     kl = jnp.sum(weight * balanced_kl(logits_q, logits_p, kl_balance)) / denom

@@ -30,8 +30,15 @@ class RewardModel(Protocol):
     def init(self, key: jax.Array, obs_dim: int, act_dim: int) -> Params:
         """Fresh parameters."""
 
-    def apply(self, params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-              dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def apply(
+        self,
+        params: Params,
+        obs: jax.Array,
+        act: jax.Array,
+        timesteps: jax.Array,
+        mask: jax.Array,
+        dropout_key: jax.Array | None = None,
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """``obs [B, T, o]``, ``act [B, T, a]``, ``timesteps [B, T]``, ``mask [B, T]`` ->
         ``(r_hat [B, T], w [B, T], logit [B])``; dropout on iff ``dropout_key`` is given."""
 

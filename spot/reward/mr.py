@@ -45,8 +45,9 @@ def per_step_reward(params: Params, obs: jax.Array, act: jax.Array, cfg: MRConfi
     return make_model(cfg).apply(params, x)[..., 0]
 
 
-def forward(params: Params, cfg: MRConfig, obs: jax.Array, act: jax.Array,
-            mask: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def forward(
+    params: Params, cfg: MRConfig, obs: jax.Array, act: jax.Array, mask: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per-step reward, uniform weights and the segment logit.
 
     Args:
@@ -73,8 +74,15 @@ class MR:
     def init(self, key: jax.Array, obs_dim: int, act_dim: int) -> Params:
         return init_params(key, self.cfg, obs_dim, act_dim)
 
-    def apply(self, params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-              dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def apply(
+        self,
+        params: Params,
+        obs: jax.Array,
+        act: jax.Array,
+        timesteps: jax.Array,
+        mask: jax.Array,
+        dropout_key: jax.Array | None = None,
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """``(r_hat, w, logit)`` (:func:`forward`); MR ignores timesteps and has no dropout."""
         del timesteps, dropout_key
         return forward(params, self.cfg, obs, act, mask)

@@ -75,8 +75,15 @@ class PreferenceTransformer(nn.Module):
         self.final_ln = nn.LayerNorm(epsilon=LN_EPS)
         self.pref_head = nn.Dense(2 * self.pref_attn_dim + 1)
 
-    def _state_hidden(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-                      deterministic: bool, last_only: bool) -> jax.Array:
+    def _state_hidden(
+        self,
+        obs: jax.Array,
+        act: jax.Array,
+        timesteps: jax.Array,
+        mask: jax.Array,
+        deterministic: bool,
+        last_only: bool,
+    ) -> jax.Array:
         """Transformer output at the state tokens: ``[B, T, D]`` (``[B, 1, D]`` if ``last_only``)."""
         batch, length = obs.shape[:2]
         time = self.embed_time(timesteps)
@@ -91,12 +98,17 @@ class PreferenceTransformer(nn.Module):
         state_index = np.arange(1, tokens, 2) if not last_only else np.array([tokens - 1])
         for i, block in enumerate(self.blocks):
             rows = state_index if i == self.n_layer - 1 else np.arange(tokens)
-            x = block(x, causal[rows][None] & key_valid, deterministic=deterministic,
-                      query_index=None if rows.size == tokens else rows)
+            x = block(
+                x,
+                causal[rows][None] & key_valid,
+                deterministic=deterministic,
+                query_index=None if rows.size == tokens else rows,
+            )
         return self.final_ln(x)
 
-    def __call__(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-                 deterministic: bool = True) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def __call__(
+        self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array, deterministic: bool = True
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Args: ``obs [B, T, o]``, ``act [B, T, a]``, ``timesteps [B, T]`` int in
         ``[0, max_timestep]``, ``mask [B, T]`` (1 = real step, 0 = padding).
 
@@ -110,20 +122,20 @@ class PreferenceTransformer(nn.Module):
         logit = jnp.sum(w * r_hat, axis=1)  # == mean_t z_t, z_t = sum_j A_tj r_hat_j
         return r_hat, w, logit
 
-    def attention(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-                  deterministic: bool = True) -> tuple[jax.Array, jax.Array]:
+    def attention(
+        self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array, deterministic: bool = True
+    ) -> tuple[jax.Array, jax.Array]:
         """``r_hat [B, T]`` and the preference attention ``A [B, T, T]`` (``A[b, t, j] = A_tj``,
         softmax over keys j, padded keys masked)."""
         x = self._state_hidden(obs, act, timesteps, mask, deterministic, last_only=False)
         head = self.pref_head(x)
         p = self.pref_attn_dim
-        q, k, r_hat = head[..., :p], head[..., p:2 * p], head[..., 2 * p]
+        q, k, r_hat = head[..., :p], head[..., p : 2 * p], head[..., 2 * p]
         logits = jnp.einsum("btp,bjp->btj", q, k)  # unscaled, as in the PT repo
         attn = jax.nn.softmax(jnp.where((mask > 0)[:, None, :], logits, MASKED_LOGIT), axis=-1)
         return r_hat, attn
 
-    def last_step_reward(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
-                         mask: jax.Array) -> jax.Array:
+    def last_step_reward(self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array) -> jax.Array:
         """``r_hat`` at the last position of each window, ``[B]`` (deterministic).
 
         Equals ``self(...)[0][:, -1]``; the last block only computes the last state token.
@@ -136,47 +148,72 @@ def make_model(cfg: PTConfig) -> PreferenceTransformer:
     if cfg.embd_dim % cfg.n_head:
         raise ValueError(f"pt.embd_dim {cfg.embd_dim} must be divisible by pt.n_head {cfg.n_head}")
     return PreferenceTransformer(
-        embd_dim=cfg.embd_dim, n_layer=cfg.n_layer, n_head=cfg.n_head, dropout=cfg.dropout,
-        pref_attn_dim=cfg.pref_attn_dim, max_timestep=cfg.max_timestep, dtype=DTYPES[cfg.dtype],
+        embd_dim=cfg.embd_dim,
+        n_layer=cfg.n_layer,
+        n_head=cfg.n_head,
+        dropout=cfg.dropout,
+        pref_attn_dim=cfg.pref_attn_dim,
+        max_timestep=cfg.max_timestep,
+        dtype=DTYPES[cfg.dtype],
     )
 
 
 def init_params(key: jax.Array, cfg: PTConfig, obs_dim: int, act_dim: int) -> Params:
     length = 2
     return jit_init(
-        make_model(cfg), jnp.zeros((1, length, obs_dim)), jnp.zeros((1, length, act_dim)),
-        jnp.ones((1, length), jnp.int32), jnp.ones((1, length)),
+        make_model(cfg),
+        jnp.zeros((1, length, obs_dim)),
+        jnp.zeros((1, length, act_dim)),
+        jnp.ones((1, length), jnp.int32),
+        jnp.ones((1, length)),
     )(key)
 
 
-def forward(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
-            mask: jax.Array, dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+def forward(
+    params: Params,
+    cfg: PTConfig,
+    obs: jax.Array,
+    act: jax.Array,
+    timesteps: jax.Array,
+    mask: jax.Array,
+    dropout_key: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``(r_hat [B, T], w [B, T], logit [B])``; dropout is on iff ``dropout_key`` is given."""
-    if obs.ndim != 3 or act.shape[:2] != obs.shape[:2] or timesteps.shape != obs.shape[:2] \
-            or mask.shape != obs.shape[:2]:
+    if (
+        obs.ndim != 3
+        or act.shape[:2] != obs.shape[:2]
+        or timesteps.shape != obs.shape[:2]
+        or mask.shape != obs.shape[:2]
+    ):
         raise ValueError(
             f"expected obs [B, T, o], act [B, T, a], timesteps [B, T], mask [B, T]; got "
             f"{obs.shape}, {act.shape}, {timesteps.shape}, {mask.shape}"
         )
     deterministic = dropout_key is None
     return make_model(cfg).apply(
-        params, obs, act, timesteps, mask, deterministic=deterministic,
+        params,
+        obs,
+        act,
+        timesteps,
+        mask,
+        deterministic=deterministic,
         rngs=None if deterministic else {"dropout": dropout_key},
     )
 
 
-def attention(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
-              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+def attention(
+    params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     """``(r_hat [B, T], A [B, T, T])``: per-step rewards and the preference attention
     (deterministic); SPOT's subgoal weights are read from ``A`` (``spot.subgoal.extract.step_scores``)."""
     return make_model(cfg).apply(params, obs, act, timesteps, mask, method=PreferenceTransformer.attention)
 
 
-def last_step_reward(params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array,
-                     timesteps: jax.Array, mask: jax.Array) -> jax.Array:
+def last_step_reward(
+    params: Params, cfg: PTConfig, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array
+) -> jax.Array:
     """``r_hat`` at the last window position, ``[B]`` (PT repo relabelling, ``label_mode='last'``)."""
-    return make_model(cfg).apply(params, obs, act, timesteps, mask,
-                                 method=PreferenceTransformer.last_step_reward)
+    return make_model(cfg).apply(params, obs, act, timesteps, mask, method=PreferenceTransformer.last_step_reward)
 
 
 def learning_rate(cfg: PTConfig, total_steps: int | None = None) -> float | optax.Schedule:
@@ -193,8 +230,12 @@ def learning_rate(cfg: PTConfig, total_steps: int | None = None) -> float | opta
             warmup = int(cfg.warmup_fraction * total_steps)
     if cfg.schedule == "warmup_cosine":
         return optax.warmup_cosine_decay_schedule(
-            init_value=cfg.lr, peak_value=cfg.peak_factor * cfg.lr, warmup_steps=warmup,
-            decay_steps=max(total_steps, warmup + 1), end_value=cfg.lr)
+            init_value=cfg.lr,
+            peak_value=cfg.peak_factor * cfg.lr,
+            warmup_steps=warmup,
+            decay_steps=max(total_steps, warmup + 1),
+            end_value=cfg.lr,
+        )
     return cfg.lr if warmup == 0 else optax.warmup_constant_schedule(0.0, cfg.lr, warmup)
 
 
@@ -208,8 +249,15 @@ class PT:
     def init(self, key: jax.Array, obs_dim: int, act_dim: int) -> Params:
         return init_params(key, self.cfg, obs_dim, act_dim)
 
-    def apply(self, params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array,
-              dropout_key: jax.Array | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def apply(
+        self,
+        params: Params,
+        obs: jax.Array,
+        act: jax.Array,
+        timesteps: jax.Array,
+        mask: jax.Array,
+        dropout_key: jax.Array | None = None,
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """``(r_hat, w, logit)`` (:func:`forward`); dropout on iff ``dropout_key`` is given."""
         return forward(params, self.cfg, obs, act, timesteps, mask, dropout_key)
 
@@ -221,5 +269,7 @@ class PT:
     def check_timesteps(self, lo: int, hi: int, where: str) -> None:
         """Timesteps index the learned embedding: they must lie in ``[0, max_timestep]``."""
         if lo < 0 or hi > self.cfg.max_timestep:
-            raise SpotError(f"{where} has timesteps in [{lo}, {hi}]; pt.max_timestep is {self.cfg.max_timestep}, "
-                            "expected 0 <= timestep <= pt.max_timestep")
+            raise SpotError(
+                f"{where} has timesteps in [{lo}, {hi}]; pt.max_timestep is {self.cfg.max_timestep}, "
+                "expected 0 <= timestep <= pt.max_timestep"
+            )

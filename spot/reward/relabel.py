@@ -77,8 +77,15 @@ def chunk_bounds(ds: Dataset, window: int) -> tuple[np.ndarray, np.ndarray]:
     return chunk_start, np.minimum(chunk_start + window, ends[episode])
 
 
-def _run_batched(program: Callable, params: Params, ds: Dataset, inputs: tuple[np.ndarray, ...],
-                 batch: int, progress: bool, desc: str) -> tuple[tuple[np.ndarray, ...], float]:
+def _run_batched(
+    program: Callable,
+    params: Params,
+    ds: Dataset,
+    inputs: tuple[np.ndarray, ...],
+    batch: int,
+    progress: bool,
+    desc: str,
+) -> tuple[tuple[np.ndarray, ...], float]:
     """Run jitted ``program(params, obs_all, act_all, *inputs_batch)`` over ``inputs`` in fixed-size
     batches (the last padded with zeros); returns the concatenated, unpadded outputs and compile
     time."""
@@ -90,7 +97,7 @@ def _run_batched(program: Callable, params: Params, ds: Dataset, inputs: tuple[n
     compile_s = loop.compile_seconds(program, params, obs_all, act_all, *(x[:batch] for x in padded))
     outputs = []
     for i in tqdm(range(n_batches), desc=desc, disable=not progress, leave=False):
-        out = program(params, obs_all, act_all, *(x[i * batch:(i + 1) * batch] for x in padded))
+        out = program(params, obs_all, act_all, *(x[i * batch : (i + 1) * batch] for x in padded))
         outputs.append(jax.device_get(out))
     return tuple(np.concatenate(parts)[:n] for parts in zip(*outputs, strict=True)), compile_s
 
@@ -98,8 +105,9 @@ def _run_batched(program: Callable, params: Params, ds: Dataset, inputs: tuple[n
 @functools.lru_cache(maxsize=16)
 def _chunked_program(cfg: PTConfig, window: int) -> Callable:
     @jax.jit
-    def run(params: Params, obs_all: jax.Array, act_all: jax.Array, start: jax.Array,
-            end: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def run(
+        params: Params, obs_all: jax.Array, act_all: jax.Array, start: jax.Array, end: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         idx = start[:, None] + jnp.arange(window)  # [B, W]
         mask = idx < end[:, None]
         idx = jnp.where(mask, idx, 0)
@@ -113,15 +121,15 @@ def _chunked_program(cfg: PTConfig, window: int) -> Callable:
 @functools.lru_cache(maxsize=16)
 def _sliding_program(cfg: PTConfig, window: int) -> Callable:
     @jax.jit
-    def run(params: Params, obs_all: jax.Array, act_all: jax.Array, row: jax.Array,
-            episode_start: jax.Array) -> tuple[jax.Array]:
+    def run(
+        params: Params, obs_all: jax.Array, act_all: jax.Array, row: jax.Array, episode_start: jax.Array
+    ) -> tuple[jax.Array]:
         idx = row[:, None] - (window - 1) + jnp.arange(window)  # window ending at row, [B, W]
         mask = idx >= episode_start[:, None]
         pads = (window - 1) - jnp.minimum(row - episode_start, window - 1)  # [B]
         timesteps = jnp.where(mask, jnp.arange(window) - pads[:, None] + 1, 0)
         idx = jnp.where(mask, idx, 0)
-        return (pt.last_step_reward(params, cfg, obs_all[idx], act_all[idx], timesteps,
-                                    mask.astype(jnp.float32)),)
+        return (pt.last_step_reward(params, cfg, obs_all[idx], act_all[idx], timesteps, mask.astype(jnp.float32)),)
 
     return run
 
@@ -135,8 +143,9 @@ def _mr_program(cfg: MRConfig) -> Callable:
     return run
 
 
-def relabel_rewards(model: RewardModel, params: Params, ds: Dataset, relabel_cfg: RelabelConfig,
-                    progress: bool = True) -> Relabelled:
+def relabel_rewards(
+    model: RewardModel, params: Params, ds: Dataset, relabel_cfg: RelabelConfig, progress: bool = True
+) -> Relabelled:
     """Per-transition rewards of ``ds`` from a trained reward model (see module docstring).
 
     Args:
@@ -155,8 +164,9 @@ def relabel_rewards(model: RewardModel, params: Params, ds: Dataset, relabel_cfg
     rows = np.arange(len(ds), dtype=np.int32)
     weights = None
     if isinstance(model, mr.MR):  # per transition: no sequence modes
-        (rewards,), compile_s = _run_batched(_mr_program(model.cfg), params, ds, (rows,), batch * window,
-                                             progress, "relabel (mr)")
+        (rewards,), compile_s = _run_batched(
+            _mr_program(model.cfg), params, ds, (rows,), batch * window, progress, "relabel (mr)"
+        )
     elif isinstance(model, pt.PT):
         rewards, weights, compile_s = _relabel_pt(model.cfg, params, ds, relabel_cfg, progress)
     else:
@@ -164,18 +174,27 @@ def relabel_rewards(model: RewardModel, params: Params, ds: Dataset, relabel_cfg
     return Relabelled(np.asarray(rewards, np.float32), weights, compile_s, time.perf_counter() - t0)
 
 
-def _relabel_pt(cfg: PTConfig, params: Params, ds: Dataset, relabel_cfg: RelabelConfig,
-                progress: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+def _relabel_pt(
+    cfg: PTConfig, params: Params, ds: Dataset, relabel_cfg: RelabelConfig, progress: bool
+) -> tuple[np.ndarray, np.ndarray | None, float]:
     """PT's ``chunked`` or ``sliding`` relabelling: ``(rewards, weights or None, compile_s)``."""
     window, batch = relabel_cfg.window, relabel_cfg.batch_size
     if window > cfg.max_timestep:
-        raise SpotError(f"relabel.window {window} exceeds pt.max_timestep {cfg.max_timestep}; "
-                        "timesteps 1..window must fit the timestep embedding")
+        raise SpotError(
+            f"relabel.window {window} exceeds pt.max_timestep {cfg.max_timestep}; "
+            "timesteps 1..window must fit the timestep embedding"
+        )
     if relabel_cfg.mode == "chunked":
         start, end = chunk_bounds(ds, window)
         (r_hat, w), compile_s = _run_batched(
-            _chunked_program(cfg, window), params, ds, (start.astype(np.int32), end.astype(np.int32)), batch,
-            progress, "relabel (pt, chunked)")
+            _chunked_program(cfg, window),
+            params,
+            ds,
+            (start.astype(np.int32), end.astype(np.int32)),
+            batch,
+            progress,
+            "relabel (pt, chunked)",
+        )
         idx = start[:, None] + np.arange(window)
         valid = idx < end[:, None]
         rewards = np.empty(len(ds), np.float32)
@@ -187,8 +206,14 @@ def _relabel_pt(cfg: PTConfig, params: Params, ds: Dataset, relabel_cfg: Relabel
         starts, ends = ds.episode_bounds()
         episode_start = np.repeat(starts, ends - starts).astype(np.int32)
         (rewards,), compile_s = _run_batched(
-            _sliding_program(cfg, window), params, ds, (np.arange(len(ds), dtype=np.int32), episode_start),
-            batch, progress, "relabel (pt, sliding)")
+            _sliding_program(cfg, window),
+            params,
+            ds,
+            (np.arange(len(ds), dtype=np.int32), episode_start),
+            batch,
+            progress,
+            "relabel (pt, sliding)",
+        )
         return rewards, None, compile_s
     raise SpotError(f"relabel.mode '{relabel_cfg.mode}' is not one of 'chunked', 'sliding'")
 
@@ -202,8 +227,9 @@ def _hpl_program(cfg: HPLConfig) -> Callable:
     return program
 
 
-def relabel_hpl(params: Params, ds: Dataset, cfg: HPLConfig, key: jax.Array, batch_size: int = 4096,
-                progress: bool = False) -> np.ndarray:
+def relabel_hpl(
+    params: Params, ds: Dataset, cfg: HPLConfig, key: jax.Array, batch_size: int = 4096, progress: bool = False
+) -> np.ndarray:
     """HPL's ``r_hat(s, a)`` of every transition of ``ds``:
     :func:`spot.reward.hpl_nets.prior_marginal_reward` of the trained ``params``
     (:func:`spot.reward.hpl.train_hpl`) in jitted batches of ``batch_size`` rows (the last padded);
@@ -218,13 +244,14 @@ def relabel_hpl(params: Params, ds: Dataset, cfg: HPLConfig, key: jax.Array, bat
     rows = np.minimum(np.arange(n_batches * batch_size), n - 1).astype(np.int32).reshape(n_batches, batch_size)
     sub = {"prior": params["prior"], "reward": params["reward"]}
     program = _hpl_program(cfg)
-    out = [jax.device_get(program(sub, x_all, rows[i], jax.random.fold_in(key, i)))
-           for i in tqdm(range(n_batches), desc="relabel (hpl)", disable=not progress, leave=False)]
+    out = [
+        jax.device_get(program(sub, x_all, rows[i], jax.random.fold_in(key, i)))
+        for i in tqdm(range(n_batches), desc="relabel (hpl)", disable=not progress, leave=False)
+    ]
     return np.concatenate(out)[:n].astype(np.float32)
 
 
-def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
-                      max_episode_steps: int = 1000) -> np.ndarray:
+def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str, max_episode_steps: int = 1000) -> np.ndarray:
     """Rescale relabelled rewards by the spread of per-episode returns (computed on ``rewards``).
 
     ``pt``: ``r * max_episode_steps / (R_max - R_min) + 0.5``; ``iql``: without the ``+ 0.5``;
@@ -232,7 +259,8 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
     ``relabel_reward``); ``minmax``: each step's reward first mapped to [0, 1] with the min and max
     over all transitions, then ``iql`` (every step non-negative, so staying alive never costs
     reward: a learned reward's level is not identified by preferences, and a negative level makes
-    an IQL policy seek early termination in Hopper/Walker2d); ``none``: unchanged. ``max_episode_steps`` is the 1000 of the references
+    an IQL policy seek early termination in Hopper/Walker2d); ``none``: unchanged. ``max_episode_steps`` is the 1000 of
+    the references
     (locomotion).
     """
     if mode not in NORMALIZE_MODES:
@@ -245,8 +273,10 @@ def normalize_rewards(rewards: np.ndarray, ds: Dataset, mode: str,
     if mode == "minmax":
         lo, hi = float(rewards.min()), float(rewards.max())
         if not hi > lo:
-            raise SpotError(f"cannot normalise rewards of dataset '{ds.name}' with minmax: every step has "
-                            f"reward {lo:.6g}; use relabel.normalize=none")
+            raise SpotError(
+                f"cannot normalise rewards of dataset '{ds.name}' with minmax: every step has "
+                f"reward {lo:.6g}; use relabel.normalize=none"
+            )
         rewards = ((rewards.astype(np.float64) - lo) / (hi - lo)).astype(np.float32)
         mode = "iql"
     starts, _ = ds.episode_bounds()

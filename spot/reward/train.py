@@ -109,8 +109,7 @@ def _num_pairs(pairs: PrefPairs) -> int:
 
 
 # --------------------------------------------------------------------------- loss
-def _pair_terms(logit_1: jax.Array, logit_2: jax.Array,
-                label: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _pair_terms(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per-pair cross-entropy ``[B]``, correctness ``[B]`` and non-tie flag ``[B]``."""
     logits = jnp.stack([logit_1, logit_2], axis=-1).astype(jnp.float32)
     target = jnp.stack([1.0 - label, label], axis=-1)
@@ -137,13 +136,18 @@ def pref_loss(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple
 
 
 # --------------------------------------------------------------------------- model
-def _pair_logits(model: RewardModel, params: Params, pairs: PrefPairs,
-                 dropout_key: jax.Array | None) -> tuple[jax.Array, jax.Array]:
+def _pair_logits(
+    model: RewardModel, params: Params, pairs: PrefPairs, dropout_key: jax.Array | None
+) -> tuple[jax.Array, jax.Array]:
     """Both segments in one forward pass of ``2B`` segments."""
     cat = functools.partial(jnp.concatenate, axis=0)
     _, _, logit = model.apply(
-        params, cat([pairs.obs_1, pairs.obs_2]), cat([pairs.act_1, pairs.act_2]),
-        cat([pairs.timesteps_1, pairs.timesteps_2]), cat([pairs.mask_1, pairs.mask_2]), dropout_key,
+        params,
+        cat([pairs.obs_1, pairs.obs_2]),
+        cat([pairs.act_1, pairs.act_2]),
+        cat([pairs.timesteps_1, pairs.timesteps_2]),
+        cat([pairs.mask_1, pairs.mask_2]),
+        dropout_key,
     )
     b = pairs.label.shape[0]
     return logit[:b], logit[b:]
@@ -169,8 +173,9 @@ def micro_batches(batch_size: int, micro_batch: int) -> int:
     return n
 
 
-def make_update(model: RewardModel, batch_size: int, steps: int,
-                micro_batch: int = 64) -> Callable[[RewardState, PrefPairs, jax.Array], tuple[RewardState, dict]]:
+def make_update(
+    model: RewardModel, batch_size: int, steps: int, micro_batch: int = 64
+) -> Callable[[RewardState, PrefPairs, jax.Array], tuple[RewardState, dict]]:
     """``update(state, data, key) -> (state, {loss, acc})``: one step on a minibatch of
     ``batch_size`` pairs drawn with ``fold_in(key, state.step)`` (also the dropout key), with the
     optimizer of a ``steps``-step run.
@@ -194,7 +199,8 @@ def make_update(model: RewardModel, batch_size: int, steps: int,
         def accumulate(carry: tuple, i: jax.Array) -> tuple[tuple, None]:
             mb = jax.tree.map(lambda x: x[idx[i]], data)
             (loss, counts), grads = jax.value_and_grad(micro_loss, has_aux=True)(
-                state.params, mb, jax.random.fold_in(dropout_key, i))
+                state.params, mb, jax.random.fold_in(dropout_key, i)
+            )
             return jax.tree.map(jnp.add, carry, (loss, counts, grads)), None
 
         zeros = (jnp.zeros(()), jnp.zeros(2), jax.tree.map(jnp.zeros_like, state.params))
@@ -208,8 +214,7 @@ def make_update(model: RewardModel, batch_size: int, steps: int,
     return update
 
 
-def make_train_chunk(model: RewardModel, batch_size: int, length: int, steps: int,
-                     micro_batch: int = 64) -> loop.Chunk:
+def make_train_chunk(model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int = 64) -> loop.Chunk:
     """Jitted ``chunk(state, n, data, key) -> (state, {loss, acc, active} [length])``: ``n <= length``
     steps of :func:`make_update` (:func:`spot.loop.make_chunk`, ``"stack"``). Kept per arguments,
     so a second run with the same model and sizes reuses the compiled program."""
@@ -240,8 +245,9 @@ def make_evaluate(model: RewardModel) -> Callable[[Params, PrefPairs, jax.Array]
 
 
 # --------------------------------------------------------------------------- driver
-def _checked_pairs(model: RewardModel, train_batch: Mapping[str, np.ndarray],
-                   eval_batch: Mapping[str, np.ndarray] | None) -> tuple[PrefPairs, PrefPairs, str]:
+def _checked_pairs(
+    model: RewardModel, train_batch: Mapping[str, np.ndarray], eval_batch: Mapping[str, np.ndarray] | None
+) -> tuple[PrefPairs, PrefPairs, str]:
     """Train and held-out pairs (the training pairs when there is no eval batch) and ``eval_on``."""
     train = pref_pairs(train_batch, "train preference batch")
     eval_on = "eval" if eval_batch is not None and np.size(eval_batch.get("label", 1)) > 0 else "train"
@@ -258,9 +264,15 @@ def _checked_pairs(model: RewardModel, train_batch: Mapping[str, np.ndarray],
     return train, held_out, eval_on
 
 
-def train_reward_model(model: RewardModel, key: jax.Array, train_batch: Mapping[str, np.ndarray],
-                       eval_batch: Mapping[str, np.ndarray] | None, reward_cfg: RewardConfig,
-                       progress: bool = True, micro_batch: int = 64) -> tuple[Params, dict[str, Any]]:
+def train_reward_model(
+    model: RewardModel,
+    key: jax.Array,
+    train_batch: Mapping[str, np.ndarray],
+    eval_batch: Mapping[str, np.ndarray] | None,
+    reward_cfg: RewardConfig,
+    progress: bool = True,
+    micro_batch: int = 64,
+) -> tuple[Params, dict[str, Any]]:
     """Train a reward model (``MR(cfg)`` or ``PT(cfg)``) on preference pairs for exactly
     ``reward_cfg.steps`` steps.
 
@@ -292,32 +304,60 @@ def train_reward_model(model: RewardModel, key: jax.Array, train_batch: Mapping[
     batch_size = min(reward_cfg.batch_size, _num_pairs(train))
     length = loop.chunk_length(reward_cfg.steps, reward_cfg.eval_every)
     eval_data, eval_weight = jax.device_put(
-        loop.pad_minibatches(held_out, min(reward_cfg.batch_size, _num_pairs(held_out))))
+        loop.pad_minibatches(held_out, min(reward_cfg.batch_size, _num_pairs(held_out)))
+    )
     train = jax.device_put(train)
 
     train_chunk = make_train_chunk(model, batch_size, length, reward_cfg.steps, micro_batch)
     evaluate = make_evaluate(model)
-    compile_s = (loop.compile_seconds(train_chunk, state, length, train, train_key)
-                 + loop.compile_seconds(evaluate, state.params, eval_data, eval_weight))
+    compile_s = loop.compile_seconds(train_chunk, state, length, train, train_key) + loop.compile_seconds(
+        evaluate, state.params, eval_data, eval_weight
+    )
     out = loop.run(
-        train_chunk, state, (train, train_key), steps=reward_cfg.steps, length=length,
+        train_chunk,
+        state,
+        (train, train_key),
+        steps=reward_cfg.steps,
+        length=length,
         losses={"loss": "reward/train_loss"},
-        evaluate=lambda st: dict(zip(("eval_loss", "eval_acc"), evaluate(st.params, eval_data, eval_weight),
-                                     strict=True)),
-        eval_loss=("eval_loss", "reward/eval_loss"), best_by="eval_loss", progress=progress,
-        desc=f"reward ({model.kind})")
-    history: dict[str, Any] = {"step": loop.column(out.rows, "step")}
-    for name, col in (("train_loss", "loss"), ("train_acc", "acc"), ("eval_loss", "eval_loss"),
-                      ("eval_acc", "eval_acc")):
-        history[name] = loop.column(out.rows, col)
-    history.update(best_step=out.best["step"], best_eval_loss=out.best["eval_loss"],
-                   best_eval_acc=out.best["eval_acc"], batch_size=batch_size, eval_on=eval_on,
-                   compile_s=compile_s, train_s=out.loop_s, steps_per_s=reward_cfg.steps / out.loop_s)
+        evaluate=lambda st: dict(
+            zip(("eval_loss", "eval_acc"), evaluate(st.params, eval_data, eval_weight), strict=True)
+        ),
+        eval_loss=("eval_loss", "reward/eval_loss"),
+        best_by="eval_loss",
+        progress=progress,
+        desc=f"reward ({model.kind})",
+    )
+    history = _history(out, batch_size, eval_on, compile_s, reward_cfg.steps)
     return jax.device_put(out.best_params), history
 
 
-def model_fn(model: RewardModel, params: Params
-             ) -> Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]:
+def _history(out: Any, batch_size: int, eval_on: str, compile_s: float, steps: int) -> dict[str, Any]:
+    """The training history :func:`train_reward_model` returns, from the loop's rows and best row."""
+    history: dict[str, Any] = {"step": loop.column(out.rows, "step")}
+    for name, col in (
+        ("train_loss", "loss"),
+        ("train_acc", "acc"),
+        ("eval_loss", "eval_loss"),
+        ("eval_acc", "eval_acc"),
+    ):
+        history[name] = loop.column(out.rows, col)
+    history.update(
+        best_step=out.best["step"],
+        best_eval_loss=out.best["eval_loss"],
+        best_eval_acc=out.best["eval_acc"],
+        batch_size=batch_size,
+        eval_on=eval_on,
+        compile_s=compile_s,
+        train_s=out.loop_s,
+        steps_per_s=steps / out.loop_s,
+    )
+    return history
+
+
+def model_fn(
+    model: RewardModel, params: Params
+) -> Callable[[jax.Array, jax.Array, jax.Array, jax.Array], tuple[jax.Array, jax.Array]]:
     """Trained model as ``f(obs [B, T, o], act [B, T, a], timesteps [B, T], mask [B, T]) -> (r_hat, w)``.
 
     Deterministic (no dropout) and jitted (compiles once per input shape and model); ``w`` is PT's
@@ -330,8 +370,9 @@ def model_fn(model: RewardModel, params: Params
 @functools.lru_cache(maxsize=16)
 def _apply_fn(model: RewardModel) -> Callable:
     @jax.jit
-    def apply(params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array,
-              mask: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def apply(
+        params: Params, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array
+    ) -> tuple[jax.Array, jax.Array]:
         r_hat, w, _ = model.apply(params, obs, act, timesteps, mask)
         return r_hat, w
 

@@ -132,8 +132,7 @@ class CVAEState(NamedTuple):
 
 
 # --------------------------------------------------------------------------- maths
-def gaussian_kl(mean_q: jax.Array, log_std_q: jax.Array, mean_p: jax.Array,
-                log_std_p: jax.Array) -> jax.Array:
+def gaussian_kl(mean_q: jax.Array, log_std_q: jax.Array, mean_p: jax.Array, log_std_p: jax.Array) -> jax.Array:
     """``KL(N(mean_q, diag σ_q²) || N(mean_p, diag σ_p²))`` summed over the last axis.
 
     ``Σ_d log σ_p - log σ_q + (σ_q² + (μ_q - μ_p)²) / (2 σ_p²) - ½``.
@@ -161,8 +160,9 @@ def obs_stats(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- loss
-def loss_fn(params: CVAEParams, batch: Triplets, key: jax.Array,
-            cfg: CVAEConfig) -> tuple[jax.Array, dict[str, jax.Array]]:
+def loss_fn(
+    params: CVAEParams, batch: Triplets, key: jax.Array, cfg: CVAEConfig
+) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Eq. 9 on a batch of raw triplets ``s [B, o]``, ``a [B, a]``, ``g [B, o]``.
 
     Returns:
@@ -188,10 +188,19 @@ def loss_fn(params: CVAEParams, batch: Triplets, key: jax.Array,
         loss = loss + cos
     elif cfg.loss == "authors":  # SGPbrl PrefTransformer.vae_train_step (see the module docstring)
         sim = cosine_similarity(params.denormalize(g_hat_n), g)
-        loss = (((g_hat_n - g_n) ** 2).mean() - (0.5 * (sim + 1.0)).mean() - 0.1 * sim.var()
-                + cfg.beta * kl / q_mean.shape[-1])
-    info = {"cvae/loss": loss, "cvae/recon": recon, "cvae/kl": kl, "cvae/cos": cos,
-            "cvae/mse": sq_err.mean() / s.shape[-1]}
+        loss = (
+            ((g_hat_n - g_n) ** 2).mean()
+            - (0.5 * (sim + 1.0)).mean()
+            - 0.1 * sim.var()
+            + cfg.beta * kl / q_mean.shape[-1]
+        )
+    info = {
+        "cvae/loss": loss,
+        "cvae/recon": recon,
+        "cvae/kl": kl,
+        "cvae/cos": cos,
+        "cvae/mse": sq_err.mean() / s.shape[-1],
+    }
     return loss, info
 
 
@@ -206,17 +215,22 @@ def _init_net(model: CVAE, act_dim: int, key: jax.Array) -> Params:
     return model.init(key, zeros_o, zeros_o, zeros_a)["params"]
 
 
-def init(key: jax.Array, obs_dim: int, act_dim: int, cfg: CVAEConfig,
-         stats: tuple[np.ndarray, np.ndarray]) -> CVAEState:
+def init(
+    key: jax.Array, obs_dim: int, act_dim: int, cfg: CVAEConfig, stats: tuple[np.ndarray, np.ndarray]
+) -> CVAEState:
     """Fresh CVAE weights and Adam state; ``stats = (obs_mean, obs_std)`` of the dataset."""
     mean, std = (np.asarray(x, dtype=np.float32) for x in stats)
     if mean.shape != (obs_dim,) or std.shape != (obs_dim,):
         raise SpotError(f"obs_stats have shapes {mean.shape}, {std.shape}; expected ({obs_dim},)")
     model = CVAE(obs_dim=obs_dim, latent_dim=cfg.latent_dim, hidden=tuple(cfg.hidden))
     net = _init_net(model, act_dim, key)
-    params = CVAEParams(net=net, obs_mean=jnp.asarray(mean),
-                        obs_std=jnp.maximum(jnp.asarray(std), STD_FLOOR),
-                        hidden=tuple(cfg.hidden), latent_dim=cfg.latent_dim)
+    params = CVAEParams(
+        net=net,
+        obs_mean=jnp.asarray(mean),
+        obs_std=jnp.maximum(jnp.asarray(std), STD_FLOOR),
+        hidden=tuple(cfg.hidden),
+        latent_dim=cfg.latent_dim,
+    )
     return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
 
 
@@ -270,10 +284,19 @@ def _split(key: jax.Array, n: int, holdout: float, groups: np.ndarray | None) ->
     return np.flatnonzero(~held), np.flatnonzero(held)
 
 
-def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg: CVAEConfig,
-               obs_stats: tuple[np.ndarray, np.ndarray], progress: bool = True, *,
-               log_every: int = 500, holdout: float = 0.1,
-               groups: np.ndarray | None = None) -> tuple[CVAEParams, list[dict[str, float]]]:
+def train_cvae(
+    key: jax.Array,
+    s: np.ndarray,
+    a: np.ndarray,
+    g: np.ndarray,
+    cfg: CVAEConfig,
+    obs_stats: tuple[np.ndarray, np.ndarray],
+    progress: bool = True,
+    *,
+    log_every: int = 500,
+    holdout: float = 0.1,
+    groups: np.ndarray | None = None,
+) -> tuple[CVAEParams, list[dict[str, float]]]:
     """Train the CVAE for exactly ``cfg.steps`` steps on raw triplets.
 
     Args:
@@ -303,8 +326,10 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
         obs_stats = (np.zeros(s.shape[-1], np.float32), np.ones(s.shape[-1], np.float32))
     m = s.shape[0]
     if m == 0 or a.shape[0] != m or g.shape != s.shape:
-        raise SpotError(f"triplets have shapes s {s.shape}, a {a.shape}, g {g.shape}; expected "
-                        "[M, obs_dim], [M, act_dim], [M, obs_dim] with M > 0")
+        raise SpotError(
+            f"triplets have shapes s {s.shape}, a {a.shape}, g {g.shape}; expected "
+            "[M, obs_dim], [M, act_dim], [M, obs_dim] with M > 0"
+        )
     init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
     del key
     train_idx, held_idx = _split(split_key, m, holdout, groups)
@@ -318,10 +343,18 @@ def train_cvae(key: jax.Array, s: np.ndarray, a: np.ndarray, g: np.ndarray, cfg:
         return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, eval_key).items()}
 
     state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats)
-    out = loop.run(make_train_chunk(cfg, length), state, lambda c: (data, jax.random.fold_in(train_key, c)),
-                   steps=cfg.steps, length=length, losses={"cvae/loss": "cvae/loss"},
-                   evaluate=evaluate if held is not None else None,
-                   eval_loss=("cvae/heldout_loss", "cvae/heldout_loss"), progress=progress, desc="cvae")
+    out = loop.run(
+        make_train_chunk(cfg, length),
+        state,
+        lambda c: (data, jax.random.fold_in(train_key, c)),
+        steps=cfg.steps,
+        length=length,
+        losses={"cvae/loss": "cvae/loss"},
+        evaluate=evaluate if held is not None else None,
+        eval_loss=("cvae/heldout_loss", "cvae/heldout_loss"),
+        progress=progress,
+        desc="cvae",
+    )
     return out.state.params, out.rows
 
 
@@ -348,8 +381,14 @@ def _generate_sample(params: CVAEParams, s: jax.Array, a: jax.Array, key: jax.Ar
     return sample_subgoal(params, s, a, key)
 
 
-def generate(params: CVAEParams, s: np.ndarray, a: np.ndarray, key: jax.Array | None = None,
-             mode: str = "mean", batch_size: int = 4096) -> np.ndarray:
+def generate(
+    params: CVAEParams,
+    s: np.ndarray,
+    a: np.ndarray,
+    key: jax.Array | None = None,
+    mode: str = "mean",
+    batch_size: int = 4096,
+) -> np.ndarray:
     """Subgoals for a whole dataset, in fixed-size batches (the last one padded; one compile).
 
     Args:
@@ -370,7 +409,7 @@ def generate(params: CVAEParams, s: np.ndarray, a: np.ndarray, key: jax.Array | 
     n, bs = s.shape[0], batch_size
     out = np.empty(s.shape, np.float32)
     for i, start in enumerate(range(0, n, bs)):
-        s_b, a_b = s[start:start + bs], a[start:start + bs]
+        s_b, a_b = s[start : start + bs], a[start : start + bs]
         pad = bs - s_b.shape[0]
         if pad:
             s_b = np.concatenate([s_b, np.zeros((pad, s.shape[1]), np.float32)])
@@ -379,5 +418,5 @@ def generate(params: CVAEParams, s: np.ndarray, a: np.ndarray, key: jax.Array | 
             g_b = _generate_mean(params, s_b, a_b)
         else:
             g_b = _generate_sample(params, s_b, a_b, jax.random.fold_in(key, i))
-        out[start:start + bs] = np.asarray(g_b)[: bs - pad]
+        out[start : start + bs] = np.asarray(g_b)[: bs - pad]
     return out

@@ -62,8 +62,9 @@ def _zscore(x: np.ndarray) -> np.ndarray:
     return (x - x.mean()) / (std if std > 0 else 1.0)
 
 
-def extrapolation_error_bins(r_model: np.ndarray, r_true: np.ndarray, cos_sim: np.ndarray,
-                             in_dist_mask: np.ndarray, bins: int | np.ndarray = 10) -> ExtrapolationTable:
+def extrapolation_error_bins(
+    r_model: np.ndarray, r_true: np.ndarray, cos_sim: np.ndarray, in_dist_mask: np.ndarray, bins: int | np.ndarray = 10
+) -> ExtrapolationTable:
     """Mean ``|z(r_model) - z(r_true)|`` per ``cos(s, ĝ)`` bin, in-distribution vs OOD.
 
     Args:
@@ -98,8 +99,9 @@ def extrapolation_error_bins(r_model: np.ndarray, r_true: np.ndarray, cos_sim: n
     return ExtrapolationTable(edges=edges, mean_error=mean_error, count=count, overall=overall)
 
 
-def plot_extrapolation(tables: dict[str, ExtrapolationTable], path: str | Path,
-                       groups: tuple[str, ...] = GROUP_NAMES) -> Path:
+def plot_extrapolation(
+    tables: dict[str, ExtrapolationTable], path: str | Path, groups: tuple[str, ...] = GROUP_NAMES
+) -> Path:
     """Fig. 2-style line plot: mean error vs bin centre, one line per (table, group).
 
     Args:
@@ -138,18 +140,18 @@ def _knn_radii(x: np.ndarray, k: int) -> np.ndarray:
     return dist[:, -1]
 
 
-def _inside_any_ball(queries: np.ndarray, centres: np.ndarray, radii: np.ndarray,
-                     chunk: int = 1024) -> np.ndarray:
+def _inside_any_ball(queries: np.ndarray, centres: np.ndarray, radii: np.ndarray, chunk: int = 1024) -> np.ndarray:
     """``[len(queries)]`` bool: within ``radii[j]`` of some ``centres[j]``."""
     hit = np.zeros(queries.shape[0], bool)
     for start in range(0, queries.shape[0], chunk):
-        d = cdist(queries[start:start + chunk], centres)
-        hit[start:start + chunk] = (d <= radii[None, :]).any(axis=1)
+        d = cdist(queries[start : start + chunk], centres)
+        hit[start : start + chunk] = (d <= radii[None, :]).any(axis=1)
     return hit
 
 
-def precision_recall(real: np.ndarray, generated: np.ndarray, k: int = 3, max_points: int = 2000,
-                     standardize: bool = True, seed: int = 0) -> dict[str, float]:
+def precision_recall(
+    real: np.ndarray, generated: np.ndarray, k: int = 3, max_points: int = 2000, standardize: bool = True, seed: int = 0
+) -> dict[str, float]:
     """k-NN precision and recall of generated vs real samples (Kynkäänniemi et al., 2019).
 
     Args:
@@ -176,8 +178,9 @@ def precision_recall(real: np.ndarray, generated: np.ndarray, k: int = 3, max_po
     return {"subgoal/precision": float(precision), "subgoal/recall": float(recall)}
 
 
-def plot_projection(obs: np.ndarray, subgoals: np.ndarray, path: str | Path,
-                    max_points: int = 5000, seed: int = 0) -> Path:
+def plot_projection(
+    obs: np.ndarray, subgoals: np.ndarray, path: str | Path, max_points: int = 5000, seed: int = 0
+) -> Path:
     """PCA scatter (fitted on ``obs``) of observations (blue) and subgoals (red), Fig. 4 style."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -103,8 +103,9 @@ class Triplets(NamedTuple):
     g: np.ndarray
 
 
-def step_scores(r_hat: np.ndarray, attn: np.ndarray, weight: str = "column_mean",
-                filter_on: str = "r_hat") -> tuple[np.ndarray, np.ndarray]:
+def step_scores(
+    r_hat: np.ndarray, attn: np.ndarray, weight: str = "column_mean", filter_on: str = "r_hat"
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-step importance weight and reward-filter value from PT's preference attention.
 
     Args:
@@ -129,8 +130,7 @@ def step_scores(r_hat: np.ndarray, attn: np.ndarray, weight: str = "column_mean"
     return w, r
 
 
-def segments(obs: np.ndarray, act: np.ndarray, r_hat: np.ndarray, attn: np.ndarray,
-             cfg: SubgoalConfig) -> Segments:
+def segments(obs: np.ndarray, act: np.ndarray, r_hat: np.ndarray, attn: np.ndarray, cfg: SubgoalConfig) -> Segments:
     """One side of the queries as :class:`Segments`, scored by ``cfg.weight`` and ``cfg.filter_on``."""
     w, r = step_scores(r_hat, attn, cfg.weight, cfg.filter_on)
     return Segments(np.asarray(obs), np.asarray(act), r, w)
@@ -173,17 +173,24 @@ def take_preferred(seg_1: Segments, seg_2: Segments, y: np.ndarray, ties: str = 
     """Stack the preferred segments of all queries: a :class:`Segments` with ``P`` rows."""
     query, side = preferred_segments(y, ties)
     pick = side.astype(bool)
-    return Segments(*(np.where(_expand(pick, f1.ndim), f2[query], f1[query])
-                      for f1, f2 in zip(seg_1, seg_2, strict=True)))
+    return Segments(
+        *(np.where(_expand(pick, f1.ndim), f2[query], f1[query]) for f1, f2 in zip(seg_1, seg_2, strict=True))
+    )
 
 
 def _expand(pick: np.ndarray, ndim: int) -> np.ndarray:
     return pick.reshape(pick.shape + (1,) * (ndim - 1))
 
 
-def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
-                 reward_filter: bool = True, filter_groups: str = "top",
-                 last_step: bool = False) -> np.ndarray:
+def subgoal_mask(
+    w: np.ndarray,
+    r: np.ndarray,
+    top_k: float,
+    group: str = "top",
+    reward_filter: bool = True,
+    filter_groups: str = "top",
+    last_step: bool = False,
+) -> np.ndarray:
     """Dual-criteria subgoal filter, eq. 5-6 (see the module docstring for the groups).
 
     Args:
@@ -228,9 +235,14 @@ def subgoal_mask(w: np.ndarray, r: np.ndarray, top_k: float, group: str = "top",
     return mask
 
 
-def make_triplets(obs: np.ndarray, act: np.ndarray, mask: np.ndarray, mode: str = "next_subgoal",
-                  draws: int = 1, rng: np.random.Generator | None = None
-                  ) -> tuple[Triplets, dict[str, float]]:
+def make_triplets(
+    obs: np.ndarray,
+    act: np.ndarray,
+    mask: np.ndarray,
+    mode: str = "next_subgoal",
+    draws: int = 1,
+    rng: np.random.Generator | None = None,
+) -> tuple[Triplets, dict[str, float]]:
     """CVAE triplets ``(s_t, a_t, g_t)`` from the subgoal steps of each segment (§4.1.3).
 
     Args:
@@ -285,9 +297,14 @@ def make_triplets(obs: np.ndarray, act: np.ndarray, mask: np.ndarray, mode: str 
     return triplets, info
 
 
-def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
-            ties: str = "skip", rng: np.random.Generator | None = None
-            ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
+def extract(
+    seg_1: Segments,
+    seg_2: Segments,
+    y: np.ndarray,
+    cfg: SubgoalConfig,
+    ties: str = "skip",
+    rng: np.random.Generator | None = None,
+) -> tuple[Triplets, np.ndarray, dict[str, float]]:
     """Preferred segments -> subgoal mask -> CVAE triplets, with counts for logging.
 
     ``rng`` draws the ``interval`` triplets (``subgoal.triplets``); unused otherwise.
@@ -300,8 +317,9 @@ def extract(seg_1: Segments, seg_2: Segments, y: np.ndarray, cfg: SubgoalConfig,
       SpotError: if no triplet is left (every label a tie, or no step passes the filter).
     """
     pref = take_preferred(seg_1, seg_2, y, ties)
-    mask = subgoal_mask(pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups,
-                        cfg.last_step)
+    mask = subgoal_mask(
+        pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups, cfg.last_step
+    )
     triplets, info = make_triplets(pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng)
     if triplets.s.shape[0] == 0:
         raise SpotError(

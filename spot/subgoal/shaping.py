@@ -61,9 +61,15 @@ class ShapedRewards(NamedTuple):
     cos_to_subgoal: np.ndarray
 
 
-def shape_reward(kind: str, next_obs: jax.Array, g_hat: jax.Array, obs: jax.Array | None = None,
-                 gamma: float = 0.99, terminals: jax.Array | None = None,
-                 potential_sign: str = "neg") -> jax.Array:
+def shape_reward(
+    kind: str,
+    next_obs: jax.Array,
+    g_hat: jax.Array,
+    obs: jax.Array | None = None,
+    gamma: float = 0.99,
+    terminals: jax.Array | None = None,
+    potential_sign: str = "neg",
+) -> jax.Array:
     """Shaping term ``r_shape [N]`` for raw ``next_obs [N, o]`` and subgoals ``g_hat [N, o]``.
 
     Args:
@@ -104,10 +110,19 @@ def final_reward(r_model: jax.Array, r_shape: jax.Array, weight: float) -> jax.A
     return r_model + weight * r_shape
 
 
-def shaped_rewards(cvae_params: CVAEParams, ds_obs: np.ndarray, ds_act: np.ndarray,
-                   ds_next_obs: np.ndarray, r_model_normalised: np.ndarray, cfg: ShapingConfig,
-                   key: jax.Array, *, gamma: float = 0.99, terminals: np.ndarray | None = None,
-                   batch_size: int = 4096) -> tuple[ShapedRewards, dict[str, float]]:
+def shaped_rewards(
+    cvae_params: CVAEParams,
+    ds_obs: np.ndarray,
+    ds_act: np.ndarray,
+    ds_next_obs: np.ndarray,
+    r_model_normalised: np.ndarray,
+    cfg: ShapingConfig,
+    key: jax.Array,
+    *,
+    gamma: float = 0.99,
+    terminals: np.ndarray | None = None,
+    batch_size: int = 4096,
+) -> tuple[ShapedRewards, dict[str, float]]:
     """Relabel a whole dataset with eq. 13 (subgoals generated in fixed-size jitted batches).
 
     Args:
@@ -125,21 +140,26 @@ def shaped_rewards(cvae_params: CVAEParams, ds_obs: np.ndarray, ds_act: np.ndarr
     """
     n = ds_obs.shape[0]
     if not (ds_act.shape[0] == n and ds_next_obs.shape == ds_obs.shape and np.shape(r_model_normalised) == (n,)):
-        raise SpotError(f"dataset arrays disagree: obs {ds_obs.shape}, act {ds_act.shape}, next_obs "
-                        f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}")
+        raise SpotError(
+            f"dataset arrays disagree: obs {ds_obs.shape}, act {ds_act.shape}, next_obs "
+            f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}"
+        )
     g_hat = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
     obs, next_obs = np.asarray(ds_obs, np.float32), np.asarray(ds_next_obs, np.float32)
     masked = terminals if cfg.potential_terminal else None
-    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, masked, cfg.potential_sign),
-                         np.float32)
+    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, masked, cfg.potential_sign), np.float32)
     r_model = np.asarray(r_model_normalised, np.float32)
     reward = np.asarray(final_reward(r_model, r_shape, cfg.weight), np.float32)
     cos_s = np.asarray(cosine_similarity(obs, g_hat), np.float32)
     info = {
-        "shaping/r_shape_mean": float(r_shape.mean()), "shaping/r_shape_std": float(r_shape.std()),
-        "shaping/r_shape_min": float(r_shape.min()), "shaping/r_shape_max": float(r_shape.max()),
-        "shaping/r_model_mean": float(r_model.mean()), "shaping/r_model_std": float(r_model.std()),
-        "shaping/r_final_mean": float(reward.mean()), "shaping/r_final_std": float(reward.std()),
+        "shaping/r_shape_mean": float(r_shape.mean()),
+        "shaping/r_shape_std": float(r_shape.std()),
+        "shaping/r_shape_min": float(r_shape.min()),
+        "shaping/r_shape_max": float(r_shape.max()),
+        "shaping/r_model_mean": float(r_model.mean()),
+        "shaping/r_model_std": float(r_model.std()),
+        "shaping/r_final_mean": float(reward.mean()),
+        "shaping/r_final_std": float(reward.std()),
         "shaping/cos_to_subgoal_mean": float(cos_s.mean()),
     }
     return ShapedRewards(reward=reward, shape=r_shape, cos_to_subgoal=cos_s), info

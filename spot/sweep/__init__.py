@@ -28,7 +28,22 @@ from spot.sweep.summary import Row, format_summary, paper_table, summarize
 from spot.sweep.trial import SweepContext, configure_process, cpu_slots, run_trial
 
 __all__ = [
-    "DEFAULT_STORAGE", "Interrupted", "Row", "Sweep", "SweepContext", "Trial", "config_key", "configure_process", "cpu_slots",
-    "format_summary", "load", "paper_table", "prebuild_datasets", "run_key", "run_sweep", "run_trial",
-    "summarize", "tag_value",
+    "DEFAULT_STORAGE",
+    "Interrupted",
+    "Row",
+    "Sweep",
+    "SweepContext",
+    "Trial",
+    "config_key",
+    "configure_process",
+    "cpu_slots",
+    "format_summary",
+    "load",
+    "paper_table",
+    "prebuild_datasets",
+    "run_key",
+    "run_sweep",
+    "run_trial",
+    "summarize",
+    "tag_value",
 ]

@@ -28,16 +28,18 @@ def _row(axes: dict[str, Any], seed: int, key: str, runs: list[Any], ray_error: 
     finished = [r for r in runs if r.info.status == "FINISHED"]
     if finished:
         r = finished[0]
-        return Row(axes, seed, key, "FINISHED", r.data.metrics.get("eval/score_final"), "", r.info.run_id,
-                   len(finished))
+        return Row(
+            axes, seed, key, "FINISHED", r.data.metrics.get("eval/score_final"), "", r.info.run_id, len(finished)
+        )
     if runs:
         r = max(runs, key=lambda r: r.info.start_time or 0)
         return Row(axes, seed, key, r.info.status, None, r.data.tags.get("failure_reason", ""), r.info.run_id, 0)
     return Row(axes, seed, key, "ERROR" if ray_error else "NOT RUN", None, ray_error or "", "", 0)
 
 
-def summarize(sweep: Sweep, client: Any, experiment_id: str, sweep_id: str,
-              ray_errors: dict[str, str] | None = None) -> list[Row]:
+def summarize(
+    sweep: Sweep, client: Any, experiment_id: str, sweep_id: str, ray_errors: dict[str, str] | None = None
+) -> list[Row]:
     """One :class:`Row` per (config, seed) from the sweep's MLflow runs (and Ray's trial errors)."""
     from spot import tracking
 
@@ -55,12 +57,18 @@ def summarize(sweep: Sweep, client: Any, experiment_id: str, sweep_id: str,
 def format_summary(rows: list[Row], axis_keys: tuple[str, ...], width: int = 70) -> str:
     """A plain-text table: axis values, seed, score_final, status, failure reason."""
     header = [*axis_keys, "seed", "score_final", "status", "reason"]
-    body = [[*(tag_value(r.axes[k]) for k in axis_keys), str(r.seed),
-             "" if r.score_final is None else f"{r.score_final:.2f}", r.status,
-             (r.reason.splitlines() or [""])[0][:width]] for r in rows]
+    body = [
+        [
+            *(tag_value(r.axes[k]) for k in axis_keys),
+            str(r.seed),
+            "" if r.score_final is None else f"{r.score_final:.2f}",
+            r.status,
+            (r.reason.splitlines() or [""])[0][:width],
+        ]
+        for r in rows
+    ]
     widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
-    lines = ["  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip()
-             for line in (header, *body)]
+    lines = ["  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip() for line in (header, *body)]
     return "\n".join([lines[0], "  ".join("-" * w for w in widths), *lines[1:]])
 
 

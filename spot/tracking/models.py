@@ -24,8 +24,10 @@ from spot import SpotError, cache
 from spot.tracking.record import Tracker, git_commit, json_safe, package_versions
 
 MODELS_DIR = "models"
-FORMAT = ("spot.cache entry: .npz read with allow_pickle=False; the arrays, a JSON description of "
-          "the tree around them (__tree__) and a SHA-256 of both (__digest__); spot.cache.read_entry")
+FORMAT = (
+    "spot.cache entry: .npz read with allow_pickle=False; the arrays, a JSON description of "
+    "the tree around them (__tree__) and a SHA-256 of both (__digest__); spot.cache.read_entry"
+)
 
 
 def shapes(value: Any) -> dict[str, list[int]]:
@@ -38,13 +40,24 @@ def shapes(value: Any) -> dict[str, list[int]]:
 
 def header(name: str, what: str, value: Any, config: Mapping[str, Any], **extra: Any) -> dict[str, Any]:
     """The JSON header of a saved model."""
-    return json_safe({"name": name, "what": what, "file": f"{name}.npz", "format": FORMAT,
-                      "config": dict(config), "shapes": shapes(value), "git_commit": git_commit(),
-                      "spot_version": package_versions().get("spot-pbrl"), **extra})
+    return json_safe(
+        {
+            "name": name,
+            "what": what,
+            "file": f"{name}.npz",
+            "format": FORMAT,
+            "config": dict(config),
+            "shapes": shapes(value),
+            "git_commit": git_commit(),
+            "spot_version": package_versions().get("spot-pbrl"),
+            **extra,
+        }
+    )
 
 
-def save_model(tracker: Tracker, folder: Path, name: str, what: str, value: Any,
-               config: Mapping[str, Any], **extra: Any) -> dict[str, Any]:
+def save_model(
+    tracker: Tracker, folder: Path, name: str, what: str, value: Any, config: Mapping[str, Any], **extra: Any
+) -> dict[str, Any]:
     """Write ``value`` (a pytree of arrays: dicts, NamedTuples, spot dataclasses) and its header to
     ``folder`` and log both under ``models/``; returns the header."""
     folder.mkdir(parents=True, exist_ok=True)
@@ -69,8 +82,9 @@ def read_model(folder: Path, name: str) -> tuple[Any, dict[str, Any]]:
     return value, head
 
 
-def load_model(run_id: str, name: str, tracking_uri: str | None = None,
-               dst: str | Path | None = None) -> tuple[Any, dict[str, Any]]:
+def load_model(
+    run_id: str, name: str, tracking_uri: str | None = None, dst: str | Path | None = None
+) -> tuple[Any, dict[str, Any]]:
     """``(value, header)`` of the model ``name`` a run saved (downloaded to ``dst`` if its
     artifact store is remote; a temporary folder by default).
 
@@ -86,8 +100,10 @@ def load_model(run_id: str, name: str, tracking_uri: str | None = None,
     for file in (f"{name}.json", f"{name}.npz"):
         path = download_artifact(run_id, root, f"{MODELS_DIR}/{file}", client.tracking_uri, str(dst))
         if path is None:
-            raise SpotError(f"run {run_id} has no saved model {MODELS_DIR}/{file} (runs save their models "
-                            "since spot records them; older runs do not have them)")
+            raise SpotError(
+                f"run {run_id} has no saved model {MODELS_DIR}/{file} (runs save their models "
+                "since spot records them; older runs do not have them)"
+            )
         got[file] = path
     if got[f"{name}.json"].parent != got[f"{name}.npz"].parent:
         raise SpotError(f"run {run_id}: {name}.json and {name}.npz were not found in one folder")

@@ -37,8 +37,21 @@ from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
 
-PACKAGES = ("spot-pbrl", "jax", "jaxlib", "flax", "optax", "numpy", "mujoco", "gymnasium",
-            "metaworld", "robosuite", "mlflow", "ray", "h5py")
+PACKAGES = (
+    "spot-pbrl",
+    "jax",
+    "jaxlib",
+    "flax",
+    "optax",
+    "numpy",
+    "mujoco",
+    "gymnasium",
+    "metaworld",
+    "robosuite",
+    "mlflow",
+    "ray",
+    "h5py",
+)
 
 
 @functools.cache
@@ -47,8 +60,13 @@ def git_commit() -> str:
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
         commit = out.stdout.strip() or "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=5).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=here,
+            capture_output=True,
+            text=True,
+            timeout=5,
+        ).stdout.strip()
         return commit + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -71,7 +89,9 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def run_tags(cfg: config_lib.ExperimentConfig, card: dict[str, Any], extra: dict[str, str] | None = None) -> dict[str, str]:
+def run_tags(
+    cfg: config_lib.ExperimentConfig, card: dict[str, Any], extra: dict[str, str] | None = None
+) -> dict[str, str]:
     tags = {
         "method": cfg.method,
         "dataset": str(card.get("name", cfg.data.name)),
@@ -119,24 +139,34 @@ def reproduce_command(cfg: config_lib.ExperimentConfig) -> str:
     """A ``spot run`` command line whose config resolves to ``cfg`` (tracking keys aside): the
     method, budget, variant, dataset and seed, and every key that differs from what those presets
     give."""
-    anchors = {"method": cfg.method, "budget": cfg.budget, "variant": cfg.variant,
-               "data.name": cfg.data.name}
+    anchors = {"method": cfg.method, "budget": cfg.budget, "variant": cfg.variant, "data.name": cfg.data.name}
     preset = config_lib.to_flat(config_lib.resolve(anchors))
     flat = config_lib.to_flat(cfg)
-    keys = [*anchors, "seed", *(k for k in flat if k not in anchors and k != "seed"
-                                and not k.startswith("tracking.") and flat[k] != preset[k])]
+    keys = [
+        *anchors,
+        "seed",
+        *(
+            k
+            for k in flat
+            if k not in anchors and k != "seed" and not k.startswith("tracking.") and flat[k] != preset[k]
+        ),
+    ]
     return "spot run " + " ".join(_override_text(k, flat[k]) for k in keys)
 
 
 def description(cfg: config_lib.ExperimentConfig, tags: Mapping[str, str], command: str) -> str:
     """The run's description (``mlflow.note.content``, Markdown)."""
-    lines = [f"**{cfg.method}** on **{tags.get('dataset', cfg.data.name)}** "
-             f"({tags.get('dataset_source', '?')}, size {tags.get('dataset_size', '?')}), "
-             f"budget **{cfg.budget}**, seed {cfg.seed}, variant {cfg.variant}"]
+    lines = [
+        f"**{cfg.method}** on **{tags.get('dataset', cfg.data.name)}** "
+        f"({tags.get('dataset_source', '?')}, size {tags.get('dataset_size', '?')}), "
+        f"budget **{cfg.budget}**, seed {cfg.seed}, variant {cfg.variant}"
+    ]
     if tags.get("sweep_id"):
-        axes = ", ".join(f"{k[len('axis.'):]}={v}" for k, v in tags.items() if k.startswith("axis."))
-        lines.append(f"sweep **{tags.get('sweep_name', '?')}** (launch `{tags['sweep_id']}`)"
-                     + (f", trial {axes}" if axes else ""))
+        axes = ", ".join(f"{k[len('axis.') :]}={v}" for k, v in tags.items() if k.startswith("axis."))
+        lines.append(
+            f"sweep **{tags.get('sweep_name', '?')}** (launch `{tags['sweep_id']}`)"
+            + (f", trial {axes}" if axes else "")
+        )
     lines.append(f"command: `{command}`")
     lines.append(f"reproduce this config: `{reproduce_command(cfg)}`")
     if tags.get("data_digest"):
@@ -159,12 +189,21 @@ def environment() -> dict[str, Any]:
             devices = [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in sys.modules["jax"].devices()]
         except Exception as e:  # noqa: BLE001 - no backend: say so in the record
             devices = f"unavailable ({type(e).__name__}: {e})"
-    env_keys = sorted(k for k in os.environ if k.startswith(("XLA_", "JAX_", "TF_", "CUDA_", "MUJOCO_", "SPOT_"))
-                      or k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PYOPENGL_PLATFORM"))
+    env_keys = sorted(
+        k
+        for k in os.environ
+        if k.startswith(("XLA_", "JAX_", "TF_", "CUDA_", "MUJOCO_", "SPOT_"))
+        or k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "PYOPENGL_PLATFORM")
+    )
     return {
-        "python": sys.version, "executable": sys.executable, "platform": platform.platform(),
-        "cpu": {"model": cpu_model, "count": os.cpu_count(),
-                "affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None},
+        "python": sys.version,
+        "executable": sys.executable,
+        "platform": platform.platform(),
+        "cpu": {
+            "model": cpu_model,
+            "count": os.cpu_count(),
+            "affinity": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None,
+        },
         "devices": devices,
         "env": {k: os.environ[k] for k in env_keys},
         "git_commit": git_commit(),
@@ -205,8 +244,9 @@ def json_safe(data: Any) -> Any:
 DIGEST_CHARS = 32  # MLflow keeps at most 36 characters of a dataset digest
 
 
-def log_dataset_input(client: Any, run_id: str, ds: Any, card: Mapping[str, Any], cfg: config_lib.ExperimentConfig,
-                      digest: str) -> None:
+def log_dataset_input(
+    client: Any, run_id: str, ds: Any, card: Mapping[str, Any], cfg: config_lib.ExperimentConfig, digest: str
+) -> None:
     """The run's dataset as an MLflow input (context ``training``): its name, the file it was read
     from, the first :data:`DIGEST_CHARS` hex digits of its fingerprint as the digest, and a schema
     of its arrays (name, dtype, shape)."""
@@ -221,13 +261,17 @@ def log_dataset_input(client: Any, run_id: str, ds: Any, card: Mapping[str, Any]
     path = Path(cfg.data.name)
     if not path.exists():
         path = registry.dataset_path(cfg.data.name, cfg.data.size, cfg.data.build_seed)
-    arrays = [(name, getattr(ds, name, None)) for name in
-              ("observations", "actions", "rewards", "next_observations", "terminals")]
-    schema = Schema([TensorSpec(np.dtype(a.dtype), (-1, *a.shape[1:]), name)
-                     for name, a in arrays if isinstance(a, np.ndarray)])
+    arrays = [
+        (name, getattr(ds, name, None))
+        for name in ("observations", "actions", "rewards", "next_observations", "terminals")
+    ]
+    schema = Schema(
+        [TensorSpec(np.dtype(a.dtype), (-1, *a.shape[1:]), name) for name, a in arrays if isinstance(a, np.ndarray)]
+    )
     name = str(card.get("name") or cfg.data.name)
-    dataset = MetaDataset(LocalArtifactDatasetSource(str(path.resolve())), name=name,
-                          digest=digest[:DIGEST_CHARS], schema=schema)
+    dataset = MetaDataset(
+        LocalArtifactDatasetSource(str(path.resolve())), name=name, digest=digest[:DIGEST_CHARS], schema=schema
+    )
     tags = [InputTag("mlflow.data.context", "training")]
     client.log_inputs(run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags)])
 
@@ -361,7 +405,7 @@ class MlflowTracker:
 
         now = int(time.time() * 1000)
         for i in range(0, len(points), self.BATCH):
-            batch = [Metric(k, v, now, step) for k, v, step in points[i:i + self.BATCH]]
+            batch = [Metric(k, v, now, step) for k, v, step in points[i : i + self.BATCH]]
             self.client.log_batch(self.run_id, metrics=batch)
 
     def log_metrics(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
@@ -370,8 +414,11 @@ class MlflowTracker:
             self._send(points)
 
     def log_series(self, name: str, steps: Sequence[int], values: Sequence[Any]) -> None:
-        points = [(name, v, int(s)) for s, value in zip(steps, values, strict=True)
-                  for v in finite_metrics({name: value}).values()]
+        points = [
+            (name, v, int(s))
+            for s, value in zip(steps, values, strict=True)
+            for v in finite_metrics({name: value}).values()
+        ]
         if points:
             self._send(points)
 
@@ -398,7 +445,7 @@ def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> No
     flat = active_params(cfg)
     params = [Param(k, str(list(v) if isinstance(v, tuple) else v)) for k, v in flat.items()]
     for i in range(0, len(params), 100):  # MLflow's limit of params per batch
-        client.log_batch(run_id, params=params[i:i + 100])
+        client.log_batch(run_id, params=params[i : i + 100])
 
 
 def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[str, str]:
@@ -406,8 +453,11 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
     command = command_line()
     if COMMAND_ENV not in os.environ and Path(sys.argv[0]).name == "default_worker.py" and tags.get("sweep_name"):
         command = f"spot sweep (a trial of sweep {tags['sweep_name']}; Ray worker)"  # a cluster's worker
-    out = {"mlflow.note.content": description(cfg, tags, command), "mlflow.source.name": command,
-           "mlflow.source.type": "LOCAL"}
+    out = {
+        "mlflow.note.content": description(cfg, tags, command),
+        "mlflow.source.name": command,
+        "mlflow.source.type": "LOCAL",
+    }
     commit = commit_hash()
     if commit:
         out["mlflow.source.git.commit"] = commit
@@ -415,9 +465,16 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
 
 
 @contextlib.contextmanager
-def start_run(cfg: config_lib.ExperimentConfig, card: dict[str, Any], *, run_name: str | None = None,
-              extra_tags: dict[str, str] | None = None, parent_run_id: str | None = None,
-              dataset: Any = None, system_metrics: bool = True) -> Iterator[MlflowTracker]:
+def start_run(
+    cfg: config_lib.ExperimentConfig,
+    card: dict[str, Any],
+    *,
+    run_name: str | None = None,
+    extra_tags: dict[str, str] | None = None,
+    parent_run_id: str | None = None,
+    dataset: Any = None,
+    system_metrics: bool = True,
+) -> Iterator[MlflowTracker]:
     """Open an MLflow run for ``cfg`` and yield its :class:`MlflowTracker`.
 
     The run gets the tags of :func:`run_tags` and :func:`mlflow_tags` (with ``dataset``: its

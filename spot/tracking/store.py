@@ -31,7 +31,7 @@ def given_uri(uri: str | None = None) -> str:
 
 def sqlite_path(uri: str) -> Path | None:
     """The database file of a ``sqlite:///`` URI (relative or absolute); None for other URIs."""
-    return Path(uri[len("sqlite:///"):]) if uri.startswith("sqlite:///") else None
+    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
 
 
 def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
@@ -51,11 +51,15 @@ def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
     if not uri:
         found = [p.resolve() for p in LOCAL_STORES if p.exists()]
         if not found:
-            raise SpotError(f"no MLflow store here ({' or '.join(map(str, LOCAL_STORES))}); "
-                            "pass --tracking-uri (or set MLFLOW_TRACKING_URI)")
+            raise SpotError(
+                f"no MLflow store here ({' or '.join(map(str, LOCAL_STORES))}); "
+                "pass --tracking-uri (or set MLFLOW_TRACKING_URI)"
+            )
         if len(found) > 1:
-            raise SpotError(f"two MLflow stores here ({', '.join(map(str, found))}); pick one with "
-                            f"--tracking-uri sqlite:///{found[0]}")
+            raise SpotError(
+                f"two MLflow stores here ({', '.join(map(str, found))}); pick one with "
+                f"--tracking-uri sqlite:///{found[0]}"
+            )
         return f"sqlite:///{found[0]}"
     db = sqlite_path(uri)
     if db is not None and not db.exists():
