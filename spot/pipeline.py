@@ -39,18 +39,25 @@ def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | No
     with _tracking(cfg, card, tracker, parent_run_id, extra_tags, ds) as tr:
         ctx = Context(cfg, ds, card, env_name, tr, _keys(cfg.seed), progress, on_eval)
         ctx.times["time/data_s"] = data_s
-        labelled = ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None
-        model = ctx.stage("reward", kind.reward, labelled)
-        rewards = ctx.stage("relabel", kind.relabel, model)
-        subgoals = None
-        if stages.needs_subgoals(cfg):
-            extracted = ctx.stage("subgoals", stages.subgoals_stage, labelled, rewards)
-            subgoals = ctx.stage("cvae", stages.cvae_stage, extracted, rewards)
-        shaped = ctx.stage("shaping", stages.shaping_stage, rewards, subgoals)
-        if subgoals is not None:
-            ctx.stage("diagnostics", stages.diagnostics_stage, labelled, subgoals, shaped)
+        labelled, shaped = before_policy(ctx, kind)
         policy = ctx.stage("iql", kind.policy, shaped, labelled)
         return stages.finish(ctx, policy, t_start)
+
+
+def before_policy(ctx: Context, kind: stages.RewardKind) -> tuple[stages.Labelled | None, stages.Shaped]:
+    """The stages before the policy: labels, reward model, relabelling, subgoals, CVAE, shaping and
+    the diagnostics; returns the labelled queries (None without labels) and the policy's reward."""
+    labelled = ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None
+    model = ctx.stage("reward", kind.reward, labelled)
+    rewards = ctx.stage("relabel", kind.relabel, model)
+    subgoals = None
+    if stages.needs_subgoals(ctx.cfg):
+        extracted = ctx.stage("subgoals", stages.subgoals_stage, labelled, rewards)
+        subgoals = ctx.stage("cvae", stages.cvae_stage, extracted, rewards)
+    shaped = ctx.stage("shaping", stages.shaping_stage, rewards, subgoals)
+    if subgoals is not None:
+        ctx.stage("diagnostics", stages.diagnostics_stage, labelled, subgoals, shaped)
+    return labelled, shaped
 
 
 def _load(cfg: ExperimentConfig, progress: bool) -> tuple[Any, dict[str, Any], str, float]:

@@ -24,7 +24,7 @@ LAYERS = [
     (4, "policy", ["spot.policy"]),
     (5, "recipes", ["spot.recipes"]),
     (6, "tracking", ["spot.tracking"]),
-    (7, "stages", ["spot.stages", "spot.pipeline"]),
+    (7, "stages", ["spot.stages", "spot.pipeline", "spot.multiseed"]),
     (8, "apps", ["spot.sweep", "spot.tables", "spot.figures", "spot.bench", "spot.mlflow_server",
                  "spot.results", "spot.report", "spot.stats"]),
     (9, "cli", ["spot.cli"]),

@@ -297,14 +297,16 @@ def make_train_chunk(cfg: IQLConfig) -> Callable[..., tuple[IQLState, dict]]:
 
 
 @functools.lru_cache(maxsize=16)
-def make_vmapped_train_chunk(cfg: IQLConfig) -> Callable[..., tuple[IQLState, dict]]:
+def make_vmapped_train_chunk(cfg: IQLConfig, per_seed_rewards: bool = False) -> Callable[..., tuple[IQLState, dict]]:
     """Like :func:`make_train_chunk` for ``S`` seeds in one program.
 
     The returned ``fn(states, n, data, keys)`` takes states stacked over a leading seed axis
     (``init_state(keys, ...)`` with keys ``[S]``), the shared ``n`` and ``data`` and keys ``[S]``;
-    metrics come back with shape ``[S]``.
+    metrics come back with shape ``[S]``. With ``per_seed_rewards``, ``data.rew`` is ``[S, N]``
+    (each seed's own reward model or shaping) and the other fields are shared.
     """
-    return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum", vmap_axes=(0, None, 0))
+    data_axes = Transitions(None, None, 0, None, None) if per_seed_rewards else None
+    return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum", vmap_axes=(0, data_axes, 0))
 
 
 @dataclass
