@@ -294,11 +294,29 @@ def _tables(args: argparse.Namespace) -> None:
         runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
     table = tables.build_table(runs, args.table, args.metric, ddof=args.ddof, allow_mixed=args.allow_mixed)
     text = tables.format_table(table, args.format)
+    if args.table == 1 and args.format == "md":
+        text += _aggregate_text(runs, args.metric)
     if args.out:
         Path(args.out).write_text(text)
         print(f"wrote {args.out}")
     else:
         print(text, end="")
+
+
+def _aggregate_text(runs: Any, metric: str) -> str:
+    """Table 1's methods across datasets: IQM and P(SPOT > method), each with its 95 % CI."""
+    from spot import report, results
+
+    frame = runs if "config_hash" in runs else results.to_frame(runs)
+    try:
+        agg = report.aggregate(frame, f"metrics.{metric}")
+    except SpotError:
+        return ""
+    lines = ["", "**Across datasets** (the datasets every method has; 95% stratified-bootstrap CIs)", "",
+             "| method | datasets | runs | IQM [CI] | P(SPOT > method) [CI] |", "|---|---|---|---|---|"]
+    for r in agg.itertuples(index=False):
+        lines.append(f"| {r.method} | {r.datasets} | {r.runs} | {r.iqm} | {r[4]} |")
+    return "\n".join(lines) + "\n"
 
 
 def _results_export(args: argparse.Namespace) -> None:

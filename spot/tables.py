@@ -41,11 +41,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from spot import SpotError, tracking
+from spot import SpotError, stats, tracking
 from spot.config import METHODS
 
 TABLES = (1, 2, 3, 4, 7, 8)
-FIELDS = ("mean", "std", "n", "paper", "paper_std", "diff", "best")
+FIELDS = ("mean", "std", "n", "ci_low", "ci_high", "paper", "paper_std", "diff", "best")
 FORMATS = ("md", "latex", "csv")
 METHOD_ORDER = METHODS  # the config's method order: columns of Table 1, curves of Fig. 2
 METHOD_LABELS = {"oracle": "Oracle", "mr": "MR", "pt": "PT", "ipl": "IPL", "hpl": "HPL", "spot": "SPOT"}
@@ -574,7 +574,7 @@ def _wide(cells: pd.DataFrame, spec: _Spec) -> pd.DataFrame:
     for c in col_values:
         wide[(c, "n")] = wide[(c, "n")].fillna(0).astype(int)
         wide[(c, "best")] = wide[(c, "best")].astype("boolean").fillna(False).astype(bool)
-        for f in ("mean", "std", "paper", "paper_std", "diff"):
+        for f in ("mean", "std", "ci_low", "ci_high", "paper", "paper_std", "diff"):
             wide[(c, f)] = wide[(c, f)].astype(float)
     return wide
 
@@ -628,7 +628,10 @@ def build_table(
     finished, excluded = _finished(runs, spec, table)
     long, used = _values(finished, spec, table, metric, allow_mixed, notes)
     agg = long.groupby([*spec.rows, "source", spec.col], dropna=False)["value"]
-    cells = pd.DataFrame({"mean": agg.mean(), "std": agg.std(ddof=ddof), "n": agg.count()}).reset_index()
+    cells = pd.DataFrame({"mean": agg.mean(), "std": agg.std(ddof=ddof), "n": agg.count()})
+    ci = agg.apply(lambda v: stats.bootstrap_ci([v.dropna().to_numpy()], stats.mean_of_means))
+    cells["ci_low"], cells["ci_high"] = [c[0] for c in ci], [c[1] for c in ci]
+    cells = cells.reset_index()
     with_paper = spec.kind == "time" or metric.startswith("eval/score")
     if with_paper:
         cells = _with_paper(cells, spec, table, paper_only_cells)
@@ -665,7 +668,7 @@ def _standard_notes(
     std = "sample std (ddof=1)" if ddof == 1 else "population std (ddof=0)"
     unit = "the stage times in seconds" if spec.kind == "time" else metric
     notes = [
-        f"cell: ours mean ± {std} over seeds of {unit} (n seeds)"
+        f"cell: ours mean ± {std} over seeds of {unit} (n seeds), CI = 95% bootstrap interval of the mean"
         + (" [paper mean ± std, Δ = ours − paper]" if with_paper else "")
     ]
     if spec.best != "none":
@@ -732,6 +735,9 @@ def _cell_text(c: pd.Series, kind: str, fmt: str) -> str:
         if c["best"]:
             ours = f"\\textbf{{{ours}}}" if fmt == "latex" else f"**{ours}**"
         parts.append(f"{ours} ({int(c['n'])})")
+        if np.isfinite(c.get("ci_low", np.nan)):
+            dash = "--" if fmt == "latex" else "–"
+            parts.append(f"CI {_num(c['ci_low'], kind)}{dash}{_num(c['ci_high'], kind)}")
     elif np.isfinite(c["paper"]):
         parts.append("--" if fmt == "latex" else "–")
     if np.isfinite(c["paper"]):

@@ -134,3 +134,11 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
     assert df["config_hash"].nunique() == 1 and set(df["data_digest"]) == {"d1"}
     p = run_cli("tables", "--table", "1", "--results", str(out))
     assert p.returncode == 0 and "15.00 ± 7.07** (2)" in p.stdout, p.stdout + p.stderr
+
+
+def test_tables_cli_prints_cis_and_the_across_datasets_summary():
+    p = run_cli("tables", "--table", "1", "--results", str(FIXTURE))
+    assert p.returncode == 0, p.stderr
+    # hopper PT 50, 52, 57: the bootstrap CI of the mean runs from 50 + ... ; its ends are resample means
+    assert "53.00 ± 3.61 (3) CI" in p.stdout
+    assert "**Across datasets**" in p.stdout and "| spot | 2 | 6 | 64.8 [" in p.stdout

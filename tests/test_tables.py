@@ -308,7 +308,7 @@ def test_formats_parse(t1_runs):
     assert line["spot/mean"] == pytest.approx(85.0) and line["spot/paper"] == pytest.approx(85.08)
     md = tables.format_table(t, "md")
     assert "| dataset | source | Oracle | MR | PT | IPL | HPL | SPOT |" in md
-    assert "**85.00 ± 5.00** (3) [85.08 ± 1.32, Δ -0.08]" in md
+    assert "**85.00 ± 5.00** (3) CI 80.00–90.00 [85.08 ± 1.32, Δ -0.08]" in md  # 80, 85, 90: CI of the mean
     latex = tables.format_table(t, "latex")
     assert "\\begin{tabular}" in latex and "\\end{tabular}" in latex
     assert "\\textbf{85.00 $\\pm$ 5.00} (3)" in latex
