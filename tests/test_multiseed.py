@@ -6,8 +6,8 @@ import jax
 import numpy as np
 import pytest
 
-from spot import SpotError, cache, config, multiseed, pipeline
-from spot.tracking import MemoryTracker
+from spot import SpotError, cache, config, multiseed, pipeline, sweep
+from spot.tracking import MemoryTracker, locking
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=150", "iql.chunk=100", "eval.every=100",
         "eval.episodes=1", "labels.num_queries=30", "labels.segment_length=25"]
@@ -74,3 +74,87 @@ def test_vmap_refuses_ipl_and_mixed_configs():
         multiseed.check([_cfg(0, "method=oracle"), _cfg(1, "method=oracle", "iql.lr=0.001")])
     with pytest.raises(SpotError, match=r"seeds \[2, 2\] repeat"):
         multiseed.check([_cfg(2, "method=oracle"), _cfg(2, "method=oracle")])
+
+
+# --------------------------------------------------------------------------- in a sweep
+SWEEP_FILE = "name: ms\nbase: {method: oracle, budget: tiny}\ngrid: {data.name: [drawer-open]}\nseeds: [0, 1]\n"
+
+
+def _sweep(tmp_path: Path, text: str):
+    path = tmp_path / "ms.yaml"
+    path.write_text(text)
+    return sweep.load(path)
+
+
+def test_seed_modes_expand_to_trials(tmp_path):
+    trials = _sweep(tmp_path, SWEEP_FILE).trials()  # default: one trial per seed
+    assert [(t.seeds, t.vmap) for t in trials] == [((0,), False), ((1,), False)]
+    (seq,) = _sweep(tmp_path, SWEEP_FILE + "seed_mode: sequential\n").trials()
+    assert (seq.seeds, seq.vmap) == ((0, 1), False) and "vmap" not in seq.to_config()
+    (vm,) = _sweep(tmp_path, SWEEP_FILE + "seed_mode: vmap\n").trials()
+    assert (vm.seeds, vm.vmap) == ((0, 1), True) and vm.to_config()["vmap"] is True
+    with pytest.raises(SpotError, match=r"trial data.name=drawer-open: seed_mode vmap trains IQL over seeds; "
+                                        r"method 'ipl'"):
+        _sweep(tmp_path, SWEEP_FILE.replace("oracle", "ipl") + "seed_mode: vmap\n")
+    (ipl,) = _sweep(tmp_path, SWEEP_FILE.replace("oracle", "ipl") + "seed_mode: sequential\n").trials()
+    assert ipl.seeds == (0, 1)
+
+
+@pytest.mark.slow  # about 40 s: two tiny oracle seeds in one MLflow store
+def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_path, spot_dirs, tiny_drawer,
+                                                                       monkeypatch):
+    from mlflow.tracking import MlflowClient
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    s = _sweep(tmp_path, SWEEP_FILE.replace("budget: tiny}", "budget: tiny, iql.steps: 120, eval.every: 100, "
+                                            "eval.episodes: 1}") + "seed_mode: vmap\n")
+    (trial,) = s.trials()
+    locking.prepare_store(uri)
+    client = MlflowClient(uri)
+    exp = client.create_experiment("ms")
+    parent = client.create_run(exp).info.run_id
+    ctx = sweep.SweepContext("sweep-1", "ms", "ms", exp, parent, uri, s.axis_keys)
+    reports: list[dict] = []
+    finals = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t1", report=reports.append,
+                             vmap=True)
+    assert [f["seed"] for f in finals] == [0, 1] and all(f["skipped"] == 0 for f in finals)
+    runs = {int(r.data.tags["seed"]): r for r in client.search_runs([exp], "tags.sweep_id = 'sweep-1'")}
+    assert sorted(runs) == [0, 1]
+    for seed, run in runs.items():
+        assert run.info.status == "FINISHED" and run.data.tags["seed_mode"] == "vmap"
+        assert run.data.tags["trial_key"] == sweep.run_key(trial.overrides, seed)
+        assert run.data.tags["mlflow.parentRunId"] == parent
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")]
+        assert steps == [0, 100, 120]
+        assert [r["score"] for r in reports if r.get("seed") == seed and "score" in r] == [
+            m.value for m in client.get_metric_history(run.info.run_id, "eval/score")]
+    assert runs[0].data.metrics["eval/score_final"] == finals[0]["score_final"]
+
+    def must_not_run(*args, **kwargs):
+        raise AssertionError("a finished seed ran again")
+
+    again = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t2", report=lambda m: None,
+                            run_fn=must_not_run, vmap=True)
+    assert [(f["seed"], f["skipped"], f["run_id"]) for f in again] == [(s, 1, runs[s].info.run_id) for s in (0, 1)]
+
+
+def test_a_failed_vmap_trial_records_a_failed_run_per_seed(tmp_path):
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    s = _sweep(tmp_path, SWEEP_FILE + "seed_mode: vmap\n")
+    (trial,) = s.trials()
+    locking.prepare_store(uri)
+    client = MlflowClient(uri)
+    exp = client.create_experiment("ms")
+    ctx = sweep.SweepContext("sweep-2", "ms", "ms", exp, client.create_run(exp).info.run_id, uri, s.axis_keys)
+
+    def broken(cfgs, **kwargs):
+        raise ValueError("no dataset today")
+
+    with pytest.raises(RuntimeError, match="seed 0: ValueError: no dataset today; seed 1: ValueError"):
+        sweep.run_trial(trial.overrides, [0, 1], ctx, trial_id="t", report=lambda m: None, run_fn=broken, vmap=True)
+    runs = client.search_runs([exp], "tags.sweep_id = 'sweep-2'")
+    assert sorted(int(r.data.tags["seed"]) for r in runs) == [0, 1]
+    assert all(r.info.status == "FAILED" and "no dataset today" in r.data.tags["failure_reason"] for r in runs)

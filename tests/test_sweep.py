@@ -54,7 +54,7 @@ def _write(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
         ("base: {seed: 3}\n", r"'base.seed': may not be set here: give seeds in 'seeds:'"),
         ("base: {tracking: {uri: 'x'}}\n", r"'base.tracking.uri': may not be set here"),
         ("seeds: [0, -1]\n", r"'seeds': expected a non-empty list of non-negative integers"),
-        ("seed_mode: pmap\n", r"'seed_mode': expected one of trials, vmap"),
+        ("seed_mode: pmap\n", r"'seed_mode': expected one of trials, sequential, vmap"),
         ("resources: {cpus: 1}\n", r"'resources.cpus': unknown key"),
         ("base: {method: pt}\ngrid: {method: [pt, spot]}\n", r"'base.method': is also an axis"),
         (

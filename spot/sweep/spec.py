@@ -24,7 +24,7 @@ from spot import config as config_lib
 
 SWEEP_KEYS = ("name", "base", "grid", "zip", "seeds", "seed_mode", "resources", "max_concurrent", "table", "smoke")
 SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources")
-SEED_MODES = ("trials", "vmap")
+SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
 RESERVED_KEYS = ("seed", "tracking.uri", "tracking.experiment")
@@ -53,11 +53,13 @@ def tag_value(value: Any) -> str:
 # --------------------------------------------------------------------------- the spec
 @dataclass(frozen=True)
 class Trial:
-    """One Ray trial: a config (base + axis values) and the seeds it runs (one, or all with vmap)."""
+    """One Ray trial: a config (base + axis values) and the seeds it runs (one; or all of them,
+    one after another (``seed_mode: sequential``) or IQL vmapped over them (``vmap``))."""
 
     axes: dict[str, Any]
     overrides: dict[str, Any]
     seeds: tuple[int, ...]
+    vmap: bool = False
 
     @property
     def label(self) -> str:
@@ -65,7 +67,8 @@ class Trial:
 
     def to_config(self) -> dict[str, Any]:
         """The Ray trial config: all a trial needs to rebuild its run configs."""
-        return {"overrides": dict(self.overrides), "axes": dict(self.axes), "seeds": list(self.seeds)}
+        out = {"overrides": dict(self.overrides), "axes": dict(self.axes), "seeds": list(self.seeds)}
+        return {**out, "vmap": True} if self.vmap else out  # trials and sequential: as before vmap existed
 
 
 @dataclass(frozen=True)
@@ -104,8 +107,8 @@ class Sweep:
     def trials(self) -> list[Trial]:
         """Expand configs x seeds. Seeds vary slowest, so an interrupted sweep has whole seed columns."""
         configs = self.configs()
-        if self.seed_mode == "vmap":
-            return [Trial(c, {**self.base, **c}, self.seeds) for c in configs]
+        if self.seed_mode in ("sequential", "vmap"):
+            return [Trial(c, {**self.base, **c}, self.seeds, self.seed_mode == "vmap") for c in configs]
         return [Trial(c, {**self.base, **c}, (s,)) for s in self.seeds for c in configs]
 
     def runs(self) -> list[tuple[Trial, int]]:
@@ -284,6 +287,10 @@ def _check_trial(trial: Trial, where: str) -> None:
             raise SpotError(f"data.source=file but data file '{name}' does not exist")
         if cfg.data.source != "file" and not Path(name).exists():
             registry.entry(name)
+        if trial.vmap:  # only IQL's policy stage is vmapped over seeds (IPL is refused)
+            from spot import multiseed
+
+            multiseed.check([cfg])
     except SpotError as e:
         raise SpotError(f"{where}: trial {trial.label}: {e}") from None
 
@@ -291,7 +298,7 @@ def _check_trial(trial: Trial, where: str) -> None:
 def _check_trials(sweep: Sweep, where: str) -> None:
     seen: set[str] = set()
     for axes in sweep.configs():
-        trial = Trial(axes, {**sweep.base, **axes}, sweep.seeds)
+        trial = Trial(axes, {**sweep.base, **axes}, sweep.seeds, sweep.seed_mode == "vmap")
         key = config_key(trial.overrides)
         if key in seen:
             raise SpotError(f"{where}: trial {trial.label} occurs twice (repeated zip row)")

@@ -5,8 +5,9 @@
 XLA/JAX for the trial's share of the node (:func:`configure_process`), before anything imports
 jax, and calls :func:`run_trial`, which looks each seed up in MLflow (a FINISHED run with the
 sweep id and trial key is reported instead of running again), runs the others with
-:func:`spot.pipeline.run` and records a FAILED run for a seed that failed before the pipeline
-opened its own. Nothing here imports jax at module level.
+:func:`spot.pipeline.run` one after another, or together with :func:`spot.multiseed.run` (IQL
+vmapped over the seeds) for a ``seed_mode: vmap`` trial, and records a FAILED run for a seed that
+failed before the pipeline opened its own. Nothing here imports jax at module level.
 """
 
 from __future__ import annotations
@@ -160,6 +161,51 @@ def _run_seed(
     }
 
 
+def _seed_tags(overrides: dict[str, Any], key: str, ctx: SweepContext, trial_id: str) -> dict[str, str]:
+    from spot.tracking.processes import process_tags
+
+    return {
+        "sweep_id": ctx.sweep_id,
+        "sweep_name": ctx.sweep_name,
+        "trial_id": trial_id,
+        "trial_key": key,
+        "config_key": config_key(overrides),
+        "attempt": uuid.uuid4().hex,
+        **{f"axis.{k}": tag_value(overrides[k]) for k in ctx.axis_keys},
+        **process_tags(),  # this worker's host and pid: a later command closes the run if it dies
+    }
+
+
+def _run_vmapped(
+    client: Any,
+    overrides: dict[str, Any],
+    pending: dict[int, dict[str, str]],
+    ctx: SweepContext,
+    report: Report,
+    run_fn: Callable[..., list[dict[str, Any]]],
+) -> list[dict[str, Any]]:
+    """Run the ``pending`` seeds (seed -> tags) together with ``run_fn`` (:func:`spot.multiseed.run`);
+    a failure is recorded as a FAILED run for each seed and raised."""
+    from spot import tracking
+
+    seeds = list(pending)
+    cfgs = [config_lib.resolve(overrides, {"seed": s, "tracking.experiment": ctx.experiment_name}) for s in seeds]
+
+    def on_eval(seed: int) -> Callable[[dict[str, float]], None]:
+        return lambda m: report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
+
+    try:
+        outs = run_fn(cfgs, progress=False, parent_run_id=ctx.parent_run_id,
+                      extra_tags=[pending[s] for s in seeds], on_eval=[on_eval(s) for s in seeds])
+    except Exception as e:
+        for cfg, seed in zip(cfgs, seeds, strict=True):
+            tracking.record_failure(client, ctx.experiment_id, cfg, pending[seed], e, parent_run_id=ctx.parent_run_id)
+        raise
+    return [{"seed": seed, "run_id": out["run_id"], "skipped": 0, "score_final": out["eval/score_final"],
+             "score_best": out["eval/score_best"], "run_time_s": out.get("time/total_s")}
+            for seed, out in zip(seeds, outs, strict=True)]
+
+
 def run_trial(
     overrides: dict[str, Any],
     seeds: list[int] | tuple[int, ...],
@@ -168,16 +214,20 @@ def run_trial(
     trial_id: str,
     report: Report,
     run_fn: RunFn | None = None,
+    vmap: bool = False,
 ) -> list[dict[str, Any]]:
     """Run (or find already finished) each seed of one trial; report scores; raise if any seed failed.
 
     Args:
       overrides: the trial's flat config overrides (base + axis values), without the seed.
-      seeds: the seeds to run, one after another (``seed_mode: vmap`` gives several).
+      seeds: the seeds to run (``seed_mode: sequential`` and ``vmap`` give several).
       ctx: the launch's sweep context (MLflow experiment, parent run, tracking URI).
       trial_id: Ray's trial id, logged as the ``trial_id`` tag.
       report: called with intermediate (``score``) and final (``score_final``) metrics.
-      run_fn: :func:`spot.pipeline.run` unless given (tests pass another).
+      run_fn: :func:`spot.pipeline.run` unless given (tests pass another); with ``vmap``,
+        :func:`spot.multiseed.run` unless given.
+      vmap: run the seeds not finished yet together, IQL vmapped over them (one MLflow run per
+        seed still); otherwise one after another.
 
     Returns:
       One final-metrics dict per seed.
@@ -185,36 +235,39 @@ def run_trial(
     from mlflow.tracking import MlflowClient
 
     from spot import tracking
-    from spot.tracking.processes import process_tags
 
+    os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
+    client = MlflowClient(ctx.tracking_uri)
+    finals: list[dict[str, Any]] = []
+    failures: list[tuple[int, BaseException]] = []
+    pending: dict[int, dict[str, str]] = {}
+    for seed in seeds:
+        key = run_key(overrides, seed)
+        done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
+        if done is not None:
+            finals.append(_finished(done, seed))
+            report(finals[-1])
+        else:
+            pending[seed] = _seed_tags(overrides, key, ctx, trial_id)
+    if vmap and pending:
+        if run_fn is None:
+            from spot import multiseed
+
+            run_fn = multiseed.run
+        try:
+            for final in _run_vmapped(client, overrides, pending, ctx, report, run_fn):
+                report(final)
+                finals.append(final)
+        except Exception as e:  # noqa: BLE001 - every seed failed with it
+            failures.extend((seed, e) for seed in pending)
+        pending = {}
     if run_fn is None:
         from spot import pipeline
 
         run_fn = pipeline.run
-    os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
-    client = MlflowClient(ctx.tracking_uri)
-    axis_tags = {f"axis.{k}": tag_value(overrides[k]) for k in ctx.axis_keys}
-    finals: list[dict[str, Any]] = []
-    failures: list[tuple[int, BaseException]] = []
-    for seed in seeds:
-        key = run_key(overrides, seed)
-        done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
-        tags = {
-            "sweep_id": ctx.sweep_id,
-            "sweep_name": ctx.sweep_name,
-            "trial_id": trial_id,
-            "trial_key": key,
-            "config_key": config_key(overrides),
-            "attempt": uuid.uuid4().hex,
-            **axis_tags,
-            **process_tags(),
-        }  # this worker's host and pid: a later command closes the run if it dies
+    for seed, tags in pending.items():
         try:
-            final = (
-                _finished(done, seed)
-                if done is not None
-                else _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
-            )
+            final = _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
         except Exception as e:  # noqa: BLE001 - recorded, reported by Ray after the other seeds ran
             failures.append((seed, e))
             continue
@@ -224,7 +277,7 @@ def run_trial(
         raise failures[0][1]
     if failures:
         raise RuntimeError("; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failures))
-    return finals
+    return sorted(finals, key=lambda f: list(seeds).index(f["seed"]))
 
 
 def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:
@@ -250,4 +303,5 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
             trial_id=context.get_trial_id(),
             report=tune.report,
             run_fn=run_fn,
+            vmap=bool(config["trial"].get("vmap", False)),
         )
