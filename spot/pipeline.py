@@ -18,6 +18,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from spot import stages
@@ -63,14 +64,43 @@ def before_policy(ctx: Context, kind: stages.RewardKind) -> tuple[stages.Labelle
 def _load(cfg: ExperimentConfig, progress: bool) -> tuple[Any, dict[str, Any], str, float]:
     """The dataset, its card, its evaluation env (checked to exist, before any training) and the load time."""
     from spot import envs
-    from spot.data import registry
 
     t0 = time.perf_counter()
-    ds, card = registry.load(cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source,
-                             progress=progress)
+    ds, card = open_dataset(cfg, progress)
     env_name = card.get("name") or ds.name
     envs.env_spec(env_name)
     return ds, card, env_name, time.perf_counter() - t0
+
+
+_OPENED: dict[tuple, tuple[Any, dict[str, Any]]] = {}  # this process's open datasets (at most _KEEP_OPEN)
+_KEEP_OPEN = 2
+
+
+def open_dataset(cfg: ExperimentConfig, progress: bool = False) -> tuple[Any, dict[str, Any]]:
+    """``registry.load`` of ``cfg.data``, opened once per process: a later run of the same
+    ``data.name``/``size``/``build_seed``/``source`` reuses the arrays (the seeds of a ``sequential``
+    sweep trial, runs in a notebook) as long as the file's path, mtime and size are unchanged.
+    Keeps the last :data:`_KEEP_OPEN` datasets. Returns ``(dataset, a copy of its card)``."""
+    from spot.data import registry
+
+    d = cfg.data
+    as_path = Path(d.name).expanduser()
+    if d.source == "file" or (d.source == "auto" and as_path.exists()):
+        path = as_path
+    else:
+        path = registry.build(d.name, d.size, d.build_seed, progress=progress)  # once; then only a check
+    try:
+        st = path.stat()
+    except OSError:  # registry.load says what is wrong with it
+        return registry.load(d.name, d.size, d.build_seed, source=d.source, progress=progress)
+    key = (d.name, d.size, d.build_seed, d.source, str(path.resolve()), st.st_mtime_ns, st.st_size)
+    if key not in _OPENED:
+        opened = registry.load(d.name, d.size, d.build_seed, source=d.source, progress=progress)
+        while len(_OPENED) >= _KEEP_OPEN:
+            _OPENED.pop(next(iter(_OPENED)))
+        _OPENED[key] = opened
+    ds, card = _OPENED[key]
+    return ds, dict(card)
 
 
 def _keys(seed: int) -> dict[str, Any]:

@@ -158,3 +158,18 @@ def test_a_failed_vmap_trial_records_a_failed_run_per_seed(tmp_path):
     runs = client.search_runs([exp], "tags.sweep_id = 'sweep-2'")
     assert sorted(int(r.data.tags["seed"]) for r in runs) == [0, 1]
     assert all(r.info.status == "FAILED" and "no dataset today" in r.data.tags["failure_reason"] for r in runs)
+
+
+def test_a_dataset_is_opened_once_per_process_until_its_file_changes(spot_dirs, tiny_drawer):
+    """pipeline.open_dataset: the seeds of a sequential trial (and runs in one notebook) share the arrays."""
+    import os
+
+    cfg = _cfg(0, "method=oracle")
+    ds, card = pipeline.open_dataset(cfg)
+    again, card2 = pipeline.open_dataset(_cfg(1, "method=oracle"))  # another seed, same data
+    assert again is ds and card2 == card and card2 is not card
+    st = os.stat(tiny_drawer)
+    os.utime(tiny_drawer, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))  # the file changed: opened again
+    fresh, _ = pipeline.open_dataset(cfg)
+    assert fresh is not ds and fresh.fingerprint() == ds.fingerprint()
+    assert pipeline.open_dataset(cfg)[0] is fresh
