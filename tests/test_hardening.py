@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -87,9 +88,17 @@ def _runs(db: Path, experiment: str = "gated") -> list:
     return client.search_runs([exp.experiment_id], max_results=1000)
 
 
-def _gated_launch(root: Path, cmd: list[str], log: Path, stop: int, to_group: bool) -> tuple[int, list]:
-    """Launch, wait until two trials hold at the gate, list the sockets, send ``stop``; return
-    the exit code and the sockets."""
+def _tune_marked_an_error(root: Path) -> bool:
+    states = root.glob("spot_runs/ray/gated-*/experiment_state-*.json")
+    return any(re.search(r'status\\*": \\*"ERROR', p.read_text(errors="replace")) for p in states)
+
+
+def _gated_launch(
+    root: Path, cmd: list[str], log: Path, stop: int, to_group: bool, kill_a_trial: bool = False
+) -> tuple[int, list]:
+    """Launch, wait until two trials hold at the gate, list the sockets (and with
+    ``kill_a_trial``, SIGKILL one trial's process and wait until Tune saved it as errored), send
+    ``stop``; return the exit code and the sockets."""
     gate = root / "gate"
     for old in gate.glob("started-*"):
         old.unlink()
@@ -103,6 +112,9 @@ def _gated_launch(root: Path, cmd: list[str], log: Path, stop: int, to_group: bo
             gcs = [pid for pid, name, _, _ in sockets if name == "gcs_server"]
             environ = Path(f"/proc/{gcs[0]}/environ").read_bytes().split(b"\0") if gcs else []
             sockets.append(("gcs environ", [e for e in environ if e.startswith(b"RAY_AUTH")]))
+            if kill_a_trial:  # as when a SIGTERM to the group reaches a worker before the driver
+                os.kill(int(next(gate.glob("started-*")).name.split("-")[1]), signal.SIGKILL)
+                _wait_for(lambda: _tune_marked_an_error(root), 120, proc, log, "trial saved as errored")
             if to_group:
                 os.killpg(proc.pid, stop)
             else:
@@ -125,7 +137,7 @@ def sigtermed(tmp_path_factory):
     (root / "gated.yaml").write_text(GATED_SWEEP)
     cmd = [sys.executable, str(HERE / "sweep_driver.py"), str(root / "gate"), "gated.yaml"]
     db = root / "spot_runs" / "mlflow.db"
-    rc, sockets = _gated_launch(root, cmd, root / "launch.log", signal.SIGTERM, to_group=True)
+    rc, sockets = _gated_launch(root, cmd, root / "launch.log", signal.SIGTERM, to_group=True, kill_a_trial=True)
     killed_runs = _runs(db)
     rc_int, _ = _gated_launch(root, [*cmd, "--resume"], root / "resume1.log", signal.SIGINT, to_group=False)
     interrupted_runs = _runs(db)
@@ -177,6 +189,10 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
 def test_sigint_closes_runs_killed_and_exits_130(sigtermed):
     assert sigtermed["rc_int"] == 130, sigtermed["log_int"][-4000:]
     assert "resuming launch gated-" in sigtermed["log_int"]
+    # The trial whose process was killed is cut off, not failed: the resume runs it again.
+    assert re.search(
+        r"note: \d+ trial\(s\) whose process died with the interrupted launch run again\n", sigtermed["log_int"]
+    )
     runs = sigtermed["interrupted_runs"]
     assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
     (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]

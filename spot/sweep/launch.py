@@ -242,13 +242,23 @@ def _tuner(
 
     param_space = {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
     if resume and tune.Tuner.can_restore(str(exp_dir)):
+        died, raised = _errored_trials(exp_dir)
+        if died and not retry_errored:
+            # Trials whose process was killed with the launch (a SIGTERM to the process group can
+            # reach a worker before the driver) were cut off, not failed: they run again. Tune
+            # restarts errored trials all together, so failed ones then run again too.
+            print(
+                f"note: {died} trial(s) whose process died with the interrupted launch run again"
+                + (f", and with them {raised} failed trial(s) (as with --retry-errored)" if raised else ""),
+                flush=True,
+            )
         return tune.Tuner.restore(
             str(exp_dir),
             trainable=trainable,
             param_space=param_space,
             resume_unfinished=True,
             resume_errored=False,
-            restart_errored=retry_errored,
+            restart_errored=retry_errored or died > 0,
         )
     reporter = tune.CLIReporter(
         parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
@@ -272,8 +282,8 @@ def _tuner(
     )
 
 
-def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
-    """``{run_key: error}`` for each seed of the errored trials, and whether some trial is unfinished."""
+def _analysis_trials(exp_dir: Path) -> list[Any]:
+    """The trials of the Tune experiment in ``exp_dir`` as saved."""
     from ray import tune
 
     # ExperimentAnalysis, not the ResultGrid: a Result of a restored trial that never reported lacks
@@ -282,9 +292,37 @@ def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     try:
-        trials = tune.ExperimentAnalysis(str(exp_dir)).trials
+        return list(tune.ExperimentAnalysis(str(exp_dir)).trials)
     finally:
         quiet.setLevel(level)
+
+
+def _errored_trials(exp_dir: Path) -> tuple[int, int]:
+    """``(died, raised)``: errored trials whose process died (Ray's actor/worker/node death errors),
+    and errored trials whose own code raised."""
+    from ray import exceptions
+
+    kinds = tuple(
+        getattr(exceptions, name)
+        for name in ("RayActorError", "WorkerCrashedError", "NodeDiedError", "LocalRayletDiedError")
+        if hasattr(exceptions, name)
+    )
+    died = raised = 0
+    for trial in _analysis_trials(exp_dir):
+        if trial.status != "ERROR":
+            continue
+        error = trial.get_pickled_error() or trial.get_error()
+        text = str(error)
+        if isinstance(error, kinds) or "ActorDiedError" in text or "The actor died" in text:
+            died += 1
+        else:
+            raised += 1
+    return died, raised
+
+
+def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
+    """``{run_key: error}`` for each seed of the errored trials, and whether some trial is unfinished."""
+    trials = _analysis_trials(exp_dir)
     errors: dict[str, str] = {}
     for trial in trials:
         error = (trial.get_pickled_error() or trial.get_error()) if trial.status == "ERROR" else None
@@ -741,9 +779,20 @@ def _launch(
             run_fn=run_fn,
             resume_command=command,
         )
-        rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
-        table = format_summary(rows, sweep.axis_keys)
-        _close_parent(client, ctx, rows, table, interrupted=interrupted)
+
+        def on_sigterm() -> None:  # Ray is down already: end the parent run and the server
+            from mlflow.tracking import MlflowClient
+
+            mine = MlflowClient(store.uri)
+            if mine.get_run(ctx.parent_run_id).info.status == "RUNNING":
+                mine.set_tag(ctx.parent_run_id, "failure_reason", "launch stopped by SIGTERM")
+                mine.set_terminated(ctx.parent_run_id, "KILLED")
+            store.stop()
+
+        with _on_sigterm(on_sigterm):
+            rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
+            table = format_summary(rows, sweep.axis_keys)
+            _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
         paper = paper_table(sweep, store.uri, ctx.sweep_id) if sweep.table and n_done else ""
     missing = (
