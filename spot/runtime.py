@@ -19,10 +19,14 @@ compile each program once per machine instead of once per process:
 * ``JAX_COMPILATION_CACHE_DIR`` = ``$SPOT_CACHE_DIR/jax/jax-<jax version>`` (``SPOT_CACHE_DIR``
   defaults to ``~/.cache/spot/stages``, the stage cache's folder);
 * ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` = :data:`MIN_COMPILE_S` (JAX's default, 1 s,
-  would leave out most of a small run's programs, which compile in 0.1-1 s on CPU).
+  would leave out most of a small run's programs, which compile in 0.1-1 s on CPU);
+* ``JAX_COMPILATION_CACHE_MAX_SIZE`` = :data:`MAX_SIZE_BYTES` (2 GiB): a bound on the folder
+  (least recently used entries are deleted) and, as important, it makes jax read and write
+  entries under a file lock (``filelock``, which Ray requires); without a bound jax writes an
+  entry in place, unlocked, so a trial could read another's half-written entry.
 
-jax reads both when it is imported; where jax is already imported, ``configure()`` sets them with
-``jax.config.update`` as well. A value the user set (either variable) is kept. ``SPOT_JAX_CACHE=0``
+jax reads them when it is imported; where jax is already imported, ``configure()`` sets them with
+``jax.config.update`` as well. A value the user set (any of the three) is kept. ``SPOT_JAX_CACHE=0``
 turns spot's setting off (jax's own default: no persistent cache unless ``JAX_COMPILATION_CACHE_DIR``
 is set). The cache is safe to share: jax's key (``jax._src.cache_key.get`` in jax 0.10.2) hashes
 the program (StableHLO), the jaxlib version, the backend's platform and platform version, the XLA
@@ -42,8 +46,10 @@ YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-LIBRARY_FUSION_TYPE_REDUCE"
 MUJOCO_GL_DEFAULT = "egl"
 JAX_CACHE_SWITCH = "SPOT_JAX_CACHE"
 MIN_COMPILE_S = "0.2"
-_CACHE_VARS = {"JAX_COMPILATION_CACHE_DIR": "jax_compilation_cache_dir",
-               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "jax_persistent_cache_min_compile_time_secs"}
+MAX_SIZE_BYTES = str(2 * 1024**3)
+_CACHE_VARS = {"JAX_COMPILATION_CACHE_DIR": ("jax_compilation_cache_dir", str),
+               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("jax_persistent_cache_min_compile_time_secs", float),
+               "JAX_COMPILATION_CACHE_MAX_SIZE": ("jax_compilation_cache_max_size", int)}
 
 
 def jax_cache_dir() -> Path:
@@ -64,7 +70,8 @@ def compilation_cache_settings() -> dict[str, str]:
     if switch not in ("1", "true", "yes", "on"):
         raise SpotError(f"{JAX_CACHE_SWITCH}={os.environ[JAX_CACHE_SWITCH]!r}: expected 1 or 0 (on or off)")
     defaults = {"JAX_COMPILATION_CACHE_DIR": str(jax_cache_dir()),
-                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": MIN_COMPILE_S}
+                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": MIN_COMPILE_S,
+                "JAX_COMPILATION_CACHE_MAX_SIZE": MAX_SIZE_BYTES}
     return {k: os.environ.get(k) or v for k, v in defaults.items()}
 
 
@@ -81,7 +88,7 @@ def configure() -> dict[str, str]:
     docstring); idempotent.
 
     Returns:
-      The variables' values after the call (the cache's two only where it is on).
+      The variables' values after the call (the cache's three only where it is on).
 
     Raises:
       RuntimeError: the YNN flag is missing and a jax backend has already started (too late for
@@ -100,7 +107,6 @@ def configure() -> dict[str, str]:
     if cache_vars and "jax" in sys.modules:  # jax read its config from the environment when imported
         import jax
 
-        for var, option in _CACHE_VARS.items():
-            value = cache_vars[var]
-            jax.config.update(option, float(value) if option.endswith("secs") else value)
+        for var, (option, kind) in _CACHE_VARS.items():
+            jax.config.update(option, kind(cache_vars[var]))
     return {"XLA_FLAGS": os.environ["XLA_FLAGS"], "MUJOCO_GL": os.environ.get("MUJOCO_GL", ""), **cache_vars}
