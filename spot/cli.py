@@ -259,6 +259,16 @@ def _bench(args: argparse.Namespace) -> None:
 def _sweep(args: argparse.Namespace) -> int:
     from spot import sweep
 
+    if args.dry_run:
+        spec = sweep.load(args.file, smoke=args.smoke)
+        trials = spec.trials()
+        print(
+            f"sweep '{spec.experiment}' ({spec.path}): {len(trials)} trials, {len(spec.runs())} runs, "
+            f"seed_mode {spec.seed_mode}, resources per trial {spec.resources}"
+        )
+        for i, t in enumerate(trials):
+            print(f"  {i:4d}  {t.label}  seeds={list(t.seeds)}")
+        return 0
     try:
         rows = sweep.run_sweep(
             args.file,
@@ -312,8 +322,13 @@ def _aggregate_text(runs: Any, metric: str) -> str:
         agg = report.aggregate(frame, f"metrics.{metric}")
     except SpotError:
         return ""
-    lines = ["", "**Across datasets** (the datasets every method has; 95% stratified-bootstrap CIs)", "",
-             "| method | datasets | runs | IQM [CI] | P(SPOT > method) [CI] |", "|---|---|---|---|---|"]
+    lines = [
+        "",
+        "**Across datasets** (the datasets every method has; 95% stratified-bootstrap CIs)",
+        "",
+        "| method | datasets | runs | IQM [CI] | P(SPOT > method) [CI] |",
+        "|---|---|---|---|---|",
+    ]
     for r in agg.itertuples(index=False):
         lines.append(f"| {r.method} | {r.datasets} | {r.runs} | {r.iqm} | {r[4]} |")
     return "\n".join(lines) + "\n"
@@ -680,6 +695,7 @@ def _add_sweep(sub: Any) -> None:
     )
     d.add_argument("--tracking-uri", help="MLflow tracking URI (default: a loopback server on ./spot_runs/mlflow.db)")
     d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder")
+    d.add_argument("--dry-run", action="store_true", help="list the trials (axes, seeds) and exit; launches nothing")
     d.set_defaults(fn=_sweep)
 
     cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(

@@ -81,11 +81,6 @@ def check_reachable(uri: str, timeout: float = 10.0) -> None:
         ) from None
 
 
-def ui_command(backend_uri: str, artifacts: Path) -> str:
-    """The command that shows a finished sweep's runs (``mlflow ui`` on the same store)."""
-    return f"mlflow ui --backend-store-uri {backend_uri} --artifacts-destination {artifacts}"
-
-
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     try:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)

@@ -296,3 +296,12 @@ def test_fig4_honours_the_output_extension(tmp_path, capsys):
         == 2
     )
     assert "unknown figure format 'xyz'" in capsys.readouterr().err
+
+
+def test_sweep_dry_run_lists_trials_and_launches_nothing(tmp_path):
+    sweep_file = Path(__file__).resolve().parents[1] / "sweeps" / "quickstart.yaml"
+    out = run_cli("sweep", str(sweep_file), "--dry-run", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert "3 trials, 3 runs" in out.stdout
+    assert [ln.split()[1] for ln in out.stdout.splitlines()[1:]] == ["method=oracle", "method=pt", "method=spot"]
+    assert list(tmp_path.iterdir()) == []  # no store, no Ray folder

@@ -67,6 +67,7 @@ class _Store:
     how_to_open: str
     wait_ready: Callable[[], None]
     stop: Callable[[], None] = lambda: None
+    link_base: str = ""  # where the UI answers, for the link to the sweep's runs table
 
     @property
     def uri(self) -> str:
@@ -108,7 +109,8 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     if uri and not uri.startswith("sqlite:"):
         if uri.startswith(("http://", "https://")):
             mlflow_server.check_reachable(uri)  # before Ray starts: a clear error within seconds
-        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: None)
+        link = uri if uri.startswith(("http://", "https://")) else ""
+        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: None, link_base=link)
         return
     db = tracking.sqlite_path(uri) if uri else root / "mlflow.db"
     db.parent.mkdir(parents=True, exist_ok=True)
@@ -120,9 +122,10 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     try:
         yield _Store(
             lambda: server.uri,
-            f"open the runs with: {mlflow_server.ui_command(backend, artifacts)}",
+            f"open the runs with: {tracking.ui.ui_command(backend, artifacts)}",
             server.wait_ready,
             server.stop,
+            link_base=tracking.ui.DEFAULT_URL,
         )
     finally:
         server.stop()
@@ -234,6 +237,15 @@ def _trial_dirname(trial: Any) -> str:
     return str(trial.trial_id)
 
 
+def _trial_name(trial: Any) -> str:
+    """A readable trial name for Tune's output: ``method=spot,seed=0`` (axes, then seeds)."""
+    cfg = trial.config.get("trial", {}) if isinstance(trial.config, dict) else {}
+    parts = [f"{k}={v}" for k, v in cfg.get("axes", {}).items()]
+    seeds = cfg.get("seeds", [])
+    parts.append(f"seed={seeds[0]}" if len(seeds) == 1 else f"seeds={','.join(map(str, seeds))}")
+    return ",".join(parts)
+
+
 def _tuner(
     sweep: Sweep, trainable: Any, exp_dir: Path, *, resume: bool, retry_errored: bool, max_concurrent: int | None
 ) -> Any:
@@ -270,7 +282,10 @@ def _tuner(
         trainable,
         param_space=param_space,
         tune_config=tune.TuneConfig(
-            max_concurrent_trials=max_concurrent, reuse_actors=False, trial_dirname_creator=_trial_dirname
+            max_concurrent_trials=max_concurrent,
+            reuse_actors=False,
+            trial_dirname_creator=_trial_dirname,
+            trial_name_creator=_trial_name,
         ),
         run_config=tune.RunConfig(
             name=exp_dir.name,
@@ -795,6 +810,11 @@ def _launch(
             _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
         paper = paper_table(sweep, store.uri, ctx.sweep_id) if sweep.table and n_done else ""
+    link = (
+        f"\nthen open the sweep's runs: {tracking.ui.sweep_url(ctx.experiment_id, ctx.sweep_id, store.link_base)}"
+        if store.link_base
+        else ""
+    )
     missing = (
         ""
         if n_done == len(rows)
@@ -802,7 +822,7 @@ def _launch(
     )
     print(
         f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
-        f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{missing}",
+        f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{link}{missing}",
         flush=True,
     )
     if paper:
