@@ -46,7 +46,7 @@ from spot.config import METHODS
 
 TABLES = (1, 2, 3, 4, 7, 8)
 FIELDS = ("mean", "std", "n", "ci_low", "ci_high", "paper", "paper_std", "diff", "best")
-FORMATS = ("md", "latex", "csv")
+FORMATS = ("md", "latex", "csv", "text")
 METHOD_ORDER = METHODS  # the config's method order: columns of Table 1, curves of Fig. 2
 METHOD_LABELS = {"oracle": "Oracle", "mr": "MR", "pt": "PT", "ipl": "IPL", "hpl": "HPL", "spot": "SPOT"}
 SOURCE_ORDER = ("recipe", "file")
@@ -785,8 +785,9 @@ def _latex(text: str) -> str:
     return "".join(_LATEX_UNICODE.get(ch, ch) for ch in out)
 
 
-def format_table(table: pd.DataFrame, fmt: str = "md") -> str:
-    """Render a :func:`build_table` frame: ``md`` (Markdown with notes), ``latex`` (tabular + notes) or ``csv``.
+def format_table(table: pd.DataFrame, fmt: str = "md", width: int = 120) -> str:
+    """Render a :func:`build_table` frame: ``md`` (Markdown with notes), ``latex`` (tabular + notes),
+    ``csv``, or ``text`` (a compact plain table for a terminal of ``width`` columns).
 
     CSV has one line per row, the row keys first and then ``<column>/<field>`` numbers.
     """
@@ -799,6 +800,8 @@ def format_table(table: pd.DataFrame, fmt: str = "md") -> str:
         flat.columns = [f"{c}/{f}" for c, f in flat.columns]
         return flat.reset_index().to_csv(index=False)
     col_values = list(dict.fromkeys(table.columns.get_level_values(0)))
+    if fmt == "text":
+        return _text_table(table, col_values, width)
     header = [*rows, *(_col_label(col, v) for v in col_values)]
     body = []
     for key, line in table.iterrows():
@@ -822,4 +825,44 @@ def format_table(table: pd.DataFrame, fmt: str = "md") -> str:
     lines += [" & ".join(r) + " \\\\" for r in esc_body]
     lines += ["\\hline", "\\end{tabular}", ""]
     lines += [f"\\par{{\\footnotesize {_latex(n)}}}" for n in a["notes"]]
+    return "\n".join(lines) + "\n"
+
+
+def _text_cell(c: pd.Series, kind: str) -> str:
+    """``ours±std (paper)`` with one decimal (times: :func:`_num`), ``*`` for the paper's bold rule."""
+
+    def num(x: float) -> str:
+        return _num(x, kind) if kind == "time" else f"{x:.1f}"
+
+    ours = "–"
+    if np.isfinite(c["mean"]):
+        ours = num(c["mean"]) + (f"±{num(c['std'])}" if np.isfinite(c["std"]) and kind != "time" else "")
+    ours += "*" if c["best"] else ""
+    return ours + (f" ({num(c['paper'])})" if np.isfinite(c["paper"]) else "")
+
+
+def _text_table(table: pd.DataFrame, col_values: list[Any], width: int) -> str:
+    """Plain fixed-width columns, split into blocks of columns so that no line exceeds ``width``."""
+    a = table.attrs
+    keys = [" ".join(map(str, k if isinstance(k, tuple) else (k,))) for k in table.index]
+    cols = [
+        [_col_label(a["col"], v), *(_text_cell(table.loc[k, v], a["kind"]) for k in table.index)] for v in col_values
+    ]
+    key_w = max(len(k) for k in ["", *keys])
+    widths = [max(map(len, c)) for c in cols]
+    blocks, cur, used = [], [], key_w
+    for i, w in enumerate(widths):
+        if cur and used + 2 + w > width:
+            blocks.append(cur)
+            cur, used = [], key_w
+        cur.append(i)
+        used += 2 + w
+    blocks.append(cur)
+    title = f"{a['title']} (metric {a['metric']})" if a["kind"] == "score" else a["title"]
+    lines = [title, "ours mean±std over seeds (paper); * = the paper's bold rule; full table: --format md"]
+    for block in blocks:
+        lines.append("")
+        for r in range(len(keys) + 1):
+            left = "" if r == 0 else keys[r - 1]
+            lines.append((left.ljust(key_w) + "".join("  " + cols[i][r].rjust(widths[i]) for i in block)).rstrip())
     return "\n".join(lines) + "\n"

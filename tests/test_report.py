@@ -142,3 +142,14 @@ def test_tables_cli_prints_cis_and_the_across_datasets_summary():
     # hopper PT 50, 52, 57: the bootstrap CI of the mean runs from 50 + ... ; its ends are resample means
     assert "53.00 ± 3.61 (3) CI" in p.stdout
     assert "**Across datasets**" in p.stdout and "| spot | 2 | 6 | 64.8 [" in p.stdout
+
+
+def test_text_table_fits_the_terminal_and_rounds(runs):
+    t = tables.build_table(runs, 1)
+    for width in (120, 60):
+        text = tables.format_table(t, "text", width=width)
+        body = text.splitlines()[2:]  # the title and legend lines may be longer
+        assert all(len(line) <= width for line in body), width
+    text = tables.format_table(t, "text", width=120)
+    assert "63.7±2.5* (85.1)" in text  # SPOT hopper: mean 63.67 rounds up; paper 85.08
+    assert len([ln for ln in tables.format_table(t, "text", width=60).splitlines() if "hopper" in ln]) > 1

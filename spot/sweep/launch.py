@@ -809,7 +809,7 @@ def _launch(
             table = format_summary(rows, sweep.axis_keys)
             _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
-        paper = paper_table(sweep, store.uri, ctx.sweep_id) if sweep.table and n_done else ""
+        paper = paper_table(sweep, store.uri, ctx.sweep_id, state_file.parent) if sweep.table and n_done else ""
     link = (
         f"\nthen open the sweep's runs: {tracking.ui.sweep_url(ctx.experiment_id, ctx.sweep_id, store.link_base)}"
         if store.link_base

@@ -4,6 +4,7 @@ sweep's paper table (ours beside the paper's, :mod:`spot.tables`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from spot import SpotError
@@ -72,12 +73,21 @@ def format_summary(rows: list[Row], axis_keys: tuple[str, ...], width: int = 70)
     return "\n".join([lines[0], "  ".join("-" * w for w in widths), *lines[1:]])
 
 
-def paper_table(sweep: Sweep, uri: str, sweep_id: str) -> str:
-    """The sweep's paper table (ours beside the paper's) from this launch's finished runs."""
+def paper_table(sweep: Sweep, uri: str, sweep_id: str, out_dir: Path | None = None) -> str:
+    """The sweep's paper table (ours beside the paper's) from this launch's finished runs, compact
+    enough for a 120-column terminal; with ``out_dir`` the full Markdown table (CIs, Δ, notes) is
+    written to ``out_dir/<sweep id>-table<N>.md`` and the text says where."""
     from spot import tables
 
     runs = tables.load_runs(uri, [sweep.experiment], sweep_id=sweep_id)
     try:
-        return tables.format_table(tables.build_table(runs, sweep.table), "md")
+        table = tables.build_table(runs, sweep.table)
     except SpotError as e:  # e.g. a sweep whose runs do not form that table
         return f"(no Table {sweep.table}: {e})"
+    text = tables.format_table(table, "text", width=120)
+    if out_dir is not None:
+        path = Path(out_dir) / f"{sweep_id}-table{sweep.table}.md"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(tables.format_table(table, "md"))
+        text += f"full table with CIs and notes: {path}\n"
+    return text
