@@ -3,7 +3,8 @@
 Resolution order (later wins): dataclass defaults (the paper's values) < method preset
 (``method=spot`` etc.) < budget preset (``budget=small`` etc.) < suite preset (what the reference
 implementations change for Meta-World / robomimic, chosen by ``data.name``) < variant preset
-(``variant=paper|authors``, docs/fidelity.md) < YAML file < ``a.b=value`` overrides. ``method`` and ``budget`` themselves may be given in the YAML file or as overrides.
+(``variant=paper|authors``, docs/fidelity.md) < YAML file < ``a.b=value`` overrides. ``method`` and
+``budget`` themselves may be given in the YAML file or as overrides.
 
 Every field carries ``help`` text and, where it applies, ``choices`` or a numeric ``range``;
 :func:`resolve` validates everything and raises :class:`spot.SpotError` with the dotted key,
@@ -27,8 +28,9 @@ import yaml
 from spot import SpotError
 
 
-def F(default: Any, help: str, *, choices: tuple | None = None,
-      range: tuple[float | None, float | None] | None = None) -> Any:  # noqa: A002
+def F(
+    default: Any, help: str, *, choices: tuple | None = None, range: tuple[float | None, float | None] | None = None
+) -> Any:  # noqa: A002
     """A documented config field."""
     meta = {"help": help, "choices": choices, "range": range}
     if isinstance(default, (list, dict)):
@@ -39,20 +41,41 @@ def F(default: Any, help: str, *, choices: tuple | None = None,
 # --------------------------------------------------------------------------- stages
 @dataclass(frozen=True)
 class DataConfig:
-    name: str = F("hopper-medium-replay", "registry name (see `spot data list`) or path to a D4RL/robomimic hdf5 file or a Minari dataset id")
+    name: str = F(
+        "hopper-medium-replay",
+        "registry name (see `spot data list`) or path to a D4RL/robomimic hdf5 file or a Minari dataset id",
+    )
     size: str = F("small", "size of a locally built dataset", choices=("tiny", "small", "paper"))
     build_seed: int = F(0, "seed of the local recipe that builds the dataset", range=(0, None))
-    source: str = F("auto", "'recipe' builds locally, 'file' reads data.name as a file; 'auto' picks file if it exists", choices=("auto", "recipe", "file"))
+    source: str = F(
+        "auto",
+        "'recipe' builds locally, 'file' reads data.name as a file; 'auto' picks file if it exists",
+        choices=("auto", "recipe", "file"),
+    )
 
 
 @dataclass(frozen=True)
 class LabelsConfig:
-    source: str = F("script", "'script' = scripted teacher on true reward; 'human' = PT human label files in labels.path", choices=("script", "human"))
+    source: str = F(
+        "script",
+        "'script' = scripted teacher on true reward; 'human' = PT human label files in labels.path",
+        choices=("script", "human"),
+    )
     path: str = F("", "folder with PT label files (indices_num*, indices_2_num*, label_human); for source=human")
     num_queries: int = F(500, "number of preference queries (pairs of segments)", range=(1, None))
     segment_length: int = F(100, "segment (query) length H", range=(2, None))
-    teacher: str = F("sum", "scripted teacher score: undiscounted sum or discounted sum of true reward", choices=("sum", "discounted"))
-    score: str = F("reward", "per-step reward the scripted teacher sums: 'reward' = the dataset's reward; 'dense' = its dense reward infos/dense_reward (robosuite's staged reach/grasp/lift/hover reward, recorded by the robosuite recipe; the sparse success reward makes nearly every pair a tie)", choices=("reward", "dense"))
+    teacher: str = F(
+        "sum",
+        "scripted teacher score: undiscounted sum or discounted sum of true reward",
+        choices=("sum", "discounted"),
+    )
+    score: str = F(
+        "reward",
+        "per-step reward the scripted teacher sums: 'reward' = the dataset's reward; 'dense' = its dense reward "
+        "infos/dense_reward (robosuite's staged reach/grasp/lift/hover reward, recorded by the robosuite recipe; "
+        "the sparse success reward makes nearly every pair a tie)",
+        choices=("reward", "dense"),
+    )
     discount: float = F(0.99, "discount of the 'discounted' teacher", range=(0.0, 1.0))
     tie_threshold: float = F(-1.0, "|S1 - S2| <= threshold gives y = 0.5; negative disables ties (PT's MuJoCo teacher)")
     mistake_rate: float = F(0.0, "probability that the scripted teacher flips a label", range=(0.0, 1.0))
@@ -72,11 +95,27 @@ class PTConfig:
     lr: float = F(1e-4, "AdamW learning rate (after warmup)", range=(0.0, 1.0))
     weight_decay: float = F(1e-4, "AdamW weight decay", range=(0.0, 1.0))
     warmup_steps: int = F(500, "linear warmup steps (Table 5: 500)", range=(0, None))
-    warmup_fraction: float = F(0.0, "if > 0, the warmup lasts this fraction of reward.steps instead of pt.warmup_steps (PT repo: 0.1)", range=(0.0, 1.0))
-    schedule: str = F("warmup_constant", "learning-rate schedule: warmup_constant = linear 0 -> lr over the warmup, then lr (Table 5: lr 1e-4, warmup); warmup_cosine = lr -> pt.peak_factor*lr over the warmup, then cosine back to lr at reward.steps (PT repo: optax warmup_cosine_decay_schedule)", choices=("warmup_constant", "warmup_cosine"))
-    peak_factor: float = F(10.0, "peak learning rate / lr of the warmup_cosine schedule (PT repo: 10)", range=(1.0, None))
+    warmup_fraction: float = F(
+        0.0,
+        "if > 0, the warmup lasts this fraction of reward.steps instead of pt.warmup_steps (PT repo: 0.1)",
+        range=(0.0, 1.0),
+    )
+    schedule: str = F(
+        "warmup_constant",
+        "learning-rate schedule: warmup_constant = linear 0 -> lr over the warmup, then lr (Table 5: lr 1e-4, "
+        "warmup); warmup_cosine = lr -> pt.peak_factor*lr over the warmup, then cosine back to lr at reward.steps "
+        "(PT repo: optax warmup_cosine_decay_schedule)",
+        choices=("warmup_constant", "warmup_cosine"),
+    )
+    peak_factor: float = F(
+        10.0, "peak learning rate / lr of the warmup_cosine schedule (PT repo: 10)", range=(1.0, None)
+    )
     b2: float = F(0.99, "AdamW beta2 (Table 5: 0.99; PT repo: optax's default 0.999)", range=(0.0, 1.0))
-    dtype: str = F("float32", "compute dtype of the transformer matmuls (bfloat16 = mixed precision; params stay float32)", choices=("float32", "bfloat16"))
+    dtype: str = F(
+        "float32",
+        "compute dtype of the transformer matmuls (bfloat16 = mixed precision; params stay float32)",
+        choices=("float32", "bfloat16"),
+    )
 
 
 @dataclass(frozen=True)
@@ -87,7 +126,12 @@ class MRConfig:
 
 @dataclass(frozen=True)
 class RewardConfig:
-    kind: str = F("pt", "reward model: none (true reward), mr (Markovian MLP), pt (Preference Transformer), hpl (hindsight VAE + r(s,a,z), marginalised over the prior), ipl (no reward model: IPL's implicit reward)", choices=("none", "mr", "pt", "hpl", "ipl"))
+    kind: str = F(
+        "pt",
+        "reward model: none (true reward), mr (Markovian MLP), pt (Preference Transformer), hpl (hindsight VAE + "
+        "r(s,a,z), marginalised over the prior), ipl (no reward model: IPL's implicit reward)",
+        choices=("none", "mr", "pt", "hpl", "ipl"),
+    )
     steps: int = F(10_000, "reward-model gradient steps", range=(1, None))
     batch_size: int = F(256, "preference pairs per step", range=(1, None))
     eval_every: int = F(100, "steps between held-out evaluations (best held-out loss is kept)", range=(1, None))
@@ -95,26 +139,84 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class RelabelConfig:
-    mode: str = F("chunked", "PT relabelling: 'chunked' = whole trajectory chunks in one pass (default, fast); 'sliding' = PT repo's causal window ending at t", choices=("chunked", "sliding"))
+    mode: str = F(
+        "chunked",
+        "PT relabelling: 'chunked' = whole trajectory chunks in one pass (default, fast); 'sliding' = PT repo's "
+        "causal window ending at t",
+        choices=("chunked", "sliding"),
+    )
     window: int = F(100, "chunk length (chunked) or window length (sliding; PT repo flag default 25)", range=(1, None))
     batch_size: int = F(256, "windows/chunks per forward pass", range=(1, None))
-    scale: float = F(0.0, "the return range the normalisation scales to (the 1000 in relabel.normalize's formulas): 0 = the evaluation env's max episode steps, as the PT repo does (1000 locomotion, 500 robosuite and Meta-World)", range=(0.0, None))
-    normalize: str = F("pt", "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = r*1000/(Rmax-Rmin), minmax = steps mapped to [0,1] then iql (default for mr/pt/spot on locomotion below budget paper), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none", choices=("pt", "iql", "wiserl", "minmax", "none"))
+    scale: float = F(
+        0.0,
+        "the return range the normalisation scales to (the 1000 in relabel.normalize's formulas): 0 = the evaluation "
+        "env's max episode steps, as the PT repo does (1000 locomotion, 500 robosuite and Meta-World)",
+        range=(0.0, None),
+    )
+    normalize: str = F(
+        "pt",
+        "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = "
+        "r*1000/(Rmax-Rmin), minmax = steps mapped to [0,1] then iql (default for mr/pt/spot on locomotion below "
+        "budget paper), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none",
+        choices=("pt", "iql", "wiserl", "minmax", "none"),
+    )
 
 
 @dataclass(frozen=True)
 class SubgoalConfig:
-    diagnostics: bool = F(True, "in PT runs without shaping, still extract subgoals and train the CVAE to log the Fig. 2 extrapolation-error diagnostics (the CVAE is cached and shared with SPOT runs of the same seed)")
+    diagnostics: bool = F(
+        True,
+        "in PT runs without shaping, still extract subgoals and train the CVAE to log the Fig. 2 extrapolation-error "
+        "diagnostics (the CVAE is cached and shared with SPOT runs of the same seed)",
+    )
     top_k: float = F(10.0, "K of the top-K% attention filter, eq. 6", range=(0.0, 100.0))
-    group: str = F("top", "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom K%", choices=("top", "top_next", "bottom_next", "bottom"))
+    group: str = F(
+        "top",
+        "percentile group (Table 2): top = top K%, top_next = top K-2K%, bottom_next = bottom K-2K%, bottom = bottom "
+        "K%",
+        choices=("top", "top_next", "bottom_next", "bottom"),
+    )
     reward_filter: bool = F(True, "also require r_t >= segment mean (eq. 5); off = ablation")
-    filter_groups: str = F("top", "groups the reward filter applies to: top = the top group only, the other Table 2 groups by attention alone (the authors' code, which produced Table 2); all = every group (eq. 5 read literally)", choices=("top", "all"))
-    weight: str = F("column_mean", "per-step attention weight w_t from the preference attention A (softmax over keys): column_mean = w_j = mean_t A_tj (the weight PT's logit puts on r_j, eq. 3); diagonal = w_t = A_tt (the authors' code)", choices=("column_mean", "diagonal"))
-    filter_on: str = F("r_hat", "per-step value the reward filter compares with its segment mean: r_hat = PT's per-step reward (eq. 5); z = the attention-weighted z_t = sum_j A_tj r_j (the authors' code)", choices=("r_hat", "z"))
+    filter_groups: str = F(
+        "top",
+        "groups the reward filter applies to: top = the top group only, the other Table 2 groups by attention alone "
+        "(the authors' code, which produced Table 2); all = every group (eq. 5 read literally)",
+        choices=("top", "all"),
+    )
+    weight: str = F(
+        "column_mean",
+        "per-step attention weight w_t from the preference attention A (softmax over keys): column_mean = w_j = "
+        "mean_t A_tj (the weight PT's logit puts on r_j, eq. 3); diagonal = w_t = A_tt (the authors' code)",
+        choices=("column_mean", "diagonal"),
+    )
+    filter_on: str = F(
+        "r_hat",
+        "per-step value the reward filter compares with its segment mean: r_hat = PT's per-step reward (eq. 5); z = "
+        "the attention-weighted z_t = sum_j A_tj r_j (the authors' code)",
+        choices=("r_hat", "z"),
+    )
     last_step: bool = F(False, "the last step of every preferred segment is always a subgoal (the authors' code)")
-    triplets: str = F("next_subgoal", "CVAE triplets: next_subgoal = every step paired with the first subgoal at or after it; interval = subgoal.interval_draws uniform draws from each interval [g_(i-1), g_i) (g_0 = segment start) paired with g_i, so a subgoal step maps to the next subgoal (the authors' code, one draw per interval per reward-model step)", choices=("next_subgoal", "interval"))
-    source: str = F("attention", "where the CVAE's training subgoals come from: attention = the attention subgoals of eq. 5-6; random = the same number of dataset states drawn uniformly at random (a control: does the gain come from attention subgoals?)", choices=("attention", "random"))
-    interval_draws: int = F(10, "draws per interval for subgoal.triplets=interval (the CVAE trains on this fixed set; the authors redraw one per interval at every reward-model step)", range=(1, None))
+    triplets: str = F(
+        "next_subgoal",
+        "CVAE triplets: next_subgoal = every step paired with the first subgoal at or after it; interval = "
+        "subgoal.interval_draws uniform draws from each interval [g_(i-1), g_i) (g_0 = segment start) paired with "
+        "g_i, so a subgoal step maps to the next subgoal (the authors' code, one draw per interval per "
+        "reward-model step)",
+        choices=("next_subgoal", "interval"),
+    )
+    source: str = F(
+        "attention",
+        "where the CVAE's training subgoals come from: attention = the attention subgoals of eq. 5-6; random = the "
+        "same number of dataset states drawn uniformly at random (a control: does the gain come from attention "
+        "subgoals?)",
+        choices=("attention", "random"),
+    )
+    interval_draws: int = F(
+        10,
+        "draws per interval for subgoal.triplets=interval (the CVAE trains on this fixed set; the authors redraw one "
+        "per interval at every reward-model step)",
+        range=(1, None),
+    )
 
 
 @dataclass(frozen=True)
@@ -125,17 +227,40 @@ class CVAEConfig:
     batch_size: int = F(256, "triplets per step", range=(1, None))
     steps: int = F(100_000, "gradient steps (Table 6)", range=(1, None))
     beta: float = F(1.0, "KL weight beta (Table 6)", range=(0.0, None))
-    loss: str = F("mse_cos", "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7); authors = the authors' code: per-dimension MSE - [mean((cos+1)/2) + 0.1 var(cos)] + beta * KL averaged over latent dimensions", choices=("mse", "mse_cos", "authors"))
-    inputs: str = F("zscore", "states and subgoals fed to the CVAE: zscore = standardised with the dataset's observation mean and std; raw = as recorded (the authors' code)", choices=("zscore", "raw"))
+    loss: str = F(
+        "mse_cos",
+        "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7); authors = the authors' code: per-dimension MSE - "
+        "[mean((cos+1)/2) + 0.1 var(cos)] + beta * KL averaged over latent dimensions",
+        choices=("mse", "mse_cos", "authors"),
+    )
+    inputs: str = F(
+        "zscore",
+        "states and subgoals fed to the CVAE: zscore = standardised with the dataset's observation mean and std; raw "
+        "= as recorded (the authors' code)",
+        choices=("zscore", "raw"),
+    )
 
 
 @dataclass(frozen=True)
 class ShapingConfig:
-    kind: str = F("none", "shaping term: none, cosine (eq. 11-12), neg_distance, potential; constant = a control: every transition gets the dataset mean of the cosine term (a survival bonus of the same mean)", choices=("none", "cosine", "neg_distance", "potential", "constant"))
+    kind: str = F(
+        "none",
+        "shaping term: none, cosine (eq. 11-12), neg_distance, potential; constant = a control: every transition gets "
+        "the dataset mean of the cosine term (a survival bonus of the same mean)",
+        choices=("none", "cosine", "neg_distance", "potential", "constant"),
+    )
     weight: float = F(1.0, "lambda of eq. 13", range=(-1.0, 1.0))
     subgoal: str = F("mean", "g_hat from the prior mean or a prior sample", choices=("mean", "sample"))
-    potential_sign: str = F("neg", "potential of the potential-based term (Table 3): neg = Phi(x) = -||x - g_hat|| (higher near the subgoal); pos = +||x - g_hat|| (the authors' code, which produced Table 3: its lambda axis is the negative of neg's)", choices=("neg", "pos"))
-    potential_terminal: bool = F(True, "Phi(s') = 0 where the transition terminates (Ng et al.); the authors' code does not mask")
+    potential_sign: str = F(
+        "neg",
+        "potential of the potential-based term (Table 3): neg = Phi(x) = -||x - g_hat|| (higher near the subgoal); "
+        "pos = +||x - g_hat|| (the authors' code, which produced Table 3: its lambda axis is the negative of "
+        "neg's)",
+        choices=("neg", "pos"),
+    )
+    potential_terminal: bool = F(
+        True, "Phi(s') = 0 where the transition terminates (Ng et al.); the authors' code does not mask"
+    )
 
 
 IQL_ORDERS = ("parallel", "sequential")  # IQLConfig.order; spot.policy.iql explains both
@@ -151,8 +276,18 @@ class IQLConfig:
     lr: float = F(3e-4, "Adam learning rate (actor uses a cosine schedule)", range=(0.0, 1.0))
     batch_size: int = F(256, "transitions per update", range=(1, None))
     steps: int = F(1_000_000, "gradient updates", range=(1, None))
-    chunk: int = F(1000, "updates per jitted lax.scan chunk (a run does exactly iql.steps: the last chunk is shorter when iql.steps is not a multiple)", range=(1, None))
-    order: str = F("parallel", "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; faster), 'sequential' the just-updated one (ikostrikov/PT repo)", choices=IQL_ORDERS)
+    chunk: int = F(
+        1000,
+        "updates per jitted lax.scan chunk (a run does exactly iql.steps: the last chunk is shorter when iql.steps is "
+        "not a multiple)",
+        range=(1, None),
+    )
+    order: str = F(
+        "parallel",
+        "value network the actor and critics see: 'parallel' the one at the start of the update (CORL, unifloral; "
+        "faster), 'sequential' the just-updated one (ikostrikov/PT repo)",
+        choices=IQL_ORDERS,
+    )
 
 
 @dataclass(frozen=True)
@@ -160,11 +295,23 @@ class IPLConfig:
     """Inverse Preference Learning (Hejna & Sadigh 2023); IQL's section supplies expectile,
     temperature, tau, discount, hidden sizes, lr, replay batch size, steps and chunk."""
 
-    chi2_coeff: float = F(0.5, "c of the chi^2 regulariser c * E[r^2] on the implicit reward (D4RL 0.5, Meta-World 3, robomimic 4)", range=(0.0, None))
-    target_clipping: bool = F(True, "clip V(s') in the implicit reward to +-1/(c (1 - gamma)) (D4RL on, Meta-World off)")
+    chi2_coeff: float = F(
+        0.5,
+        "c of the chi^2 regulariser c * E[r^2] on the implicit reward (D4RL 0.5, Meta-World 3, robomimic 4)",
+        range=(0.0, None),
+    )
+    target_clipping: bool = F(
+        True, "clip V(s') in the implicit reward to +-1/(c (1 - gamma)) (D4RL on, Meta-World off)"
+    )
     feedback_batch: int = F(8, "preference pairs per update (D4RL/robomimic 8, Meta-World 16)", range=(1, None))
-    subsample: int = F(64, "random contiguous window of each segment used per update (D4RL 64, Meta-World 16, robomimic ph 32)", range=(2, None))
-    use_replay: bool = F(True, "mix unlabelled dataset transitions into the value/regulariser/actor losses (off for Meta-World)")
+    subsample: int = F(
+        64,
+        "random contiguous window of each segment used per update (D4RL 64, Meta-World 16, robomimic ph 32)",
+        range=(2, None),
+    )
+    use_replay: bool = F(
+        True, "mix unlabelled dataset transitions into the value/regulariser/actor losses (off for Meta-World)"
+    )
     value_replay_weight: float = F(0.5, "weight of replay data in the value loss", range=(0.0, 1.0))
     chi2_replay_weight: float = F(0.5, "weight of replay data in the chi^2 regulariser", range=(0.0, 1.0))
     policy_replay_weight: float = F(0.5, "weight of replay data in the actor loss", range=(0.0, 1.0))
@@ -194,10 +341,17 @@ class HPLConfig:
     extra_batch: int = F(512, "unlabelled transitions per step for the prior-latent regulariser", range=(1, None))
     kl_coef: float = F(1.0, "KL weight", range=(0.0, None))
     kl_balance: float = F(0.8, "KL balancing alpha: alpha KL(sg(q)||p) + (1-alpha) KL(q||sg(p))", range=(0.0, 1.0))
-    reg_coef: float = F(1e-4, "Huber regulariser of r(s,a,z_prior) toward 0 (hopper 1e-4, walker2d 0)", range=(0.0, None))
+    reg_coef: float = F(
+        1e-4, "Huber regulariser of r(s,a,z_prior) toward 0 (hopper 1e-4, walker2d 0)", range=(0.0, None)
+    )
     prior_samples: int = F(20, "prior samples averaged when relabelling", range=(1, None))
     lr: float = F(3e-4, "Adam learning rate (VAE and reward)", range=(0.0, 1.0))
-    chunk: int = F(500, "gradient steps per jitted lax.scan chunk (each phase does exactly its steps: the last chunk is shorter when they are not a multiple)", range=(1, None))
+    chunk: int = F(
+        500,
+        "gradient steps per jitted lax.scan chunk (each phase does exactly its steps: the last chunk is shorter when "
+        "they are not a multiple)",
+        range=(1, None),
+    )
 
 
 @dataclass(frozen=True)
@@ -213,10 +367,20 @@ class TrackingConfig:
 
 
 _STAGES: dict[str, type] = {
-    "data": DataConfig, "labels": LabelsConfig, "reward": RewardConfig, "pt": PTConfig,
-    "mr": MRConfig, "relabel": RelabelConfig, "subgoal": SubgoalConfig, "cvae": CVAEConfig,
-    "shaping": ShapingConfig, "iql": IQLConfig, "ipl": IPLConfig, "hpl": HPLConfig,
-    "eval": EvalConfig, "tracking": TrackingConfig,
+    "data": DataConfig,
+    "labels": LabelsConfig,
+    "reward": RewardConfig,
+    "pt": PTConfig,
+    "mr": MRConfig,
+    "relabel": RelabelConfig,
+    "subgoal": SubgoalConfig,
+    "cvae": CVAEConfig,
+    "shaping": ShapingConfig,
+    "iql": IQLConfig,
+    "ipl": IPLConfig,
+    "hpl": HPLConfig,
+    "eval": EvalConfig,
+    "tracking": TrackingConfig,
 }
 
 METHODS = ("oracle", "mr", "pt", "ipl", "hpl", "spot")
@@ -227,8 +391,18 @@ VARIANTS = ("spot", "paper", "authors")
 @dataclass(frozen=True)
 class ExperimentConfig:
     method: str = F("spot", "method preset", choices=METHODS)
-    budget: str = F("small", "budget preset: paper (the paper's sizes, for GPUs/clusters), small (2 CPU cores, minutes), tiny (tests)", choices=BUDGETS)
-    variant: str = F("spot", "fidelity preset (docs/fidelity.md): spot = this package's defaults; paper = what the paper's text says, the reference code where it is silent; authors = what the authors' code (SGPbrl) does. Sets only named keys (VARIANT_PRESETS), each of which can be overridden on its own", choices=VARIANTS)
+    budget: str = F(
+        "small",
+        "budget preset: paper (the paper's sizes, for GPUs/clusters), small (2 CPU cores, minutes), tiny (tests)",
+        choices=BUDGETS,
+    )
+    variant: str = F(
+        "spot",
+        "fidelity preset (docs/fidelity.md): spot = this package's defaults; paper = what the paper's text says, the "
+        "reference code where it is silent; authors = what the authors' code (SGPbrl) does. Sets only named keys "
+        "(VARIANT_PRESETS), each of which can be overridden on its own",
+        choices=VARIANTS,
+    )
     seed: int = F(0, "run seed (root PRNG key)", range=(0, None))
     data: DataConfig = field(default_factory=DataConfig)
     labels: LabelsConfig = field(default_factory=LabelsConfig)
@@ -261,31 +435,79 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"data.size": "paper"},
     # Finishes on 2 CPU cores in minutes per run.
     "small": {
-        "data.size": "small", "labels.num_queries": 200, "labels.segment_length": 50,
-        "reward.steps": 300, "reward.batch_size": 32, "reward.eval_every": 50,
-        "pt.embd_dim": 64, "pt.pref_attn_dim": 64, "pt.n_head": 4, "pt.warmup_steps": 30,
-        "mr.hidden": (64, 64), "relabel.window": 50,
-        "cvae.steps": 3000, "cvae.lr": 1e-3,
-        "iql.steps": 20_000, "iql.chunk": 1000, "eval.every": 5000, "eval.episodes": 5,
+        "data.size": "small",
+        "labels.num_queries": 200,
+        "labels.segment_length": 50,
+        "reward.steps": 300,
+        "reward.batch_size": 32,
+        "reward.eval_every": 50,
+        "pt.embd_dim": 64,
+        "pt.pref_attn_dim": 64,
+        "pt.n_head": 4,
+        "pt.warmup_steps": 30,
+        "mr.hidden": (64, 64),
+        "relabel.window": 50,
+        "cvae.steps": 3000,
+        "cvae.lr": 1e-3,
+        "iql.steps": 20_000,
+        "iql.chunk": 1000,
+        "eval.every": 5000,
+        "eval.episodes": 5,
         "ipl.subsample": 32,
-        "hpl.seq_len": 50, "hpl.embd_dim": 64, "hpl.n_layer": 1, "hpl.decoder_hidden": (128, 128),
-        "hpl.prior_hidden": (128, 128), "hpl.reward_hidden": (64, 64), "hpl.vae_steps": 2000,
-        "hpl.vae_batch": 16, "hpl.reward_steps": 1000, "hpl.extra_batch": 128, "hpl.prior_samples": 10,
+        "hpl.seq_len": 50,
+        "hpl.embd_dim": 64,
+        "hpl.n_layer": 1,
+        "hpl.decoder_hidden": (128, 128),
+        "hpl.prior_hidden": (128, 128),
+        "hpl.reward_hidden": (64, 64),
+        "hpl.vae_steps": 2000,
+        "hpl.vae_batch": 16,
+        "hpl.reward_steps": 1000,
+        "hpl.extra_batch": 128,
+        "hpl.prior_samples": 10,
     },
     # Seconds: tests and smoke checks.
     "tiny": {
-        "data.size": "tiny", "labels.num_queries": 40, "labels.segment_length": 20,
-        "reward.steps": 20, "reward.batch_size": 8, "reward.eval_every": 10,
-        "pt.embd_dim": 16, "pt.pref_attn_dim": 16, "pt.n_head": 2, "pt.warmup_steps": 2,
-        "mr.hidden": (16, 16), "relabel.window": 20, "relabel.batch_size": 64,
-        "cvae.steps": 50, "cvae.batch_size": 32, "cvae.hidden": (16, 16),
-        "iql.steps": 200, "iql.chunk": 100, "iql.hidden": (32, 32), "iql.batch_size": 64,
-        "eval.every": 100, "eval.episodes": 1,
-        "ipl.subsample": 10, "ipl.feedback_batch": 4,
-        "hpl.seq_len": 25, "hpl.embd_dim": 16, "hpl.n_layer": 1, "hpl.n_head": 2, "hpl.latent_groups": 2,
-        "hpl.latent_classes": 4, "hpl.decoder_hidden": (16, 16), "hpl.decoder_embd": 8,
-        "hpl.prior_hidden": (16, 16), "hpl.reward_hidden": (16, 16), "hpl.vae_steps": 20, "hpl.vae_batch": 4,
-        "hpl.reward_steps": 20, "hpl.extra_batch": 16, "hpl.prior_samples": 3, "hpl.chunk": 10,
+        "data.size": "tiny",
+        "labels.num_queries": 40,
+        "labels.segment_length": 20,
+        "reward.steps": 20,
+        "reward.batch_size": 8,
+        "reward.eval_every": 10,
+        "pt.embd_dim": 16,
+        "pt.pref_attn_dim": 16,
+        "pt.n_head": 2,
+        "pt.warmup_steps": 2,
+        "mr.hidden": (16, 16),
+        "relabel.window": 20,
+        "relabel.batch_size": 64,
+        "cvae.steps": 50,
+        "cvae.batch_size": 32,
+        "cvae.hidden": (16, 16),
+        "iql.steps": 200,
+        "iql.chunk": 100,
+        "iql.hidden": (32, 32),
+        "iql.batch_size": 64,
+        "eval.every": 100,
+        "eval.episodes": 1,
+        "ipl.subsample": 10,
+        "ipl.feedback_batch": 4,
+        "hpl.seq_len": 25,
+        "hpl.embd_dim": 16,
+        "hpl.n_layer": 1,
+        "hpl.n_head": 2,
+        "hpl.latent_groups": 2,
+        "hpl.latent_classes": 4,
+        "hpl.decoder_hidden": (16, 16),
+        "hpl.decoder_embd": 8,
+        "hpl.prior_hidden": (16, 16),
+        "hpl.reward_hidden": (16, 16),
+        "hpl.vae_steps": 20,
+        "hpl.vae_batch": 4,
+        "hpl.reward_steps": 20,
+        "hpl.extra_batch": 16,
+        "hpl.prior_samples": 3,
+        "hpl.chunk": 10,
     },
 }
 
@@ -296,20 +518,31 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
     "spot": {},
     "paper": {
         "subgoal.filter_groups": "all",  # eq. 5 states the reward criterion for the subgoal set
-        "relabel.mode": "sliding", "relabel.window": 25,  # paper silent: PT repo (seq_len flag 25)
+        "relabel.mode": "sliding",
+        "relabel.window": 25,  # paper silent: PT repo (seq_len flag 25)
         "iql.order": "sequential",  # paper silent: ikostrikov IQL (vendored by the PT repo)
     },
     "authors": {  # SGPbrl b6d94e2 (scripts, learner, critic) and a5b03df (JaxPref/PrefTransformer.py)
-        "pt.n_layer": 3, "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
+        "pt.n_layer": 3,
+        "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
         # the PT repo's optimiser, kept by SGPbrl: warmup 10 % of the steps to 10x lr, cosine back to lr,
         # optax.adamw's default b2 (new_preference_reward_main.py, PrefTransformer.py)
-        "pt.schedule": "warmup_cosine", "pt.peak_factor": 10.0, "pt.warmup_fraction": 0.1, "pt.b2": 0.999,
-        "subgoal.weight": "diagonal", "subgoal.filter_on": "z", "subgoal.last_step": True,
-        "subgoal.triplets": "interval", "subgoal.filter_groups": "top",
-        "relabel.mode": "sliding", "relabel.window": 25,  # train_offline.py seq_len 25
-        "shaping.potential_sign": "pos", "shaping.potential_terminal": False,  # critic.py potential_based
+        "pt.schedule": "warmup_cosine",
+        "pt.peak_factor": 10.0,
+        "pt.warmup_fraction": 0.1,
+        "pt.b2": 0.999,
+        "subgoal.weight": "diagonal",
+        "subgoal.filter_on": "z",
+        "subgoal.last_step": True,
+        "subgoal.triplets": "interval",
+        "subgoal.filter_groups": "top",
+        "relabel.mode": "sliding",
+        "relabel.window": 25,  # train_offline.py seq_len 25
+        "shaping.potential_sign": "pos",
+        "shaping.potential_terminal": False,  # critic.py potential_based
         "shaping.subgoal": "sample",  # subgoal_cvae_model.py: a prior sample (its noise from a fixed key)
-        "cvae.loss": "authors", "cvae.inputs": "raw",  # PrefTransformer.py vae_train_step, raw batches
+        "cvae.loss": "authors",
+        "cvae.inputs": "raw",  # PrefTransformer.py vae_train_step, raw batches
         "iql.order": "sequential",  # learner.py: critic target uses the just-updated value network
     },
 }
@@ -322,26 +555,45 @@ SUITE_PRESETS: dict[tuple[str, str], dict[str, Any]] = {
     # Meta-World (IPL's setting): segments of 25, discounted-return scripted labels without ties,
     # IQL expectile 0.75 (IPL repo's mr_iql / ipl_iql Meta-World configs), no D4RL +0.5 shift;
     # IPL: chi2 3, no target clipping, no replay data, feedback batch 16, subsample 16, 3x256.
-    ("metaworld", "*"): {"labels.segment_length": 25, "labels.teacher": "discounted",
-                         "iql.expectile": 0.75, "relabel.window": 25, "hpl.seq_len": 25},
+    ("metaworld", "*"): {
+        "labels.segment_length": 25,
+        "labels.teacher": "discounted",
+        "iql.expectile": 0.75,
+        "relabel.window": 25,
+        "hpl.seq_len": 25,
+    },
     ("metaworld", "mr"): {"relabel.normalize": "iql"},
     ("metaworld", "pt"): {"relabel.normalize": "iql"},
     ("metaworld", "spot"): {"relabel.normalize": "iql"},
-    ("metaworld", "ipl"): {"ipl.chi2_coeff": 3.0, "ipl.target_clipping": False, "ipl.use_replay": False,
-                           "ipl.feedback_batch": 16, "ipl.subsample": 16, "iql.hidden": (256, 256, 256)},
+    ("metaworld", "ipl"): {
+        "ipl.chi2_coeff": 3.0,
+        "ipl.target_clipping": False,
+        "ipl.use_replay": False,
+        "ipl.feedback_batch": 16,
+        "ipl.subsample": 16,
+        "iql.hidden": (256, 256, 256),
+    },
     # robomimic / robosuite (PT repo configs/adroit+robomimic: temperature 0.5; IPL robomimic:
     # beta 2 = temperature 0.5, chi2 4); segments of 50 (ph) or 100 (mh) follow the PT label files.
     # Scripted labels score segments with robosuite's dense staged reward and tie equal scores
     # (PT's robosuite teacher, label_type 1): the sparse reward of successful demos ties nearly all.
-    ("robosuite", "*"): {"iql.temperature": 0.5, "labels.score": "dense", "labels.tie_threshold": 0.0,
-                         "labels.allow_cross_episode": True},  # demos end at success (Lift: ~40 steps); PT segments cross episodes
+    ("robosuite", "*"): {
+        "iql.temperature": 0.5,
+        "labels.score": "dense",
+        "labels.tie_threshold": 0.0,
+        "labels.allow_cross_episode": True,
+    },  # demos end at success (Lift: ~40 steps); PT segments cross episodes
     ("robosuite", "mr"): {"relabel.normalize": "iql"},
     ("robosuite", "pt"): {"relabel.normalize": "iql"},
     ("robosuite", "spot"): {"relabel.normalize": "iql"},
     ("robosuite", "ipl"): {"ipl.chi2_coeff": 4.0},
 }
-_SUITE_SEGMENT = {"-ph": {"labels.segment_length": 50, "ipl.subsample": 32},
-                  "-mh": {"labels.segment_length": 100, "ipl.subsample": 64}}
+_SUITE_SEGMENT = {
+    "-ph": {"labels.segment_length": 50, "ipl.subsample": 32},
+    "-mh": {"labels.segment_length": 100, "ipl.subsample": 64},
+}
+
+
 def suite_of(data_name: str) -> str | None:
     """The registry family of a dataset name (``locomotion``, ``metaworld``, ``robosuite``), or
     None for anything else (a file path: no suite preset)."""
@@ -476,8 +728,10 @@ def _coerce(key: str, value: Any) -> Any:
                 raise ValueError
             out = tuple(_to_int(v) if inner is int else inner(v) for v in value)
             if inner is int and (not out or min(out) < 1 or max(out) > MAX_INT):
-                raise SpotError(f"config key '{key}': value {value!r}: expected one or more layer sizes, "
-                                f"each 1 <= size <= {MAX_INT}")
+                raise SpotError(
+                    f"config key '{key}': value {value!r}: expected one or more layer sizes, "
+                    f"each 1 <= size <= {MAX_INT}"
+                )
         elif tp is bool:
             if isinstance(value, str):
                 if value.lower() in ("true", "1", "yes", "on"):
@@ -552,8 +806,12 @@ class StrictLoader(yaml.SafeLoader):
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
-            raise yaml.composer.ComposerError(None, None, f"alias '*{event.anchor}' found: spot's YAML files take "
-                                              "no aliases; write the value out", event.start_mark)
+            raise yaml.composer.ComposerError(
+                None,
+                None,
+                f"alias '*{event.anchor}' found: spot's YAML files take no aliases; write the value out",
+                event.start_mark,
+            )
         return super().compose_node(parent, index)
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:
@@ -563,8 +821,9 @@ class StrictLoader(yaml.SafeLoader):
                 key = self.construct_object(key_node, deep=True)
                 if isinstance(key, typing.Hashable):
                     if key in seen:
-                        raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}",
-                                                                key_node.start_mark)
+                        raise yaml.constructor.ConstructorError(
+                            None, None, f"duplicate key {key!r}", key_node.start_mark
+                        )
                     seen.add(key)
         return super().construct_mapping(node, deep=deep)
 
@@ -648,17 +907,20 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
     trial before launch). Returns ``cfg``; raises :class:`spot.SpotError` naming the keys."""
     kind = cfg.reward.kind
     _rule(bool(cfg.tracking.experiment.strip()), "tracking.experiment is empty; expected an MLflow experiment name")
-    _rule(cfg.shaping.kind == "none" or kind == "pt",
-          f"shaping.kind={cfg.shaping.kind!r} needs reward.kind=pt (subgoals come from PT attention); "
-          f"got reward.kind={kind!r}")
-    _rule(cfg.eval.every % cfg.iql.chunk == 0,
-          f"eval.every={cfg.eval.every} must be a multiple of iql.chunk={cfg.iql.chunk} (the policy is "
-          f"evaluated between jitted chunks; e.g. eval.every={max(1, round(cfg.eval.every / cfg.iql.chunk)) * cfg.iql.chunk})")
-    _rule(kind == "none" or cfg.labels.source != "human" or bool(cfg.labels.path),
-          "labels.source=human needs labels.path (a folder of PT label files)")
-    _rule(kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,
-          f"labels.segment_length={cfg.labels.segment_length} exceeds hpl.seq_len={cfg.hpl.seq_len}: "
-          f"HPL's hindsight encoder sees at most hpl.seq_len steps")
+    _rule(
+        cfg.shaping.kind == "none" or kind == "pt",
+        f"shaping.kind={cfg.shaping.kind!r} needs reward.kind=pt (subgoals come from PT attention); "
+        f"got reward.kind={kind!r}",
+    )
+    _rule(
+        kind == "none" or cfg.labels.source != "human" or bool(cfg.labels.path),
+        "labels.source=human needs labels.path (a folder of PT label files)",
+    )
+    _rule(
+        kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,
+        f"labels.segment_length={cfg.labels.segment_length} exceeds hpl.seq_len={cfg.hpl.seq_len}: "
+        f"HPL's hindsight encoder sees at most hpl.seq_len steps",
+    )
     return cfg
 
 
@@ -706,4 +968,3 @@ def to_yaml(cfg: ExperimentConfig) -> str:
         else:
             nested[key] = value
     return yaml.safe_dump(nested, sort_keys=False)
-

@@ -50,19 +50,27 @@ def check(cfgs: Sequence[ExperimentConfig]) -> stages.RewardKind:
     base = dataclasses.replace(cfgs[0], seed=0)
     for cfg in cfgs[1:]:
         if dataclasses.replace(cfg, seed=0) != base:
-            raise SpotError(f"seed_mode vmap: seed {cfg.seed}'s config differs from seed {cfgs[0].seed}'s "
-                            "beyond the seed")
+            raise SpotError(
+                f"seed_mode vmap: seed {cfg.seed}'s config differs from seed {cfgs[0].seed}'s beyond the seed"
+            )
     kind = stages.stages_of(cfgs[0])
     if kind.policy is not stages.iql_policy:
-        raise SpotError(f"seed_mode vmap trains IQL over seeds; method {cfgs[0].method!r} trains its own policy "
-                        f"({kind.policy.__name__}): use seed_mode: sequential or trials")
+        raise SpotError(
+            f"seed_mode vmap trains IQL over seeds; method {cfgs[0].method!r} trains its own policy "
+            f"({kind.policy.__name__}): use seed_mode: sequential or trials"
+        )
     return kind
 
 
-def run(cfgs: Sequence[ExperimentConfig], *, progress: bool = True, parent_run_id: str | None = None,
-        extra_tags: Sequence[dict[str, str] | None] | None = None,
-        on_eval: Sequence[Callable[[dict[str, float]], None] | None] | None = None,
-        trackers: Sequence[Tracker | None] | None = None) -> list[dict[str, Any]]:
+def run(
+    cfgs: Sequence[ExperimentConfig],
+    *,
+    progress: bool = True,
+    parent_run_id: str | None = None,
+    extra_tags: Sequence[dict[str, str] | None] | None = None,
+    on_eval: Sequence[Callable[[dict[str, float]], None] | None] | None = None,
+    trackers: Sequence[Tracker | None] | None = None,
+) -> list[dict[str, Any]]:
     """Run the seeds of ``cfgs`` (one config, distinct seeds), IQL vmapped over them (module docstring).
 
     ``extra_tags``, ``on_eval`` and ``trackers`` are per seed (as :func:`spot.pipeline.run`'s).
@@ -77,8 +85,9 @@ def run(cfgs: Sequence[ExperimentConfig], *, progress: bool = True, parent_run_i
     with contextlib.ExitStack() as stack:
         ctxs, shaped = [], []
         for cfg, tags, callback, tracker in zip(cfgs, extra_tags, on_eval, trackers, strict=True):
-            tr = stack.enter_context(pipeline._tracking(cfg, card, tracker, parent_run_id,
-                                                        {**(tags or {}), **mode_tags}, ds))
+            tr = stack.enter_context(
+                pipeline._tracking(cfg, card, tracker, parent_run_id, {**(tags or {}), **mode_tags}, ds)
+            )
             if tracker is not None:
                 tr.set_tags(mode_tags)
             ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
@@ -106,8 +115,9 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
     cfg, ds = ctxs[0].cfg, ctxs[0].ds
     rewards = np.stack([np.asarray(s.reward, np.float32) for s in shaped])
     data = jax.device_put(ds.transitions(rewards[0])._replace(rew=rewards))
-    init_keys, train_keys = (jnp.stack(k) for k in zip(*(jax.random.split(c.keys["policy"]) for c in ctxs),
-                                                       strict=True))
+    init_keys, train_keys = (
+        jnp.stack(k) for k in zip(*(jax.random.split(c.keys["policy"]) for c in ctxs), strict=True)
+    )
     state = iql.init_state(init_keys, ds.obs_dim, ds.act_dim, cfg.iql)
     chunk = iql.make_vmapped_train_chunk(cfg.iql, per_seed_rewards=True)
     fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))

@@ -27,9 +27,15 @@ from spot.stages import Context
 from spot.tracking import Tracker
 
 
-def run(cfg: ExperimentConfig, *, progress: bool = True, parent_run_id: str | None = None,
-        extra_tags: dict[str, str] | None = None, on_eval: Callable[[dict[str, float]], None] | None = None,
-        tracker: Tracker | None = None) -> dict[str, Any]:
+def run(
+    cfg: ExperimentConfig,
+    *,
+    progress: bool = True,
+    parent_run_id: str | None = None,
+    extra_tags: dict[str, str] | None = None,
+    on_eval: Callable[[dict[str, float]], None] | None = None,
+    tracker: Tracker | None = None,
+) -> dict[str, Any]:
     """Run one seed of ``cfg``, recorded by ``tracker`` (default: a new MLflow run).
 
     Returns the final metrics (``eval/score_final``, ``eval/score_best``, ``time/*``) and ``run_id``.
@@ -111,8 +117,14 @@ def _keys(seed: int) -> dict[str, Any]:
 
 
 @contextlib.contextmanager
-def _tracking(cfg: ExperimentConfig, card: dict[str, Any], tracker: Tracker | None,
-              parent_run_id: str | None, extra_tags: dict[str, str] | None, ds: Any):
+def _tracking(
+    cfg: ExperimentConfig,
+    card: dict[str, Any],
+    tracker: Tracker | None,
+    parent_run_id: str | None,
+    extra_tags: dict[str, str] | None,
+    ds: Any,
+):
     if tracker is not None:
         yield tracker
         return
@@ -139,7 +151,15 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
     actor = params["actor"]
     res = envs.evaluate(lambda o: np.asarray(iql.act(actor, o, cfg.iql)), head["env"], n, seed=int(head["eval_seed"]))
     logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")
-    return {"run_id": run_id, "method": cfg.method, "env": head["env"], "episodes": n,
-            "eval_seed": int(head["eval_seed"]), "steps": head.get("steps"),
-            "score_mean": float(res["score_mean"]), "score_std": float(res["score_std"]),
-            "return_mean": float(res["return_mean"]), "logged_score_final": logged}
+    return {
+        "run_id": run_id,
+        "method": cfg.method,
+        "env": head["env"],
+        "episodes": n,
+        "eval_seed": int(head["eval_seed"]),
+        "steps": head.get("steps"),
+        "score_mean": float(res["score_mean"]),
+        "score_std": float(res["score_std"]),
+        "return_mean": float(res["return_mean"]),
+        "logged_score_final": logged,
+    }

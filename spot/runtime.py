@@ -47,9 +47,11 @@ MUJOCO_GL_DEFAULT = "egl"
 JAX_CACHE_SWITCH = "SPOT_JAX_CACHE"
 MIN_COMPILE_S = "0.2"
 MAX_SIZE_BYTES = str(2 * 1024**3)
-_CACHE_VARS = {"JAX_COMPILATION_CACHE_DIR": ("jax_compilation_cache_dir", str),
-               "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("jax_persistent_cache_min_compile_time_secs", float),
-               "JAX_COMPILATION_CACHE_MAX_SIZE": ("jax_compilation_cache_max_size", int)}
+_CACHE_VARS = {
+    "JAX_COMPILATION_CACHE_DIR": ("jax_compilation_cache_dir", str),
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("jax_persistent_cache_min_compile_time_secs", float),
+    "JAX_COMPILATION_CACHE_MAX_SIZE": ("jax_compilation_cache_max_size", int),
+}
 
 
 def jax_cache_dir() -> Path:
@@ -69,9 +71,11 @@ def compilation_cache_settings() -> dict[str, str]:
         return {}
     if switch not in ("1", "true", "yes", "on"):
         raise SpotError(f"{JAX_CACHE_SWITCH}={os.environ[JAX_CACHE_SWITCH]!r}: expected 1 or 0 (on or off)")
-    defaults = {"JAX_COMPILATION_CACHE_DIR": str(jax_cache_dir()),
-                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": MIN_COMPILE_S,
-                "JAX_COMPILATION_CACHE_MAX_SIZE": MAX_SIZE_BYTES}
+    defaults = {
+        "JAX_COMPILATION_CACHE_DIR": str(jax_cache_dir()),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": MIN_COMPILE_S,
+        "JAX_COMPILATION_CACHE_MAX_SIZE": MAX_SIZE_BYTES,
+    }
     return {k: os.environ.get(k) or v for k, v in defaults.items()}
 
 
@@ -97,8 +101,10 @@ def configure() -> dict[str, str]:
     flags = os.environ.get("XLA_FLAGS", "")
     if YNN_FLAG not in flags.split():
         if _jax_backend_started():
-            raise RuntimeError("spot.runtime.configure() was called after a jax backend started; call it "
-                               "before any jax computation so that XLA_FLAGS takes effect")
+            raise RuntimeError(
+                "spot.runtime.configure() was called after a jax backend started; call it "
+                "before any jax computation so that XLA_FLAGS takes effect"
+            )
         os.environ["XLA_FLAGS"] = f"{flags} {YNN_FLAG}".strip()
     if "mujoco" not in sys.modules:
         os.environ.setdefault("MUJOCO_GL", MUJOCO_GL_DEFAULT)

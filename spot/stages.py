@@ -8,7 +8,8 @@ stages (:class:`Labelled`, :class:`RewardModel`, :class:`Rewards`, :class:`Subgo
 (``time/<stage>_s``) and the stage's expensive part goes through :meth:`Context.cached`, which
 tags the run ``cache.<stage> = hit | miss``. The trained models are saved as run artifacts
 (:func:`save_model`: ``models/reward_model``, ``models/cvae``, ``models/policy``, data only, with a
-JSON header), so a run can be evaluated again (``spot eval``) without the stage cache. Which functions fill the reward, relabel and policy slots is read from
+JSON header), so a run can be evaluated again (``spot eval``) without the stage cache. Which
+functions fill the reward, relabel and policy slots is read from
 :data:`REWARD_KINDS` by ``reward.kind`` (set by the method preset); adding a method is one
 :func:`register` call plus the module with its stage functions.
 
@@ -144,9 +145,16 @@ def save_model(ctx: Context, name: str, what: str, value: Any, sections: tuple[s
 
     cfg = config_lib.to_flat(ctx.cfg)
     section_cfg = {s: {k.split(".", 1)[1]: v for k, v in cfg.items() if k.startswith(f"{s}.")} for s in sections}
-    tracking.save_model(ctx.tracker, ctx.artifacts / "models", name, what, value,
-                        {"method": ctx.cfg.method, **section_cfg}, dataset=ctx.card.get("name", ctx.cfg.data.name),
-                        **extra)
+    tracking.save_model(
+        ctx.tracker,
+        ctx.artifacts / "models",
+        name,
+        what,
+        value,
+        {"method": ctx.cfg.method, **section_cfg},
+        dataset=ctx.card.get("name", ctx.cfg.data.name),
+        **extra,
+    )
 
 
 def eval_seed(cfg: ExperimentConfig) -> int:
@@ -181,9 +189,16 @@ def make_preferences(cfg: ExperimentConfig, ds: Any) -> Any:
         labels.check_against(prefs, ds, allow_cross_episode=True)
         return prefs
     return labels.scripted_teacher(
-        ds, lc.num_queries, lc.segment_length, teacher=lc.teacher, discount=lc.discount,
-        tie_threshold=lc.tie_threshold, mistake_rate=lc.mistake_rate,
-        allow_cross_episode=lc.allow_cross_episode, seed=lc.seed, score=lc.score,
+        ds,
+        lc.num_queries,
+        lc.segment_length,
+        teacher=lc.teacher,
+        discount=lc.discount,
+        tie_threshold=lc.tie_threshold,
+        mistake_rate=lc.mistake_rate,
+        allow_cross_episode=lc.allow_cross_episode,
+        seed=lc.seed,
+        score=lc.score,
     )
 
 
@@ -196,10 +211,20 @@ def labels_stage(ctx: Context) -> Labelled:
     train_prefs, eval_prefs = labels.split_eval(prefs, cfg.labels.eval_fraction, cfg.labels.seed)
     train_batch = labels.segment_batch(ds, train_prefs)
     eval_batch = labels.segment_batch(ds, eval_prefs) if len(eval_prefs) else None
-    ctx.log({"labels/queries": len(prefs), "labels/ties": float(np.sum(prefs.labels == 0.5)),
-             "labels/segment_length": prefs.segment_length})
-    deps = {"s1": prefs.starts_1, "s2": prefs.starts_2, "y": prefs.labels, "length": prefs.segment_length,
-            "split": (cfg.labels.eval_fraction, cfg.labels.seed)}
+    ctx.log(
+        {
+            "labels/queries": len(prefs),
+            "labels/ties": float(np.sum(prefs.labels == 0.5)),
+            "labels/segment_length": prefs.segment_length,
+        }
+    )
+    deps = {
+        "s1": prefs.starts_1,
+        "s2": prefs.starts_2,
+        "y": prefs.labels,
+        "length": prefs.segment_length,
+        "split": (cfg.labels.eval_fraction, cfg.labels.seed),
+    }
     return Labelled(prefs, train_prefs, train_batch, eval_batch, deps)
 
 
@@ -229,7 +254,8 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
 
     def compute() -> dict[str, Any]:
         params, history = reward_train.train_reward_model(
-            model, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward, progress=ctx.progress)
+            model, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward, progress=ctx.progress
+        )
         return {"params": params, "history": history}
 
     out, key = ctx.cached("reward", deps, compute)
@@ -238,8 +264,15 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     for name in names:
         ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
-    save_model(ctx, "reward_model", f"{model.kind.upper()} reward model (best held-out checkpoint)", out["params"],
-               ("reward", model.kind), kind=model.kind, cache_key=key)
+    save_model(
+        ctx,
+        "reward_model",
+        f"{model.kind.upper()} reward model (best held-out checkpoint)",
+        out["params"],
+        ("reward", model.kind),
+        kind=model.kind,
+        cache_key=key,
+    )
     return RewardModel(model.kind, out["params"], key)
 
 
@@ -254,14 +287,14 @@ def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     deps = _reward_deps(ctx, labelled, reward="hpl", hpl=cfg.hpl, reward_cfg=cfg.reward)
 
     def compute() -> dict[str, Any]:
-        params, history = hpl.train_hpl(train_key, ctx.ds, labelled.train_batch, labelled.eval_batch,
-                                        cfg.hpl, progress=ctx.progress)
+        params, history = hpl.train_hpl(
+            train_key, ctx.ds, labelled.train_batch, labelled.eval_batch, cfg.hpl, progress=ctx.progress
+        )
         return {"params": params, "history": history}
 
     out, key = ctx.cached("reward", deps, compute)
     h = out["history"]
-    ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")
-             if k in h})
+    ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s") if k in h})
     for k in ("vae_loss", "vae_recon", "vae_kl"):
         if k in h:
             ctx.tracker.log_series(f"hpl/{k}", h["vae_step"], h[k])
@@ -271,8 +304,15 @@ def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
             ctx.tracker.log_series(f"reward/{k}", h["reward_step"][:n], h[k][:n])
     # Table 8: HPL's two pretraining phases, as measured when it was trained
     ctx.log({f"time/hpl_{name}": h[name] for name in ("vae_s", "reward_s") if name in h})
-    save_model(ctx, "reward_model", "HPL hindsight VAE, prior and reward r(s, a, z)", out["params"],
-               ("reward", "hpl"), kind="hpl", cache_key=key)
+    save_model(
+        ctx,
+        "reward_model",
+        "HPL hindsight VAE, prior and reward r(s, a, z)",
+        out["params"],
+        ("reward", "hpl"),
+        kind="hpl",
+        cache_key=key,
+    )
     return RewardModel("hpl", out["params"], key)
 
 
@@ -304,9 +344,13 @@ def model_rewards(ctx: Context, model: RewardModel) -> Rewards:
     from spot.reward import models, relabel
 
     cfg = ctx.cfg
-    rel, _ = ctx.cached("relabel", {"reward": model.cache_key, "relabel": cfg.relabel, "data": dataset_deps(ctx.ds)},
-                        lambda: relabel.relabel_rewards(models.from_config(cfg), model.params, ctx.ds, cfg.relabel,
-                                                        progress=ctx.progress)._asdict())
+    rel, _ = ctx.cached(
+        "relabel",
+        {"reward": model.cache_key, "relabel": cfg.relabel, "data": dataset_deps(ctx.ds)},
+        lambda: relabel.relabel_rewards(
+            models.from_config(cfg), model.params, ctx.ds, cfg.relabel, progress=ctx.progress
+        )._asdict(),
+    )
     return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
 
 
@@ -317,8 +361,11 @@ def hpl_rewards(ctx: Context, model: RewardModel) -> Rewards:
     from spot.reward import relabel
 
     _, relabel_key = jax.random.split(ctx.keys["reward"])
-    rel, _ = ctx.cached("relabel", {"hpl": model.cache_key, "seed": ctx.cfg.seed, "data": dataset_deps(ctx.ds)},
-                        lambda: {"rewards": relabel.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)})
+    rel, _ = ctx.cached(
+        "relabel",
+        {"hpl": model.cache_key, "seed": ctx.cfg.seed, "data": dataset_deps(ctx.ds)},
+        lambda: {"rewards": relabel.relabel_hpl(model.params, ctx.ds, ctx.cfg.hpl, relabel_key)},
+    )
     return _normalised(ctx, np.asarray(rel["rewards"], np.float32), model)
 
 
@@ -348,12 +395,17 @@ def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
     sides = []
     for side in ("1", "2"):
         mask = np.ones(batch[f"obs_{side}"].shape[:2], np.float32)
-        r_hat, attn = attention(model.params, ctx.cfg.pt, batch[f"obs_{side}"], batch[f"act_{side}"],
-                                batch[f"timesteps_{side}"], mask)
-        sides.append(extract.segments(batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat),
-                                      np.asarray(attn), ctx.cfg.subgoal))
-    triplets, states, info = extract.extract(sides[0], sides[1], batch["label"], ctx.cfg.subgoal,
-                                             rng=np.random.default_rng(ctx.cfg.seed))
+        r_hat, attn = attention(
+            model.params, ctx.cfg.pt, batch[f"obs_{side}"], batch[f"act_{side}"], batch[f"timesteps_{side}"], mask
+        )
+        sides.append(
+            extract.segments(
+                batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat), np.asarray(attn), ctx.cfg.subgoal
+            )
+        )
+    triplets, states, info = extract.extract(
+        sides[0], sides[1], batch["label"], ctx.cfg.subgoal, rng=np.random.default_rng(ctx.cfg.seed)
+    )
     if ctx.cfg.subgoal.source == "random":  # the control: same count, random dataset states
         triplets = extract.random_subgoals(triplets, ctx.ds.observations, np.random.default_rng([ctx.cfg.seed, 1]))
         states = triplets.g
@@ -368,14 +420,36 @@ def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
     cfg = ctx.cfg
     triplets, states = extracted
     deps = {"reward": rewards.source.cache_key, "subgoal": cfg.subgoal, "cvae": cfg.cvae, "seed": cfg.seed}
-    out, key = ctx.cached("cvae", deps, lambda: dict(zip(("params", "history"), cvae.train_cvae(
-        ctx.keys["cvae"], triplets.s, triplets.a, triplets.g, cfg.cvae,
-        cvae.obs_stats(ctx.ds.observations), progress=ctx.progress), strict=False)))
+    out, key = ctx.cached(
+        "cvae",
+        deps,
+        lambda: dict(
+            zip(
+                ("params", "history"),
+                cvae.train_cvae(
+                    ctx.keys["cvae"],
+                    triplets.s,
+                    triplets.a,
+                    triplets.g,
+                    cfg.cvae,
+                    cvae.obs_stats(ctx.ds.observations),
+                    progress=ctx.progress,
+                ),
+                strict=False,
+            )
+        ),
+    )
     ctx.tracker.set_tags({"cache.cvae_key": key, "cache.reward_key": rewards.source.cache_key})
     for row in out["history"]:
         ctx.log({k: v for k, v in row.items() if k != "step"}, step=int(row["step"]))
-    save_model(ctx, "cvae", "CVAE G(s, a) -> subgoal (spot.subgoal.cvae.CVAEParams)", out["params"],
-               ("subgoal", "cvae"), cache_key=key)
+    save_model(
+        ctx,
+        "cvae",
+        "CVAE G(s, a) -> subgoal (spot.subgoal.cvae.CVAEParams)",
+        out["params"],
+        ("subgoal", "cvae"),
+        cache_key=key,
+    )
     return Subgoals(triplets, states, out["params"])
 
 
@@ -387,8 +461,16 @@ def shaping_stage(ctx: Context, rewards: Rewards, subgoals: Subgoals | None) -> 
 
     ds, cfg = ctx.ds, ctx.cfg
     shaped, info = shaping.shaped_rewards(
-        subgoals.cvae_params, ds.observations, ds.actions, ds.next_observations, rewards.normalised,
-        cfg.shaping, ctx.keys["shaping"], gamma=cfg.iql.discount, terminals=ds.terminals)
+        subgoals.cvae_params,
+        ds.observations,
+        ds.actions,
+        ds.next_observations,
+        rewards.normalised,
+        cfg.shaping,
+        ctx.keys["shaping"],
+        gamma=cfg.iql.discount,
+        terminals=ds.terminals,
+    )
     ctx.log(info)
     return Shaped(shaped.reward, shaped.cos_to_subgoal)
 
@@ -415,22 +497,26 @@ def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shap
 
     ds, art = ctx.ds, ctx.artifacts
     in_dist = in_distribution(len(ds), labelled)
-    table = diagnostics.extrapolation_error_bins(shaped.reward, ds.rewards.astype(np.float32),
-                                                 shaped.cos_to_subgoal, in_dist,
-                                                 bins=np.linspace(-1.0, 1.0, 21))
+    table = diagnostics.extrapolation_error_bins(
+        shaped.reward, ds.rewards.astype(np.float32), shaped.cos_to_subgoal, in_dist, bins=np.linspace(-1.0, 1.0, 21)
+    )
     ctx.log(table.metrics())
     bins = range(table.mean_error.shape[1])
     ctx.tracker.log_series("diag/extrap_bin_in", bins, table.mean_error[0])
     ctx.tracker.log_series("diag/extrap_bin_ood", bins, table.mean_error[1])
-    ctx.tracker.log_artifact(diagnostics.plot_extrapolation({ctx.cfg.method: table},
-                                                            art / "extrapolation_error.png"))
+    ctx.tracker.log_artifact(diagnostics.plot_extrapolation({ctx.cfg.method: table}, art / "extrapolation_error.png"))
     generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)
     ctx.log(diagnostics.precision_recall(subgoals.states, generated))
-    ctx.tracker.log_artifact(diagnostics.plot_projection(ds.observations, generated,
-                                                         art / "subgoal_projection.png"))
-    ctx.tracker.log_dict({"edges": table.edges.tolist(), "mean_error": table.mean_error.tolist(),
-                          "count": table.count.tolist(), "groups": list(diagnostics.GROUP_NAMES)},
-                         "extrapolation_error.json")
+    ctx.tracker.log_artifact(diagnostics.plot_projection(ds.observations, generated, art / "subgoal_projection.png"))
+    ctx.tracker.log_dict(
+        {
+            "edges": table.edges.tolist(),
+            "mean_error": table.mean_error.tolist(),
+            "count": table.count.tolist(),
+            "groups": list(diagnostics.GROUP_NAMES),
+        },
+        "extrapolation_error.json",
+    )
 
 
 # --------------------------------------------------------------------------- policy stages
@@ -442,10 +528,16 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
     cfg = ctx.cfg
 
     def evaluate(actor_params: Any, step: int) -> dict[str, float]:
-        res = envs.evaluate(lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)), ctx.env_name,
-                            cfg.eval.episodes, seed=eval_seed(cfg))
-        ctx.log({"eval/score": res["score_mean"], "eval/score_std": res["score_std"],
-                 "eval/return": res["return_mean"]}, step=step)
+        res = envs.evaluate(
+            lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)),
+            ctx.env_name,
+            cfg.eval.episodes,
+            seed=eval_seed(cfg),
+        )
+        ctx.log(
+            {"eval/score": res["score_mean"], "eval/score_std": res["score_std"], "eval/return": res["return_mean"]},
+            step=step,
+        )
         if ctx.on_eval is not None:
             ctx.on_eval({"step": step, "score": float(res["score_mean"])})
         return res
@@ -464,9 +556,15 @@ def _train_policy(ctx: Context, state: Any, train_chunk: Callable, args: Callabl
 
     _, train_key = jax.random.split(ctx.keys["policy"])
     evaluate = _evaluate_fn(ctx)
-    curve = iql.train(train_chunk, state, lambda c: args(jax.random.fold_in(train_key, c)), ctx.cfg.iql,
-                      ctx.cfg.eval.every, lambda params, step: evaluate(params, step)["score_mean"],
-                      log=lambda metrics, step: ctx.log(metrics, step=step))
+    curve = iql.train(
+        train_chunk,
+        state,
+        lambda c: args(jax.random.fold_in(train_key, c)),
+        ctx.cfg.iql,
+        ctx.cfg.eval.every,
+        lambda params, step: evaluate(params, step)["score_mean"],
+        log=lambda metrics, step: ctx.log(metrics, step=step),
+    )
     return Policy(curve.state, curve.steps, curve.scores, curve.eval_s)
 
 
@@ -501,8 +599,7 @@ def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
     for name, batch in (("train", labelled.train_batch), ("eval", labelled.eval_batch)):
         if batch is not None:
             res = ipl.evaluate_preferences(policy.state, ipl.feedback_from(batch), cfg.iql, cfg.ipl)
-            ctx.log({f"reward/{name}_acc": res["ipl/eval_pref_acc"],
-                     f"reward/{name}_loss": res["ipl/eval_pref_loss"]})
+            ctx.log({f"reward/{name}_acc": res["ipl/eval_pref_acc"], f"reward/{name}_loss": res["ipl/eval_pref_loss"]})
     return policy
 
 
@@ -519,10 +616,10 @@ class RewardKind:
 
 REWARD_KINDS: dict[str, RewardKind] = {
     "none": RewardKind(true_reward, true_rewards, uses_labels=False),  # Oracle
-    "mr": RewardKind(learned_reward, model_rewards),                    # MR
-    "pt": RewardKind(learned_reward, model_rewards),                    # PT, SPOT
-    "hpl": RewardKind(hpl_reward, hpl_rewards),                         # HPL
-    "ipl": RewardKind(true_reward, zero_rewards, policy=ipl_policy),    # IPL
+    "mr": RewardKind(learned_reward, model_rewards),  # MR
+    "pt": RewardKind(learned_reward, model_rewards),  # PT, SPOT
+    "hpl": RewardKind(hpl_reward, hpl_rewards),  # HPL
+    "ipl": RewardKind(true_reward, zero_rewards, policy=ipl_policy),  # IPL
 }
 
 
@@ -562,8 +659,9 @@ def stages_of(cfg: ExperimentConfig) -> RewardKind:
     try:
         return REWARD_KINDS[cfg.reward.kind]
     except KeyError:
-        raise SpotError(f"reward.kind={cfg.reward.kind!r} has no stages; registered: "
-                        f"{', '.join(REWARD_KINDS)}") from None
+        raise SpotError(
+            f"reward.kind={cfg.reward.kind!r} has no stages; registered: {', '.join(REWARD_KINDS)}"
+        ) from None
 
 
 def plot_curve(steps: list[int], scores: list[float], path: Path, title: str) -> Path:
@@ -584,17 +682,33 @@ def plot_curve(steps: list[int], scores: list[float], path: Path, title: str) ->
 
 def finish(ctx: Context, policy: Policy, t_start: float) -> dict[str, Any]:
     """Learning curve artifact and the run's final metrics (``eval/score_final``, ``_best``, times)."""
-    png = plot_curve(policy.steps, policy.scores, ctx.artifacts / "learning_curve.png",
-                                 f"{ctx.cfg.method} on {ctx.env_name} (seed {ctx.cfg.seed})")
+    png = plot_curve(
+        policy.steps,
+        policy.scores,
+        ctx.artifacts / "learning_curve.png",
+        f"{ctx.cfg.method} on {ctx.env_name} (seed {ctx.cfg.seed})",
+    )
     ctx.tracker.log_artifact(png)
     st = policy.state
-    save_model(ctx, "policy", "IQL actor (Gaussian, mean tanh(MLP(s)); spot.policy.iql.act), critics, value "
-               "and target critics after the last update",
-               {"actor": st.actor.params, "critic": st.critic.params, "value": st.value.params,
-                "target_critic": st.target_critic_params},
-               ("iql", "eval", *(("ipl",) if ctx.cfg.reward.kind == "ipl" else ())),
-               env=ctx.env_name, eval_seed=eval_seed(ctx.cfg), steps=int(policy.steps[-1]),
-               score_final=policy.scores[-1], obs_dim=int(ctx.ds.obs_dim), act_dim=int(ctx.ds.act_dim))
+    save_model(
+        ctx,
+        "policy",
+        "IQL actor (Gaussian, mean tanh(MLP(s)); spot.policy.iql.act), critics, value "
+        "and target critics after the last update",
+        {
+            "actor": st.actor.params,
+            "critic": st.critic.params,
+            "value": st.value.params,
+            "target_critic": st.target_critic_params,
+        },
+        ("iql", "eval", *(("ipl",) if ctx.cfg.reward.kind == "ipl" else ())),
+        env=ctx.env_name,
+        eval_seed=eval_seed(ctx.cfg),
+        steps=int(policy.steps[-1]),
+        score_final=policy.scores[-1],
+        obs_dim=int(ctx.ds.obs_dim),
+        act_dim=int(ctx.ds.act_dim),
+    )
     ctx.times["time/eval_s"] = policy.eval_s
     ctx.times["time/iql_s"] = ctx.times.get("time/iql_s", 0.0) - policy.eval_s
     ctx.times["time/total_s"] = time.perf_counter() - t_start

@@ -25,15 +25,27 @@ LAYERS = [
     (5, "recipes", ["spot.recipes"]),
     (6, "tracking", ["spot.tracking"]),
     (7, "stages", ["spot.stages", "spot.pipeline", "spot.multiseed"]),
-    (8, "apps", ["spot.sweep", "spot.tables", "spot.figures", "spot.bench", "spot.mlflow_server",
-                 "spot.results", "spot.report", "spot.stats"]),
+    (
+        8,
+        "apps",
+        [
+            "spot.sweep",
+            "spot.tables",
+            "spot.figures",
+            "spot.bench",
+            "spot.mlflow_server",
+            "spot.results",
+            "spot.report",
+            "spot.stats",
+        ],
+    ),
     (9, "cli", ["spot.cli"]),
 ]
 
 # Late-bound lookups by name that cross layers on purpose, with the reason (docs/design.md).
 LATE_BOUND = {
     ("spot.data.registry", "spot.recipes"): "registry.build runs the recipe a registered dataset name maps "
-                                            "to, by module name (Entry.recipe); spot.data imports no recipe",
+    "to, by module name (Entry.recipe); spot.data imports no recipe",
 }
 
 
@@ -67,12 +79,21 @@ def imports_of(source: str, module: str, is_package: bool, known: set[str]) -> l
                 for a in node.names:
                     sub = f"{base}.{a.name}"
                     out.append((node.lineno, sub if sub in known else base, False))
-        elif (isinstance(node, ast.Call) and node.args
-              and ast.unparse(node.func) in ("importlib.import_module", "import_module")):
+        elif (
+            isinstance(node, ast.Call)
+            and node.args
+            and ast.unparse(node.func) in ("importlib.import_module", "import_module")
+        ):
             arg = node.args[0]
-            literal = arg.value if isinstance(arg, ast.Constant) else (
-                arg.values[0].value if isinstance(arg, ast.JoinedStr) and arg.values
-                and isinstance(arg.values[0], ast.Constant) else "")
+            literal = (
+                arg.value
+                if isinstance(arg, ast.Constant)
+                else (
+                    arg.values[0].value
+                    if isinstance(arg, ast.JoinedStr) and arg.values and isinstance(arg.values[0], ast.Constant)
+                    else ""
+                )
+            )
             if isinstance(literal, str) and literal.startswith("spot"):
                 out.append((node.lineno, literal.rstrip("."), True))
     return out
@@ -90,7 +111,9 @@ def violations(sources: dict[str, tuple[str, bool]]) -> list[str]:
                 continue
             if late and any(target == t or target.startswith(t + ".") for (m, t) in LATE_BOUND if m == module):
                 continue
-            found.append(f"{module}:{line} ({here[1]}, level {here[0]}) imports {target} ({there[1]}, level {there[0]})")
+            found.append(
+                f"{module}:{line} ({here[1]}, level {here[0]}) imports {target} ({there[1]}, level {there[0]})"
+            )
     return found
 
 
@@ -113,8 +136,11 @@ def test_data_imports_neither_policy_nor_envs():
     known = set(sources)
     for module, (source, is_package) in sources.items():
         if module.startswith("spot.data"):
-            targets = {t for _, t, late in imports_of(source, module, is_package, known)
-                       if not (late and (module, t) in LATE_BOUND)}
+            targets = {
+                t
+                for _, t, late in imports_of(source, module, is_package, known)
+                if not (late and (module, t) in LATE_BOUND)
+            }
             assert not {t for t in targets if t.startswith(("spot.policy", "spot.envs", "spot.recipes"))}, module
 
 
@@ -126,25 +152,43 @@ def test_the_late_bound_lookups_still_exist():
         assert any(late and t.startswith(target) for _, t, late in imports_of(source, module, is_package, set(sources)))
 
 
-@pytest.mark.parametrize("source, expected", [
-    ("from spot.policy import sac\n", ["spot.data.x:1 (data, level 1) imports spot.policy.sac (policy, level 4)"]),
-    ("def f():\n    from spot import envs\n", ["spot.data.x:2 (data, level 1) imports spot.envs (envs, level 3)"]),
-    ("import spot.stages\n", ["spot.data.x:1 (data, level 1) imports spot.stages (stages, level 7)"]),
-    ("from ..envs import make_env\n", ["spot.data.x:1 (data, level 1) imports spot.envs (envs, level 3)"]),
-    ("import importlib\nm = importlib.import_module(f'spot.policy.{name}')\n",
-     ["spot.data.x:2 (data, level 1) imports spot.policy (policy, level 4)"]),
-    ("from spot.data import dataset\nfrom spot import SpotError, batches\n", []),  # same layer, below
-])
+@pytest.mark.parametrize(
+    "source, expected",
+    [
+        ("from spot.policy import sac\n", ["spot.data.x:1 (data, level 1) imports spot.policy.sac (policy, level 4)"]),
+        ("def f():\n    from spot import envs\n", ["spot.data.x:2 (data, level 1) imports spot.envs (envs, level 3)"]),
+        ("import spot.stages\n", ["spot.data.x:1 (data, level 1) imports spot.stages (stages, level 7)"]),
+        ("from ..envs import make_env\n", ["spot.data.x:1 (data, level 1) imports spot.envs (envs, level 3)"]),
+        (
+            "import importlib\nm = importlib.import_module(f'spot.policy.{name}')\n",
+            ["spot.data.x:2 (data, level 1) imports spot.policy (policy, level 4)"],
+        ),
+        ("from spot.data import dataset\nfrom spot import SpotError, batches\n", []),  # same layer, below
+    ],
+)
 def test_the_checker_sees_upward_imports(source, expected):
-    known = {"spot", "spot.data", "spot.data.x", "spot.data.dataset", "spot.policy", "spot.policy.sac",
-             "spot.envs", "spot.stages", "spot.batches"}
+    known = {
+        "spot",
+        "spot.data",
+        "spot.data.x",
+        "spot.data.dataset",
+        "spot.policy",
+        "spot.policy.sac",
+        "spot.envs",
+        "spot.stages",
+        "spot.batches",
+    }
     sources = {m: ("", m in ("spot", "spot.data", "spot.policy")) for m in known}
     sources["spot.data.x"] = (source, False)
     assert violations(sources) == expected
 
 
 def test_independent_layers_of_one_level_do_not_import_each_other():
-    sources = {"spot.reward.x": ("from spot.policy import iql\n", False), "spot.policy.iql": ("", False),
-               "spot.subgoal.y": ("from spot.subgoal import cvae\nfrom spot import nets\n", False),
-               "spot.subgoal.cvae": ("", False), "spot.nets": ("", False)}
+    sources = {
+        "spot.reward.x": ("from spot.policy import iql\n", False),
+        "spot.policy.iql": ("", False),
+        "spot.subgoal.y": ("from spot.subgoal import cvae\nfrom spot import nets\n", False),
+        "spot.subgoal.cvae": ("", False),
+        "spot.nets": ("", False),
+    }
     assert violations(sources) == ["spot.reward.x:1 (reward, level 4) imports spot.policy.iql (policy, level 4)"]

@@ -9,8 +9,16 @@ import pytest
 from spot import SpotError, cache, config, multiseed, pipeline, sweep
 from spot.tracking import MemoryTracker, locking
 
-TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=150", "iql.chunk=100", "eval.every=100",
-        "eval.episodes=1", "labels.num_queries=30", "labels.segment_length=25"]
+TINY = [
+    "budget=tiny",
+    "data.name=drawer-open",
+    "iql.steps=150",
+    "iql.chunk=100",
+    "eval.every=100",
+    "eval.episodes=1",
+    "labels.num_queries=30",
+    "labels.segment_length=25",
+]
 SEEDS = (0, 3)
 
 
@@ -39,9 +47,12 @@ def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_
     single_out = {s: pipeline.run(_cfg(s, f"method={method}"), progress=False, tracker=single[s]) for s in SEEDS}
     vmapped = {s: MemoryTracker(f"vmap-{s}") for s in SEEDS}
     evals: dict[int, list[float]] = {s: [] for s in SEEDS}
-    outs = multiseed.run([_cfg(s, f"method={method}") for s in SEEDS], progress=False,
-                         trackers=[vmapped[s] for s in SEEDS],
-                         on_eval=[lambda m, s=s: evals[s].append(m["score"]) for s in SEEDS])
+    outs = multiseed.run(
+        [_cfg(s, f"method={method}") for s in SEEDS],
+        progress=False,
+        trackers=[vmapped[s] for s in SEEDS],
+        on_eval=[lambda m, s=s: evals[s].append(m["score"]) for s in SEEDS],
+    )
     assert [o["run_id"] for o in outs] == [f"vmap-{s}" for s in SEEDS]  # one run per seed, in order
     for s, out in zip(SEEDS, outs, strict=True):
         a, b = single[s], vmapped[s]
@@ -53,8 +64,9 @@ def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_
         assert evals[s] == [v for _, v in curve_b]
         for name in ("iql/critic_loss", "iql/actor_loss", "iql/value_loss", "iql/q_mean"):
             assert [st for st, _ in _series(b, name)] == [st for st, _ in _series(a, name)] == [100, 150]
-            np.testing.assert_allclose([v for _, v in _series(b, name)], [v for _, v in _series(a, name)],
-                                       rtol=1e-4, atol=1e-5, err_msg=name)
+            np.testing.assert_allclose(
+                [v for _, v in _series(b, name)], [v for _, v in _series(a, name)], rtol=1e-4, atol=1e-5, err_msg=name
+            )
         np.testing.assert_allclose(out["eval/score_final"], single_out[s]["eval/score_final"], atol=1e-4)
         pa, pb = _params(a, tmp_path, f"a{s}"), _params(b, tmp_path, f"b{s}")
         leaves_a, leaves_b = jax.tree.leaves(pa), jax.tree.leaves(pb)
@@ -93,22 +105,27 @@ def test_seed_modes_expand_to_trials(tmp_path):
     assert (seq.seeds, seq.vmap) == ((0, 1), False) and "vmap" not in seq.to_config()
     (vm,) = _sweep(tmp_path, SWEEP_FILE + "seed_mode: vmap\n").trials()
     assert (vm.seeds, vm.vmap) == ((0, 1), True) and vm.to_config()["vmap"] is True
-    with pytest.raises(SpotError, match=r"trial data.name=drawer-open: seed_mode vmap trains IQL over seeds; "
-                                        r"method 'ipl'"):
+    with pytest.raises(
+        SpotError,
+        match=r"trial data.name=drawer-open: seed_mode vmap trains IQL over seeds; "
+        r"method 'ipl'",
+    ):
         _sweep(tmp_path, SWEEP_FILE.replace("oracle", "ipl") + "seed_mode: vmap\n")
     (ipl,) = _sweep(tmp_path, SWEEP_FILE.replace("oracle", "ipl") + "seed_mode: sequential\n").trials()
     assert ipl.seeds == (0, 1)
 
 
 @pytest.mark.slow  # about 40 s: two tiny oracle seeds in one MLflow store
-def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_path, spot_dirs, tiny_drawer,
-                                                                       monkeypatch):
+def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_path, spot_dirs, tiny_drawer, monkeypatch):
     from mlflow.tracking import MlflowClient
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    s = _sweep(tmp_path, SWEEP_FILE.replace("budget: tiny}", "budget: tiny, iql.steps: 120, eval.every: 100, "
-                                            "eval.episodes: 1}") + "seed_mode: vmap\n")
+    s = _sweep(
+        tmp_path,
+        SWEEP_FILE.replace("budget: tiny}", "budget: tiny, iql.steps: 120, eval.every: 100, eval.episodes: 1}")
+        + "seed_mode: vmap\n",
+    )
     (trial,) = s.trials()
     locking.prepare_store(uri)
     client = MlflowClient(uri)
@@ -116,8 +133,7 @@ def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_pat
     parent = client.create_run(exp).info.run_id
     ctx = sweep.SweepContext("sweep-1", "ms", "ms", exp, parent, uri, s.axis_keys)
     reports: list[dict] = []
-    finals = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t1", report=reports.append,
-                             vmap=True)
+    finals = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t1", report=reports.append, vmap=True)
     assert [f["seed"] for f in finals] == [0, 1] and all(f["skipped"] == 0 for f in finals)
     runs = {int(r.data.tags["seed"]): r for r in client.search_runs([exp], "tags.sweep_id = 'sweep-1'")}
     assert sorted(runs) == [0, 1]
@@ -128,14 +144,16 @@ def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_pat
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")]
         assert steps == [0, 100, 120]
         assert [r["score"] for r in reports if r.get("seed") == seed and "score" in r] == [
-            m.value for m in client.get_metric_history(run.info.run_id, "eval/score")]
+            m.value for m in client.get_metric_history(run.info.run_id, "eval/score")
+        ]
     assert runs[0].data.metrics["eval/score_final"] == finals[0]["score_final"]
 
     def must_not_run(*args, **kwargs):
         raise AssertionError("a finished seed ran again")
 
-    again = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t2", report=lambda m: None,
-                            run_fn=must_not_run, vmap=True)
+    again = sweep.run_trial(
+        trial.overrides, list(trial.seeds), ctx, trial_id="t2", report=lambda m: None, run_fn=must_not_run, vmap=True
+    )
     assert [(f["seed"], f["skipped"], f["run_id"]) for f in again] == [(s, 1, runs[s].info.run_id) for s in (0, 1)]
 
 

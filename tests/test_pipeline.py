@@ -97,7 +97,9 @@ def test_same_config_and_seed_give_identical_metrics(tmp_path, spot_dirs, tiny_d
     for i in range(2):  # separate caches: everything is recomputed
         monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / f"cache{i}"))
         results.append(_run(_cfg(tmp_path, "method=pt", "subgoal.diagnostics=false")).data.metrics)
-    skip = {k for k in results[0] if k.startswith("time/") or k.endswith("steps_per_s")}
+    # wall times and MLflow's system metrics (CPU, memory samples) measure the machine, not the run
+    skip = {k for k in results[0] if k.startswith(("time/", "system/")) or k.endswith("steps_per_s")}
+    assert len(results[0]) - len(skip) > 20  # the scores, losses and diagnostics are compared
     assert {k: v for k, v in results[0].items() if k not in skip} == {
         k: v for k, v in results[1].items() if k not in skip
     }

@@ -12,8 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _python(code: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT,
-                          timeout=300)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
 
 
 def _clean_env() -> dict[str, str]:
@@ -21,13 +20,17 @@ def _clean_env() -> dict[str, str]:
 
 
 def test_importing_every_spot_module_leaves_the_environment_alone():
-    modules = sorted(".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
-                     for p in (ROOT / "spot").rglob("*.py"))
-    code = ("import importlib, json, os\nbefore = dict(os.environ)\n"
-            f"for m in {modules!r}:\n    importlib.import_module(m)\n"
-            "after = dict(os.environ)\n"
-            "print(json.dumps({k: [before.get(k), after.get(k)] for k in set(before) | set(after)"
-            " if before.get(k) != after.get(k)}))")
+    modules = sorted(
+        ".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        for p in (ROOT / "spot").rglob("*.py")
+    )
+    code = (
+        "import importlib, json, os\nbefore = dict(os.environ)\n"
+        f"for m in {modules!r}:\n    importlib.import_module(m)\n"
+        "after = dict(os.environ)\n"
+        "print(json.dumps({k: [before.get(k), after.get(k)] for k in set(before) | set(after)"
+        " if before.get(k) != after.get(k)}))"
+    )
     out = _python(code, _clean_env())
     assert out.returncode == 0, out.stderr[-3000:]
     changed = json.loads(out.stdout.strip().splitlines()[-1])
@@ -38,8 +41,10 @@ def test_importing_every_spot_module_leaves_the_environment_alone():
 
 
 def test_configure_sets_the_xla_flag_and_mujoco_gl_once():
-    code = ("import json\nfrom spot import runtime\nfirst = runtime.configure()\nsecond = runtime.configure()\n"
-            "print(json.dumps([first, second]))")
+    code = (
+        "import json\nfrom spot import runtime\nfirst = runtime.configure()\nsecond = runtime.configure()\n"
+        "print(json.dumps([first, second]))"
+    )
     env = {**_clean_env(), "XLA_FLAGS": "--xla_dump_to=/tmp/x"}
     out = _python(code, env)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -52,8 +57,10 @@ def test_configure_sets_the_xla_flag_and_mujoco_gl_once():
 
 
 def test_configure_after_jax_started_without_the_flag_is_an_error():
-    code = ("import jax, jax.numpy as jnp\njnp.ones(2).block_until_ready()\nfrom spot import runtime\n"
-            "try:\n    runtime.configure()\nexcept RuntimeError as e:\n    print('raised', e)\n")
+    code = (
+        "import jax, jax.numpy as jnp\njnp.ones(2).block_until_ready()\nfrom spot import runtime\n"
+        "try:\n    runtime.configure()\nexcept RuntimeError as e:\n    print('raised', e)\n"
+    )
     out = _python(code, _clean_env())
     assert out.returncode == 0, out.stderr[-3000:]
     assert "raised spot.runtime.configure() was called after a jax backend started" in out.stdout
@@ -119,8 +126,9 @@ def test_the_compilation_cache_switch(tmp_path):
     assert on["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == runtime.MIN_COMPILE_S
     assert on["JAX_COMPILATION_CACHE_MAX_SIZE"] == str(2 * 1024**3)  # bounded: entries read and written under a lock
     assert on["JAX_COMPILATION_CACHE_DIR"].startswith(str(tmp_path / "cache" / "jax" / "jax-"))
-    mine = json.loads(_python(code, _cache_env(tmp_path, JAX_COMPILATION_CACHE_DIR="/tmp/mine")).stdout.strip()
-                      .splitlines()[-1])
+    mine = json.loads(
+        _python(code, _cache_env(tmp_path, JAX_COMPILATION_CACHE_DIR="/tmp/mine")).stdout.strip().splitlines()[-1]
+    )
     assert mine["JAX_COMPILATION_CACHE_DIR"] == "/tmp/mine"  # the user's folder is kept
     off = json.loads(_python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="0")).stdout.strip().splitlines()[-1])
     assert "JAX_COMPILATION_CACHE_DIR" not in off and set(off) == {"XLA_FLAGS", "MUJOCO_GL"}

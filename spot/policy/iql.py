@@ -179,8 +179,13 @@ def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, act: jax.Array) -> ja
 
 
 # --------------------------------------------------------------------------- state and update
-def init_state(key: jax.Array, obs_dim: int, act_dim: int, cfg: IQLConfig,
-               optimizers: tuple[optax.GradientTransformation, ...] | None = None) -> IQLState:
+def init_state(
+    key: jax.Array,
+    obs_dim: int,
+    act_dim: int,
+    cfg: IQLConfig,
+    optimizers: tuple[optax.GradientTransformation, ...] | None = None,
+) -> IQLState:
     """Fresh networks and Adam states; with keys ``[S]``, ``S`` states stacked on a leading axis
     (the input of :func:`make_vmapped_train_chunk`), state ``s`` equal to ``init_state(key[s])``.
 
@@ -266,8 +271,11 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
     target_params = optax.incremental_update(critic.params, state.target_critic_params, cfg.tau)
 
     metrics = {
-        **value_info, **actor_info, **critic_info,
-        "iql/adv_mean": adv.mean(), "iql/adv_max": adv.max(),
+        **value_info,
+        **actor_info,
+        **critic_info,
+        "iql/adv_mean": adv.mean(),
+        "iql/adv_max": adv.max(),
         "iql/awr_weight_mean": weights.mean(),
         "iql/awr_clip_frac": jnp.mean(weights >= AWR_WEIGHT_MAX),
         "iql/target_mean": target.mean(),
@@ -328,9 +336,15 @@ def eval_steps(steps: int, every: int) -> list[int]:
     return sorted({0, *range(every, steps + 1, every), steps})
 
 
-def train(chunk: Callable, state: Any, args: Callable[[int], tuple], cfg: IQLConfig, eval_every: int,
-          evaluate: Callable[[Params, int], float],
-          log: Callable[[dict[str, float], int], None] | None = None) -> Curve:
+def train(
+    chunk: Callable,
+    state: Any,
+    args: Callable[[int], tuple],
+    cfg: IQLConfig,
+    eval_every: int,
+    evaluate: Callable[[Params, int], float],
+    log: Callable[[dict[str, float], int], None] | None = None,
+) -> Curve:
     """Exactly ``cfg.steps`` updates with ``evaluate(actor_params, steps_done) -> score`` at exactly
     :func:`eval_steps`: before the first update, at every multiple of ``eval_every`` and after the
     last. Between two evaluations the updates run in chunks of ``cfg.chunk`` (the last one shorter
@@ -362,8 +376,14 @@ def train(chunk: Callable, state: Any, args: Callable[[int], tuple], cfg: IQLCon
                 log({k: v for k, v in row.items() if k != "step"}, offset + row["step"])
 
         try:
-            curve.state = loop.run(chunk, curve.state, lambda c, first=first_chunk: args(first + c), steps=n,
-                                   length=cfg.chunk, on_chunk=on_chunk).state
+            curve.state = loop.run(
+                chunk,
+                curve.state,
+                lambda c, first=first_chunk: args(first + c),
+                steps=n,
+                length=cfg.chunk,
+                on_chunk=on_chunk,
+            ).state
         except NonFiniteError as e:  # the loop counts from this stretch's start
             raise NonFiniteError(offset + e.step, e.loss_name, e.value) from None
         chunks += len(loop.chunk_sizes(n, cfg.chunk))

@@ -549,6 +549,53 @@ def _kill_local_ray() -> None:
 
 
 # --------------------------------------------------------------------------- the launch
+def _open_launch(
+    sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool, resume_command: str
+) -> tuple[Any, SweepContext]:
+    """The store ready, the experiment, the parent run and the launch record: ``(client, ctx)``."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+    from spot.tracking.processes import close_dead_runs
+
+    sweep_id = state["sweep_id"]
+    _check_gpus(sweep)
+    store.wait_ready()
+    client = MlflowClient(store.uri)
+    exp_id = tracking.experiment_id(sweep.experiment, store.uri)
+    close_dead_runs(client, [exp_id])
+    parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
+    ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
+    if not resume:
+        tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(state, indent=2))
+        tmp.replace(state_file)  # whole or not at all
+    print(
+        f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+        f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}",
+        flush=True,
+    )
+    return client, ctx
+
+
+def _close_launch(uri: str, ctx: SweepContext, reason: str, resume_command: str) -> None:
+    """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+
+    mine = MlflowClient(uri)  # not the main thread's client: a signal may interrupt it
+    tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": ctx.sweep_id}, reason, keep=(ctx.parent_run_id,))
+    mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
+    mine.set_terminated(ctx.parent_run_id, "KILLED")
+    print(
+        f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
+        f"to continue: {resume_command}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
 def _run_launch(
     sweep: Sweep,
     store: _Store,
@@ -567,29 +614,16 @@ def _run_launch(
     Once the parent run exists, however the launch ends, the runs its trials left RUNNING are
     closed (KILLED) before this returns or raises.
     """
-    from mlflow.tracking import MlflowClient
 
     from spot import tracking
-    from spot.tracking.processes import close_dead_runs
 
     sweep_id = state["sweep_id"]
     started_ray = _init_ray(address)  # a SIGTERM while Ray starts takes Ray's own handler (exit)
     client = ctx = None
 
     def close(reason: str) -> None:
-        """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``."""
-        if ctx is None:
-            return
-        mine = MlflowClient(store.uri)  # not the main thread's client: the signal may interrupt it
-        tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": sweep_id}, reason, keep=(ctx.parent_run_id,))
-        mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
-        mine.set_terminated(ctx.parent_run_id, "KILLED")
-        print(
-            f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
-            f"to continue: {resume_command}",
-            file=sys.stderr,
-            flush=True,
-        )
+        if ctx is not None:
+            _close_launch(store.uri, ctx, reason, resume_command)
 
     def on_sigterm() -> None:
         print("SIGTERM: stopping Ray, closing the runs", file=sys.stderr, flush=True)
@@ -603,22 +637,7 @@ def _run_launch(
     reason = "launch crashed"
     with _on_sigterm(on_sigterm):
         try:
-            _check_gpus(sweep)
-            store.wait_ready()
-            client = MlflowClient(store.uri)
-            exp_id = tracking.experiment_id(sweep.experiment, store.uri)
-            close_dead_runs(client, [exp_id])
-            parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
-            ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
-            if not resume:
-                tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
-                tmp.write_text(json.dumps(state, indent=2))
-                tmp.replace(state_file)  # whole or not at all
-            print(
-                f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
-                f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}",
-                flush=True,
-            )
+            client, ctx = _open_launch(sweep, store, state, state_file, resume=resume, resume_command=resume_command)
             errors, interrupted = _fit(
                 sweep,
                 ctx,
@@ -731,24 +750,22 @@ def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
         yield
 
 
-def _launch(
+def _announce(
     sweep: Sweep,
-    path: str | Path,
+    state: dict[str, Any],
     state_file: Path,
-    root: Path,
+    path: str | Path,
     *,
     smoke: bool,
     resume: bool,
-    retry_errored: bool,
     address: str | None,
     max_concurrent: int | None,
     tracking_uri: str | None,
-    run_fn: RunFn | None,
-) -> list[Row]:
-    """:func:`run_sweep` once the launch holds its lock."""
+) -> tuple[str | None, str]:
+    """What the launch is (printed), the Ray address it uses and its resume command; refuses a
+    trial that asks for more CPUs than a local machine has."""
     from spot import tracking
 
-    state = _state(sweep, path, state_file, resume=resume)
     if resume:
         print(
             f"resuming launch {state['sweep_id']} (parent run {state['parent_run_id']}, record {state_file})",
@@ -779,6 +796,38 @@ def _launch(
             f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the "
             f"largest node of the Ray cluster has {os.cpu_count()} CPUs; ask for at most {os.cpu_count()}"
         )
+    return address, command
+
+
+def _launch(
+    sweep: Sweep,
+    path: str | Path,
+    state_file: Path,
+    root: Path,
+    *,
+    smoke: bool,
+    resume: bool,
+    retry_errored: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    tracking_uri: str | None,
+    run_fn: RunFn | None,
+) -> list[Row]:
+    """:func:`run_sweep` once the launch holds its lock."""
+    from spot import tracking
+
+    state = _state(sweep, path, state_file, resume=resume)
+    address, command = _announce(
+        sweep,
+        state,
+        state_file,
+        path,
+        smoke=smoke,
+        resume=resume,
+        address=address,
+        max_concurrent=max_concurrent,
+        tracking_uri=tracking_uri,
+    )
     with _tracking_store(tracking_uri, root) as store:  # a served store starts while datasets build
         if run_fn is None:
             prebuild_datasets(sweep)

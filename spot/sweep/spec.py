@@ -158,16 +158,23 @@ def _axes(data: Any, where: str, section: str) -> dict[str, list[Any]]:
     return axes
 
 
-def _replace_axes(axes: dict[str, list[Any]], new: dict[str, list[Any]], where: str, section: str) -> dict[str, list[Any]]:
+def _replace_axes(
+    axes: dict[str, list[Any]], new: dict[str, list[Any]], where: str, section: str
+) -> dict[str, list[Any]]:
     for key in new:
         if key not in axes:
-            raise _err(where, f"smoke.{section}.{key}", f"is not an axis of '{section}' (axes: {', '.join(axes) or 'none'})")
+            raise _err(
+                where, f"smoke.{section}.{key}", f"is not an axis of '{section}' (axes: {', '.join(axes) or 'none'})"
+            )
     return {k: new.get(k, v) for k, v in axes.items()}
 
 
 def _seeds(value: Any, where: str, key: str) -> tuple[int, ...]:
-    if (not isinstance(value, list) or not value
-            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value)):
+    if (
+        not isinstance(value, list)
+        or not value
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in value)
+    ):
         raise _err(where, key, f"expected a non-empty list of non-negative integers, got {value!r}")
     if len(set(value)) != len(value):
         raise _err(where, key, f"repeats a seed: {value!r}")
@@ -222,12 +229,17 @@ def _fields(data: dict[str, Any], where: str) -> dict[str, Any]:
     seed_mode = data.get("seed_mode", "trials")
     if seed_mode not in SEED_MODES:
         raise _err(where, "seed_mode", f"expected one of {', '.join(SEED_MODES)}, got {seed_mode!r}")
-    return {"name": name, "base": _config_keys(data.get("base", {}), where, "base"),
-            "grid": _axes(data.get("grid", {}), where, "grid"), "zip": _axes(data.get("zip", {}), where, "zip"),
-            "seeds": _seeds(data.get("seeds", [0]), where, "seeds"), "seed_mode": seed_mode,
-            "resources": _resources(data.get("resources", {}), where),
-            "max_concurrent": _max_concurrent(data.get("max_concurrent"), where, "max_concurrent"),
-            "table": _table(data.get("table"), where)}
+    return {
+        "name": name,
+        "base": _config_keys(data.get("base", {}), where, "base"),
+        "grid": _axes(data.get("grid", {}), where, "grid"),
+        "zip": _axes(data.get("zip", {}), where, "zip"),
+        "seeds": _seeds(data.get("seeds", [0]), where, "seeds"),
+        "seed_mode": seed_mode,
+        "resources": _resources(data.get("resources", {}), where),
+        "max_concurrent": _max_concurrent(data.get("max_concurrent"), where, "max_concurrent"),
+        "table": _table(data.get("table"), where),
+    }
 
 
 def smoke_base(base: dict[str, Any], smoke: dict[str, Any]) -> dict[str, Any]:
@@ -253,15 +265,20 @@ def _smoke_fields(data: dict[str, Any], full: dict[str, Any], where: str) -> dic
         raise _err(where, "smoke", f"expected a mapping, got {type(block).__name__}")
     _check_known(block, SMOKE_KEYS, where, "smoke.")
     # Smoke runs are tiny CPU checks: no GPU unless the smoke block asks for one.
-    resources = (_resources(block["resources"], f"{where} smoke") if "resources" in block
-                 else {**full["resources"], "gpu": 0.0})
-    return {**full, "base": smoke_base(full["base"], _config_keys(block.get("base", {}), where, "smoke.base")),
-            "grid": _replace_axes(full["grid"], _axes(block.get("grid", {}), where, "smoke.grid"), where, "grid"),
-            "zip": _replace_axes(full["zip"], _axes(block.get("zip", {}), where, "smoke.zip"), where, "zip"),
-            "seeds": _seeds(block["seeds"], where, "smoke.seeds") if "seeds" in block else full["seeds"],
-            "max_concurrent": _max_concurrent(block.get("max_concurrent", full["max_concurrent"]), where,
-                                              "smoke.max_concurrent"),
-            "resources": resources}
+    resources = (
+        _resources(block["resources"], f"{where} smoke") if "resources" in block else {**full["resources"], "gpu": 0.0}
+    )
+    return {
+        **full,
+        "base": smoke_base(full["base"], _config_keys(block.get("base", {}), where, "smoke.base")),
+        "grid": _replace_axes(full["grid"], _axes(block.get("grid", {}), where, "smoke.grid"), where, "grid"),
+        "zip": _replace_axes(full["zip"], _axes(block.get("zip", {}), where, "smoke.zip"), where, "zip"),
+        "seeds": _seeds(block["seeds"], where, "smoke.seeds") if "seeds" in block else full["seeds"],
+        "max_concurrent": _max_concurrent(
+            block.get("max_concurrent", full["max_concurrent"]), where, "smoke.max_concurrent"
+        ),
+        "resources": resources,
+    }
 
 
 def _check_axes(fields: dict[str, Any], where: str) -> None:

@@ -195,15 +195,28 @@ def _run_vmapped(
         return lambda m: report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
 
     try:
-        outs = run_fn(cfgs, progress=False, parent_run_id=ctx.parent_run_id,
-                      extra_tags=[pending[s] for s in seeds], on_eval=[on_eval(s) for s in seeds])
+        outs = run_fn(
+            cfgs,
+            progress=False,
+            parent_run_id=ctx.parent_run_id,
+            extra_tags=[pending[s] for s in seeds],
+            on_eval=[on_eval(s) for s in seeds],
+        )
     except Exception as e:
         for cfg, seed in zip(cfgs, seeds, strict=True):
             tracking.record_failure(client, ctx.experiment_id, cfg, pending[seed], e, parent_run_id=ctx.parent_run_id)
         raise
-    return [{"seed": seed, "run_id": out["run_id"], "skipped": 0, "score_final": out["eval/score_final"],
-             "score_best": out["eval/score_best"], "run_time_s": out.get("time/total_s")}
-            for seed, out in zip(seeds, outs, strict=True)]
+    return [
+        {
+            "seed": seed,
+            "run_id": out["run_id"],
+            "skipped": 0,
+            "score_final": out["eval/score_final"],
+            "score_best": out["eval/score_best"],
+            "run_time_s": out.get("time/total_s"),
+        }
+        for seed, out in zip(seeds, outs, strict=True)
+    ]
 
 
 def run_trial(

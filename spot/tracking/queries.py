@@ -47,8 +47,9 @@ def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str =
     for start in range(0, len(ids), SEARCH_EXPERIMENTS):
         token = None
         while True:
-            page = client.search_runs(ids[start:start + SEARCH_EXPERIMENTS], filter_string=filter_string,
-                                      max_results=PAGE, page_token=token)
+            page = client.search_runs(
+                ids[start : start + SEARCH_EXPERIMENTS], filter_string=filter_string, max_results=PAGE, page_token=token
+            )
             yield from page
             token = page.token
             if not token:
@@ -66,8 +67,15 @@ def finished_run(client: Any, experiment_id: str, tags: Mapping[str, Any]) -> An
     return first_run(client, experiment_id, tags, "FINISHED")
 
 
-def record_failure(client: Any, experiment_id: str, cfg: config_lib.ExperimentConfig, tags: dict[str, str],
-                   error: BaseException, *, parent_run_id: str | None = None) -> str | None:
+def record_failure(
+    client: Any,
+    experiment_id: str,
+    cfg: config_lib.ExperimentConfig,
+    tags: dict[str, str],
+    error: BaseException,
+    *,
+    parent_run_id: str | None = None,
+) -> str | None:
     """Make sure the attempt ``tags['attempt']`` has a FAILED run; return the run created, if any.
 
     The pipeline's run already ends FAILED when the run failed after it started; this covers a
@@ -87,12 +95,14 @@ def record_failure(client: Any, experiment_id: str, cfg: config_lib.ExperimentCo
     return run.info.run_id
 
 
-def close_orphans(client: Any, experiment_id: str, tags: Mapping[str, Any], reason: str,
-                  keep: Sequence[str] = ()) -> int:
+def close_orphans(
+    client: Any, experiment_id: str, tags: Mapping[str, Any], reason: str, keep: Sequence[str] = ()
+) -> int:
     """Mark the runs with ``tags`` still RUNNING (their process is gone), but ``keep``, as KILLED
     with ``failure_reason``; return how many."""
-    orphans = [r for r in search_runs(client, [experiment_id], tag_filter(tags, "RUNNING"))
-               if r.info.run_id not in keep]
+    orphans = [
+        r for r in search_runs(client, [experiment_id], tag_filter(tags, "RUNNING")) if r.info.run_id not in keep
+    ]
     for r in orphans:
         client.set_tag(r.info.run_id, "failure_reason", reason)
         client.set_terminated(r.info.run_id, "KILLED")
@@ -118,8 +128,7 @@ def local_artifact(artifact_uri: str, artifact_path: str, tracking_uri: str) -> 
     return root / artifact_path
 
 
-def download_artifact(run_id: str, artifact_uri: str, artifact_path: str, tracking_uri: str,
-                      dst: str) -> Path | None:
+def download_artifact(run_id: str, artifact_uri: str, artifact_path: str, tracking_uri: str, dst: str) -> Path | None:
     """A local path of one artifact of a run (downloaded to ``dst`` if its store is remote), or
     None if the run has no such artifact."""
     import mlflow.artifacts
@@ -129,8 +138,11 @@ def download_artifact(run_id: str, artifact_uri: str, artifact_path: str, tracki
     if local is not None:
         return local if local.is_file() else None
     try:
-        return Path(mlflow.artifacts.download_artifacts(run_id=run_id, artifact_path=artifact_path,
-                                                        dst_path=dst, tracking_uri=tracking_uri))
+        return Path(
+            mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path=artifact_path, dst_path=dst, tracking_uri=tracking_uri
+            )
+        )
     except (MlflowException, OSError):
         return None
 
