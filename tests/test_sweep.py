@@ -260,7 +260,9 @@ def test_resume_leaves_exactly_one_finished_run_per_config_and_seed(killed_and_r
     assert "2/4 runs finished" in out.stdout and "mlflow ui --backend-store-uri sqlite:///" in out.stdout
     assert "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false" in out.stdout and "--workers 1" in out.stdout  # the lean UI
     link = next(ln for ln in out.stdout.splitlines() if ln.startswith("then open the sweep's runs: "))
-    assert "workflowType=machine_learning" in link and "searchFilter=tags.sweep_id" in link
+    from urllib.parse import unquote
+
+    assert "workflowType=machine_learning" in link and "searchFilter=tags.`sweep_id` = 'killtest" in unquote(link)
     # The first launch's server died with its driver (PR_SET_PDEATHSIG).
     assert not MlflowServer("sqlite:///x", Path("/tmp"), port=killed_and_resumed["first_port"]).healthy()
 
