@@ -25,9 +25,9 @@ Three families, each evaluated the way its reference papers report it:
   first success (IPL). Score: 100 × success rate.
 
 Meta-World environments are built from the goal-observable class directly rather than through
-``gym.make("Meta-World/MT1")``: MT1 spends ~1 s per env pre-sampling 50 fixed tasks and then
-picks one per reset, while here each reset draws the task (object and goal placement) from the
-same uniform distribution with the env's own seeded RNG, in ~0.3 s per env. IPL's data and
+``gym.make("Meta-World/MT1")``: MT1 pre-samples 50 fixed tasks per env and then picks one per
+reset, while here each reset draws the task (object and goal placement) from the same uniform
+distribution with the env's own seeded RNG, which is also cheaper to build (docs/benchmarks.md). IPL's data and
 evaluation env likewise re-draw the task at every reset.
 
 :func:`evaluate` runs its episodes as one batch in lockstep: one policy call per step for all

@@ -24,20 +24,18 @@ Which value network V feeds the actor's advantages and the critics' targets is
 
 The two differ by one Adam step of V (lr 3e-4) in what the actor and critics see. ``parallel``
 needs 15 instead of 16 batch-256 passes through a 256x256 layer, and its three independent
-updates keep both cores busier: 256-260 against 230-239 updates/s on this 2-core CPU
-(``spot bench iql --order ...``).
+updates keep both cores busier; it is the faster of the two on CPU (``spot bench iql --order ...``;
+figures in docs/benchmarks.md).
 
 Networks: every MLP is ``IQLConfig.hidden`` (256-256) ReLU with orthogonal init sqrt(2) on all
 layers (reference ``common.py``); the two critics are two separate MLPs whose outputs are stacked
 (``[NUM_CRITICS, ...]``). The reference vmaps one critic module over stacked weights; on XLA:CPU
-the batched matmuls and their layout copies made the update ~6 % slower than two plain MLPs,
-which compute the same function (only the initial weights drawn from a key differ). Adam 3e-4
+the batched matmuls and their layout copies made the update slower than two plain MLPs
+(docs/benchmarks.md), which compute the same function (only the initial weights drawn from a key differ). Adam 3e-4
 for all three; the actor's learning rate follows a cosine decay to 0 over ``IQLConfig.steps``.
 
-Speed: an update is ~0.5 GFLOP (15-16 passes of 256x256 matmuls at batch 256); the matmuls run at
-about this CPU's peak (~160 GFLOP/s on 2 cores for the plain and transposed-right products, ~130
-for the weight gradients, which XLA hands to Eigen); Adam, the Polyak step and the elementwise
-work are the rest.
+Speed: an update is 15-16 passes of 256x256 matmuls at batch 256, which dominate its time; where
+the rest goes, and what was tried, is in docs/benchmarks.md.
 
 Training runs in :mod:`spot.loop` chunks of ``IQLConfig.chunk`` updates with minibatches drawn
 inside jit (STYLE.md rules 4 and 7), exactly ``IQLConfig.steps`` updates in all (the last chunk is

@@ -27,8 +27,8 @@ the other nets keep default init.
   passes ``z_dim`` (128) instead and ignores that key.
 * **Random draws** (latent samples here, segment starts, D and minibatches in training) use
   :func:`random_bits`, a counter hash seeded by one draw from the explicit key (as
-  :class:`spot.nets.Dropout`), not a threefry draw per element: same key discipline, ~1 s less XLA
-  compile per call site on CPU.
+  :class:`spot.nets.Dropout`), not a threefry draw per element: same key discipline, less XLA
+  compile time per call site on CPU (docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -51,8 +51,8 @@ def random_bits(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
     """uint32 bits ``[shape]``: :func:`spot.nets.hash_bits` seeded by one 32-bit draw from ``key``.
 
     Every shaped random draw of this module goes through here (as :class:`spot.nets.Dropout` does):
-    the randomness still comes from the explicit key, but a threefry draw per element costs ~1 s of
-    XLA compile per call site on CPU and ~9x the run time.
+    the randomness still comes from the explicit key, while a threefry draw per element costs more
+    XLA compile time per call site and more run time on CPU (docs/benchmarks.md).
     """
     return hash_bits(shape, jax.random.bits(key, (), jnp.uint32))
 

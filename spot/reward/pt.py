@@ -21,7 +21,7 @@ segments, where both agree).
 
 Cost: only state tokens are read out, so the last block computes its queries, attention output and
 MLP at the T state tokens only (keys/values still cover all 2T tokens). The numbers are the same as
-running the full block; it saves ~40 % of the FLOPs of a 1-layer model.
+running the full block, for a fraction of the FLOPs (docs/benchmarks.md).
 
 Mixed precision (``PTConfig.dtype = "bfloat16"``): the transformer blocks' matmuls run in bfloat16;
 parameters, the residual stream, the embeddings, every softmax, the preference-attention head and

@@ -21,7 +21,7 @@ Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
   same compiled program. The jitted chunk is kept per model and sizes, so later runs with the
   same config and shapes in this process compile nothing.
 * Each minibatch's gradient is accumulated over micro-batches of ~64 pairs: the same loss and
-  gradient as one pass, half the peak memory and ~15 % faster on CPU at 256 pairs.
+  gradient as one pass, with less peak memory and faster on CPU (docs/benchmarks.md).
 * After each chunk: held-out loss/accuracy; the parameters with the best held-out loss are kept
   (PT repo ``best_model.pkl``). A non-finite loss raises :class:`NonFiniteError` naming the step.
 
@@ -182,7 +182,7 @@ def make_update(
 
     The minibatch's gradient is accumulated over :func:`micro_batches` equal slices (a scan): the
     same mean loss and gradient as one pass (dropout masks aside), with a fraction of the
-    activation memory, and ~15 % faster on CPU at PT's batch of 256 pairs (better cache use).
+    activation memory, and faster on CPU at PT's batch of 256 pairs (docs/benchmarks.md).
     """
     tx = model.optimizer(steps)
     n_micro = micro_batches(batch_size, micro_batch)
