@@ -74,8 +74,8 @@ class FileServer:
                     server.drop_once.discard(self.path)
                     body = body[: len(body) // 2]
                     self.close_connection = True
+                entry["sent"] = len(body)  # before writing: the client may check the log once it has the bytes
                 self.wfile.write(body)
-                entry["sent"] = len(body)
 
         self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.base = f"http://127.0.0.1:{self.httpd.server_address[1]}"

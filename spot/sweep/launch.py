@@ -233,6 +233,24 @@ def _check_gpus(sweep: Sweep) -> None:
 
 
 # --------------------------------------------------------------------------- Tune
+def _reporter_class() -> type:
+    from ray import tune
+
+    class Reporter(tune.CLIReporter):
+        """Tune's status table without the ``Result logdir`` line it repeats in every report (the
+        launch prints its storage folder once, at the start)."""
+
+        def report(self, trials: Any, done: bool, *sys_info: str) -> None:
+            text = self._progress_str(trials, done, *sys_info)
+            self._print("\n".join(ln for ln in text.splitlines() if not ln.startswith("Result logdir:")))
+
+    return Reporter
+
+
+def _Reporter(**kwargs: Any) -> Any:  # noqa: N802 (a class, built on first use so Ray imports lazily)
+    return _reporter_class()(**kwargs)
+
+
 def _trial_dirname(trial: Any) -> str:
     return str(trial.trial_id)
 
@@ -272,7 +290,7 @@ def _tuner(
             resume_errored=False,
             restart_errored=retry_errored or died > 0,
         )
-    reporter = tune.CLIReporter(
+    reporter = _Reporter(
         parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
         metric_columns={"iql_step": "step", "score": "score", "score_final": "final", "seed": "seed"},
         max_report_frequency=30,
@@ -637,6 +655,8 @@ def _run_launch(
     reason = "launch crashed"
     with _on_sigterm(on_sigterm):
         try:
+            if run_fn is None:  # after Ray's processes are started: forking them once JAX runs here warns
+                prebuild_datasets(sweep)
             client, ctx = _open_launch(sweep, store, state, state_file, resume=resume, resume_command=resume_command)
             errors, interrupted = _fit(
                 sweep,
@@ -828,9 +848,7 @@ def _launch(
         max_concurrent=max_concurrent,
         tracking_uri=tracking_uri,
     )
-    with _tracking_store(tracking_uri, root) as store:  # a served store starts while datasets build
-        if run_fn is None:
-            prebuild_datasets(sweep)
+    with _tracking_store(tracking_uri, root) as store:  # a served store starts while Ray and datasets do
         client, ctx, errors, interrupted = _run_launch(
             sweep,
             store,
