@@ -193,8 +193,8 @@ def test_oracle_may_keep_human_label_settings_it_does_not_use():
 
 def test_a_sweep_with_a_bad_trial_is_rejected_before_launch(tmp_path):
     f = tmp_path / "s.yaml"
-    f.write_text("name: s\nbase: {budget: tiny, iql: {chunk: 100}}\ngrid:\n  eval.every: [100, 150]\nseeds: [0]\n")
-    with pytest.raises(SpotError, match=r"s\.yaml.*eval\.every=150 must be a multiple of iql\.chunk=100"):
+    f.write_text("name: s\nbase: {budget: tiny, shaping.kind: cosine}\ngrid:\n  method: [pt, mr]\nseeds: [0]\n")
+    with pytest.raises(SpotError, match=r"s\.yaml.*shaping\.kind='cosine' needs reward\.kind=pt"):
         sweep.load(f)
 
 
