@@ -329,8 +329,8 @@ def _aggregate_text(runs: Any, metric: str) -> str:
         "| method | datasets | runs | IQM [CI] | P(SPOT > method) [CI] |",
         "|---|---|---|---|---|",
     ]
-    for r in agg.itertuples(index=False):
-        lines.append(f"| {r.method} | {r.datasets} | {r.runs} | {r.iqm} | {r[4]} |")
+    for _, r in agg.iterrows():
+        lines.append(f"| {r['method']} | {r['datasets']} | {r['runs']} | {r['iqm']} | {r['P(spot > method)']} |")
     return "\n".join(lines) + "\n"
 
 

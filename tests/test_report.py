@@ -139,8 +139,9 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
 def test_tables_cli_prints_cis_and_the_across_datasets_summary():
     p = run_cli("tables", "--table", "1", "--results", str(FIXTURE))
     assert p.returncode == 0, p.stderr
-    # hopper PT 50, 52, 57: the bootstrap CI of the mean runs from 50 + ... ; its ends are resample means
-    assert "53.00 ± 3.61 (3) CI" in p.stdout
+    # hopper PT 50, 52, 57: a resample of all 50s (or all 57s) has probability 1/27 > 2.5 %, so the
+    # percentile interval of the mean is exactly [50, 57]
+    assert "53.00 ± 3.61 (3) CI 50.00–57.00" in p.stdout
     assert "**Across datasets**" in p.stdout and "| spot | 2 | 6 | 64.8 [" in p.stdout
 
 
