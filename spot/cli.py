@@ -141,10 +141,10 @@ def _labels_make(args: argparse.Namespace) -> None:
 
     flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
     cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])
-    ds, _ = registry.load(
+    ds, card = registry.load(
         cfg.data.name, cfg.data.size, cfg.data.build_seed, source=cfg.data.source, progress=not args.quiet
     )
-    prefs = stages.make_preferences(cfg, ds)
+    prefs = stages.make_preferences(cfg, ds, card)
     prefs.save_npz(args.out)
     lc = cfg.labels
     print(f"wrote {len(prefs)} queries (segment length {prefs.segment_length}) to {args.out}")

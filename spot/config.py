@@ -58,11 +58,22 @@ class DataConfig:
 class LabelsConfig:
     source: str = F(
         "script",
-        "'script' = scripted teacher on true reward; 'human' = PT human label files in labels.path",
-        choices=("script", "human"),
+        "'script' = scripted teacher on true reward; 'human' = PT human label files in labels.path; 'auto' = the "
+        "PT human label files shipped with spot when the "
+        "dataset is the real D4RL/robomimic file they index (spot.data.human_labels), the scripted teacher "
+        "otherwise",
+        choices=("script", "human", "auto"),
     )
     path: str = F("", "folder with PT label files (indices_num*, indices_2_num*, label_human); for source=human")
     num_queries: int = F(500, "number of preference queries (pairs of segments)", range=(1, None))
+    query_counts: str = F(
+        "budget",
+        "where labels.num_queries comes from: budget = the budget preset (or the default 500); pt = the PT "
+        "README / authors' scripts per dataset (100 for *-medium-expert and robomimic ph, 500 for *-medium-replay "
+        "and robomimic mh; other datasets keep the budget's), unless labels.num_queries is set in the YAML file or "
+        "an override",
+        choices=("budget", "pt"),
+    )
     segment_length: int = F(100, "segment (query) length H", range=(2, None))
     teacher: str = F(
         "sum",
@@ -80,7 +91,14 @@ class LabelsConfig:
     tie_threshold: float = F(-1.0, "|S1 - S2| <= threshold gives y = 0.5; negative disables ties (PT's MuJoCo teacher)")
     mistake_rate: float = F(0.0, "probability that the scripted teacher flips a label", range=(0.0, 1.0))
     allow_cross_episode: bool = F(False, "allow scripted segments to cross episode ends (PT human files do)")
-    eval_fraction: float = F(0.1, "held-out fraction of queries for reward-model validation", range=(0.0, 0.9))
+    eval_fraction: float = F(0.1, "fraction of queries the reward model is evaluated on", range=(0.0, 0.9))
+    eval_split: str = F(
+        "holdout",
+        "reward-model (MR, PT, HPL) and IPL queries: holdout = train on a random (1 - labels.eval_fraction), "
+        "evaluate on the disjoint rest; pt_subset = train on all N queries, evaluate on the last eval_fraction of "
+        "them (overlapping the training set, as the PT repo does)",
+        choices=("holdout", "pt_subset"),
+    )
     seed: int = F(42, "seed of query sampling (PT repo: data_seed 42), fixed across run seeds", range=(0, None))
 
 
@@ -132,8 +150,20 @@ class RewardConfig:
         "r(s,a,z), marginalised over the prior), ipl (no reward model: IPL's implicit reward)",
         choices=("none", "mr", "pt", "hpl", "ipl"),
     )
-    steps: int = F(10_000, "reward-model gradient steps", range=(1, None))
+    steps: int = F(10_000, "reward-model gradient steps (reward.length=steps)", range=(1, None))
+    length: str = F(
+        "steps",
+        "how the MR/PT training length is counted: steps = reward.steps gradient steps; epochs = reward.epochs "
+        "epochs as the PT repo counts them, epochs * (floor(N / reward.batch_size) + 1) steps for N training queries",
+        choices=("steps", "epochs"),
+    )
+    epochs: int = F(10_000, "MR/PT epochs for reward.length=epochs (PT repo / authors' scripts: 10000)", range=(1, None))
     batch_size: int = F(256, "preference pairs per step", range=(1, None))
+    clip_action: float = F(
+        0.0,
+        "MR/PT training segments' actions clipped to +-clip_action; 0 = no clipping (PT repo: 0.999)",
+        range=(0.0, 1.0),
+    )
     eval_every: int = F(100, "steps between held-out evaluations (best held-out loss is kept)", range=(1, None))
 
 
@@ -281,6 +311,12 @@ class IQLConfig:
         "updates per jitted lax.scan chunk (a run does exactly iql.steps: the last chunk is shorter when iql.steps is "
         "not a multiple)",
         range=(1, None),
+    )
+    clip_action: float = F(
+        0.0,
+        "dataset actions the policy (IQL, IPL) trains on clipped to +-clip_action; 0 = no clipping (IQL "
+        "D4RLDataset: 1 - 1e-5)",
+        range=(0.0, 1.0),
     )
     order: str = F(
         "parallel",
@@ -439,6 +475,7 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "labels.num_queries": 200,
         "labels.segment_length": 50,
         "reward.steps": 300,
+        "reward.epochs": 43,  # ~300 steps at 200 queries, batch 32 (7 steps per epoch)
         "reward.batch_size": 32,
         "reward.eval_every": 50,
         "pt.embd_dim": 64,
@@ -472,6 +509,7 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "labels.num_queries": 40,
         "labels.segment_length": 20,
         "reward.steps": 20,
+        "reward.epochs": 3,
         "reward.batch_size": 8,
         "reward.eval_every": 10,
         "pt.embd_dim": 16,
@@ -512,17 +550,51 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# The PT repo's data and reward-model protocol, shared by `paper` (the reference code where the paper is
+# silent) and `authors` (SGPbrl keeps it): human labels where they exist, the per-dataset query
+# counts, training on all N queries with the last 10 % as the evaluation subset, epochs as the PT repo
+# counts them, and its action clipping (PT reward data 0.999; IQL D4RLDataset 1 - 1e-5).
+_PT_PROTOCOL: dict[str, Any] = {
+    "labels.source": "auto",
+    "labels.query_counts": "pt",
+    "labels.eval_split": "pt_subset",
+    "reward.length": "epochs",
+    "reward.clip_action": 0.999,
+    "iql.clip_action": 1.0 - 1e-5,
+}
+
+# PT README / SGPbrl hyperparameter.sh query counts; robomimic: the PT label files' counts.
+PT_QUERY_COUNTS = {"-medium-expert": 100, "-medium-replay": 500, "-ph": 100, "-mh": 500}
+
+
+def pt_query_count(data_name: str) -> int | None:
+    """The PT protocol's number of queries for a dataset name (registry name, D4RL name or file
+    path), or None where it names none."""
+    from spot.data import registry
+
+    path = Path(data_name)
+    if data_name.endswith((".hdf5", ".h5")):  # a file: D4RL hopper_medium_expert-v2, robomimic lift/ph/low_dim
+        data_name = f"-{path.parent.name}" if path.stem.startswith("low_dim") else path.stem.replace("_", "-")
+    base = registry.canonical(data_name)
+    for tail, count in PT_QUERY_COUNTS.items():
+        if base.endswith(tail):
+            return count
+    return None
+
+
 # Fidelity presets (docs/fidelity.md has the sources of every entry): applied after the suite
 # preset, before the YAML file. Only choices, never sizes, so they combine with every budget.
 VARIANT_PRESETS: dict[str, dict[str, Any]] = {
     "spot": {},
     "paper": {
+        **_PT_PROTOCOL,
         "subgoal.filter_groups": "all",  # eq. 5 states the reward criterion for the subgoal set
         "relabel.mode": "sliding",
         "relabel.window": 25,  # paper silent: PT repo (seq_len flag 25)
         "iql.order": "sequential",  # paper silent: ikostrikov IQL (vendored by the PT repo)
     },
     "authors": {  # SGPbrl b6d94e2 (scripts, learner, critic) and a5b03df (JaxPref/PrefTransformer.py)
+        **_PT_PROTOCOL,  # the PT repo's protocol, kept by SGPbrl (hyperparameter.sh, new_preference_reward_main.py)
         "pt.n_layer": 3,
         "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
         # the PT repo's optimiser, kept by SGPbrl: warmup 10 % of the steps to 10x lr, cosine back to lr,
@@ -914,7 +986,8 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
     )
     _rule(
         kind == "none" or cfg.labels.source != "human" or bool(cfg.labels.path),
-        "labels.source=human needs labels.path (a folder of PT label files)",
+        "labels.source=human needs labels.path (a folder of PT label files; labels.source=auto uses the files "
+        "shipped with spot when the dataset is the real file they index)",
     )
     _rule(
         kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,
@@ -938,6 +1011,9 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat.update(suite_preset(data_name, method, budget))
     variant = _coerce("variant", user.get("variant", ExperimentConfig.variant))
     flat.update(VARIANT_PRESETS[variant])
+    counts = _coerce("labels.query_counts", user.get("labels.query_counts", flat["labels.query_counts"]))
+    if counts == "pt" and pt_query_count(data_name) is not None:
+        flat["labels.num_queries"] = pt_query_count(data_name)  # below the YAML file and overrides
     flat.update(user)
     flat["method"], flat["budget"], flat["variant"] = method, budget, variant
     return check(_build({k: _coerce(k, v) for k, v in flat.items()}))

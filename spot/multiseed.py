@@ -114,7 +114,7 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
 
     cfg, ds = ctxs[0].cfg, ctxs[0].ds
     rewards = np.stack([np.asarray(s.reward, np.float32) for s in shaped])
-    data = jax.device_put(ds.transitions(rewards[0])._replace(rew=rewards))
+    data = jax.device_put(stages.policy_transitions(cfg, ds, rewards[0])._replace(rew=rewards))
     init_keys, train_keys = (
         jnp.stack(k) for k in zip(*(jax.random.split(c.keys["policy"]) for c in ctxs), strict=True)
     )

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from spot import SpotError, cache
+from spot import SpotError, cache, phases
 from spot import config as config_lib
 from spot.config import ExperimentConfig
 from spot.tracking import Tracker
@@ -132,9 +132,17 @@ class Context:
     def cached(self, name: str, deps: dict[str, Any], compute: Callable[[], Any]) -> tuple[Any, str]:
         """``(value, key)`` of stage ``name`` from the stage cache (computed and stored on a miss);
         tags the run ``cache.<name>`` = ``hit`` or ``miss`` (a tag, not a metric: it is a fact
-        about the run, not a measurement)."""
+        about the run, not a measurement) and ``stage.<name>.source`` = ``computed`` or ``reused`` and
+        ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
+        with the same key and ``computed``)."""
         value, hit, key = cache.cached(name, deps, compute)
-        self.tracker.set_tags({f"cache.{name}": "hit" if hit else "miss"})
+        self.tracker.set_tags(
+            {
+                f"cache.{name}": "hit" if hit else "miss",
+                f"stage.{name}.source": "reused" if hit else "computed",
+                f"stage.{name}.key": key,
+            }
+        )
         return value, key
 
 
@@ -177,15 +185,53 @@ def dataset_deps(ds: Any) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- labels
-def make_preferences(cfg: ExperimentConfig, ds: Any) -> Any:
-    """The run's preference queries (scripted teacher or PT human label files), checked against ``ds``."""
+PT_HUMAN_LABELS = Path(__file__).resolve().parent / "data" / "pt_human_labels"
+"""The PT repo's human label files (csmile-1006/PreferenceTransformer f71647b ``human_label/``,
+MIT), shipped unchanged with spot; ``PROVENANCE.md`` there says where they come from."""
+
+
+def human_label_folder(card: Mapping[str, Any]) -> Path | None:
+    """The shipped PT human label folder that indexes this dataset, or None.
+
+    Only a real D4RL/robomimic file qualifies: a dataset read from a file (``card["source"] ==
+    "file"``) whose card names no spot recipe (a locally built dataset's card says which recipe
+    built it, and PT's indices point into the real file's rows). The file is matched by name:
+    D4RL ``hopper_medium_replay-v2.hdf5`` (or with hyphens) -> ``hopper-medium-replay-v2``;
+    robomimic ``lift/ph/low_dim*.hdf5`` -> ``Lift_ph``.
+    """
+    if card.get("source") != "file" or "recipe" in card:
+        return None
+    path = Path(str(card.get("path") or card.get("name") or ""))
+    names = [path.stem.replace("_", "-")]
+    if path.stem.startswith("low_dim") and len(path.parts) >= 3:
+        names.append(f"{path.parts[-3].lower().capitalize()}_{path.parts[-2].lower()}")
+    for name in names:
+        if name and (PT_HUMAN_LABELS / name / "label_human").is_file():
+            return PT_HUMAN_LABELS / name
+    return None
+
+
+def label_source(cfg: ExperimentConfig, card: Mapping[str, Any] | None) -> tuple[str, str]:
+    """``(source, path)`` the run's labels come from: ``labels.source=auto`` resolves to the shipped
+    PT human files when :func:`human_label_folder` finds them, to the scripted teacher otherwise."""
+    lc = cfg.labels
+    if lc.source == "auto":
+        folder = human_label_folder(card or {})
+        return ("human", str(folder)) if folder is not None else ("script", "")
+    return lc.source, lc.path
+
+
+def make_preferences(cfg: ExperimentConfig, ds: Any, card: Mapping[str, Any] | None = None) -> Any:
+    """The run's preference queries (scripted teacher or PT human label files), checked against
+    ``ds``; ``card`` (the dataset's) decides ``labels.source=auto`` (:func:`label_source`)."""
     from spot.data import labels
 
     lc = cfg.labels
-    if lc.source == "human":
-        if not lc.path:
+    source, path = label_source(cfg, card)
+    if source == "human":
+        if not path:
             raise SpotError("labels.source=human needs labels.path (a folder of PT label files)")
-        prefs = labels.read_pt_labels(lc.path, num_queries=lc.num_queries)
+        prefs = labels.read_pt_labels(path, num_queries=lc.num_queries)
         labels.check_against(prefs, ds, allow_cross_episode=True)
         return prefs
     return labels.scripted_teacher(
@@ -202,13 +248,33 @@ def make_preferences(cfg: ExperimentConfig, ds: Any) -> Any:
     )
 
 
+def pt_eval_subset(prefs: Any, fraction: float) -> Any:
+    """The PT repo's reward-model evaluation queries: the last ``int(fraction * Q)`` of them (at
+    least one when ``fraction > 0``), which the model also trains on (``labels.eval_split=pt_subset``)."""
+    n_eval = max(1, int(fraction * len(prefs))) if fraction > 0 else 0
+    return prefs.subset(np.arange(len(prefs) - n_eval, len(prefs)))
+
+
+def split_queries(prefs: Any, cfg: ExperimentConfig) -> tuple[Any, Any]:
+    """``(train, eval)`` queries by ``labels.eval_split``: ``holdout`` = a random disjoint split;
+    ``pt_subset`` = all queries for training and :func:`pt_eval_subset` for evaluation."""
+    from spot.data import labels
+
+    lc = cfg.labels
+    if lc.eval_split == "pt_subset":
+        return prefs, pt_eval_subset(prefs, lc.eval_fraction)
+    return labels.split_eval(prefs, lc.eval_fraction, lc.seed)
+
+
 def labels_stage(ctx: Context) -> Labelled:
-    """Queries, their train/held-out split and segment batches."""
+    """Queries, their train/evaluation split (``labels.eval_split``) and segment batches."""
     from spot.data import labels
 
     cfg, ds = ctx.cfg, ctx.ds
-    prefs = make_preferences(cfg, ds)
-    train_prefs, eval_prefs = labels.split_eval(prefs, cfg.labels.eval_fraction, cfg.labels.seed)
+    source, path = label_source(cfg, ctx.card)
+    ctx.tracker.set_tags({"labels.resolved_source": source, **({"labels.resolved_path": path} if path else {})})
+    prefs = make_preferences(cfg, ds, ctx.card)
+    train_prefs, eval_prefs = split_queries(prefs, cfg)
     train_batch = labels.segment_batch(ds, train_prefs)
     eval_batch = labels.segment_batch(ds, eval_prefs) if len(eval_prefs) else None
     ctx.log(
@@ -224,6 +290,7 @@ def labels_stage(ctx: Context) -> Labelled:
         "y": prefs.labels,
         "length": prefs.segment_length,
         "split": (cfg.labels.eval_fraction, cfg.labels.seed),
+        **({"eval_split": cfg.labels.eval_split} if cfg.labels.eval_split != "holdout" else {}),
     }
     return Labelled(prefs, train_prefs, train_batch, eval_batch, deps)
 
@@ -253,8 +320,14 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     deps = _reward_deps(ctx, labelled, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
 
     def compute() -> dict[str, Any]:
+        clip = cfg.reward.clip_action
         params, history = reward_train.train_reward_model(
-            model, ctx.keys["reward"], labelled.train_batch, labelled.eval_batch, cfg.reward, progress=ctx.progress
+            model,
+            ctx.keys["reward"],
+            reward_train.clip_actions(labelled.train_batch, clip),
+            reward_train.clip_actions(labelled.eval_batch, clip),
+            cfg.reward,
+            progress=ctx.progress,
         )
         return {"params": params, "history": history}
 
@@ -264,6 +337,8 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     for name in names:
         ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
+    if "steps" in h:
+        ctx.log({"reward/steps": h["steps"]})
     save_model(
         ctx,
         "reward_model",
@@ -403,23 +478,30 @@ def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
                 batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat), np.asarray(attn), ctx.cfg.subgoal
             )
         )
-    triplets, states, info = extract.extract(
+    triplets, segments, states, info = extract.extract_with_segments(
         sides[0], sides[1], batch["label"], ctx.cfg.subgoal, rng=np.random.default_rng(ctx.cfg.seed)
     )
     if ctx.cfg.subgoal.source == "random":  # the control: same count, random dataset states
         triplets = extract.random_subgoals(triplets, ctx.ds.observations, np.random.default_rng([ctx.cfg.seed, 1]))
         states = triplets.g
     ctx.log(info)
-    return triplets, states
+    return triplets, states, segments
 
 
 def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
-    """Eq. 7: the CVAE G(s, a) -> g trained on the triplets; cached."""
+    """Eq. 7: the CVAE G(s, a) -> g trained on the triplets; cached. Its held-out triplets
+    (``cvae/heldout_*``) are whole preferred segments: no segment has triplets on both sides."""
     from spot.subgoal import cvae
 
     cfg = ctx.cfg
-    triplets, states = extracted
-    deps = {"reward": rewards.source.cache_key, "subgoal": cfg.subgoal, "cvae": cfg.cvae, "seed": cfg.seed}
+    triplets, states, segments = extracted
+    deps = {
+        "reward": rewards.source.cache_key,
+        "subgoal": cfg.subgoal,
+        "cvae": cfg.cvae,
+        "seed": cfg.seed,
+        "split": "segment",
+    }
     out, key = ctx.cached(
         "cvae",
         deps,
@@ -434,6 +516,7 @@ def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
                     cfg.cvae,
                     cvae.obs_stats(ctx.ds.observations),
                     progress=ctx.progress,
+                    groups=segments,
                 ),
                 strict=False,
             )
@@ -528,12 +611,13 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
     cfg = ctx.cfg
 
     def evaluate(actor_params: Any, step: int) -> dict[str, float]:
-        res = envs.evaluate(
-            lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)),
-            ctx.env_name,
-            cfg.eval.episodes,
-            seed=eval_seed(cfg),
-        )
+        with phases.phase("evaluate"):  # a sweep trial's time breakdown (spot.phases)
+            res = envs.evaluate(
+                lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)),
+                ctx.env_name,
+                cfg.eval.episodes,
+                seed=eval_seed(cfg),
+            )
         ctx.log(
             {"eval/score": res["score_mean"], "eval/score_std": res["score_std"], "eval/return": res["return_mean"]},
             step=step,
@@ -568,13 +652,21 @@ def _train_policy(ctx: Context, state: Any, train_chunk: Callable, args: Callabl
     return Policy(curve.state, curve.steps, curve.scores, curve.eval_s)
 
 
+def policy_transitions(cfg: ExperimentConfig, ds: Any, reward: np.ndarray) -> Any:
+    """The transitions the policy trains on (``ds.transitions(reward)``), actions clipped to
+    ``±iql.clip_action`` when it is > 0 (IQL's ``D4RLDataset``: ``1 - 1e-5``)."""
+    data = ds.transitions(reward)
+    clip = cfg.iql.clip_action
+    return data._replace(act=np.clip(data.act, -clip, clip)) if clip > 0 else data
+
+
 def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Policy:
     """IQL on the (shaped) reward."""
     import jax
 
     from spot.policy import iql
 
-    data = jax.device_put(ctx.ds.transitions(shaped.reward))
+    data = jax.device_put(policy_transitions(ctx.cfg, ctx.ds, shaped.reward))
     init_key, _ = jax.random.split(ctx.keys["policy"])
     state = iql.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, ctx.cfg.iql)
     return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), lambda key: (data, key))
@@ -587,9 +679,11 @@ def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
     from spot.policy import ipl
 
     cfg = ctx.cfg
-    data = jax.device_put(ctx.ds.transitions(shaped.reward))
+    data = jax.device_put(policy_transitions(cfg, ctx.ds, shaped.reward))
     init_key, _ = jax.random.split(ctx.keys["policy"])
-    feedback = ipl.feedback_from(labelled.train_batch)
+    from spot.reward.train import clip_actions
+
+    feedback = ipl.feedback_from(clip_actions(labelled.train_batch, cfg.iql.clip_action))
     state = ipl.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, cfg.iql)
     chunk = ipl.make_train_chunk(cfg.iql, cfg.ipl)
     replay = data if cfg.ipl.use_replay else None

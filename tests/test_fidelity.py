@@ -14,6 +14,15 @@ ROOT = Path(__file__).resolve().parents[1]
 # Row of docs/fidelity.md -> {key: (spot, paper, authors)} at method=spot, budget=small, on a
 # locomotion dataset (hopper-medium-replay).
 ROWS = {
+    # PT README / SGPbrl hyperparameter.sh --use_human_label True: the PT human files where they exist
+    # (labels.source=auto: only for the real D4RL/robomimic file; a locally built dataset gets the teacher)
+    2: {"labels.source": ("script", "auto", "auto")},
+    # PT README / SGPbrl num_query: 500 for medium-replay (spot: the small budget's 200)
+    3: {"labels.query_counts": ("budget", "pt", "pt"), "labels.num_queries": (200, 500, 500)},
+    # PT new_preference_reward_main.py: train on all N, evaluate on the last 10 % of them
+    7: {"labels.eval_split": ("holdout", "pt_subset", "pt_subset"), "labels.eval_fraction": (0.1, 0.1, 0.1)},
+    # PT reward data clip_action 0.999; IQL D4RLDataset clip_to_eps 1e-5
+    9: {"reward.clip_action": (0.0, 0.999, 0.999), "iql.clip_action": (0.0, 0.99999, 0.99999)},
     10: {"pt.n_layer": (1, 1, 3), "pt.n_head": (4, 4, 1)},  # Table 5 / SGPbrl get_default_config
     14: {
         "pt.schedule": ("warmup_constant", "warmup_constant", "warmup_cosine"),  # Table 5 / PT repo
@@ -37,8 +46,13 @@ ROWS = {
     33: {"shaping.kind": ("cosine", "cosine", "cosine")},  # state-only cosine on s'
     34: {"shaping.weight": (1.0, 1.0, 1.0)},
     35: {"shaping.potential_sign": ("neg", "neg", "pos"), "shaping.potential_terminal": (True, True, False)},
+    # PT repo n_epochs 10000 (paper budget); steps = epochs * (N // batch + 1)
+    15: {"reward.length": ("steps", "epochs", "epochs"), "reward.epochs": (43, 43, 43)},
     38: {"iql.order": ("parallel", "sequential", "sequential")},
+    40: {"labels.eval_split": ("holdout", "pt_subset", "pt_subset")},  # IPL *_train.npz: all N
 }
+# Keys whose override also moves another key (labels.query_counts sets labels.num_queries).
+DERIVED = {"labels.query_counts": {"labels.num_queries"}}
 VARIANTS = ("spot", "paper", "authors")
 CASES = [
     (row, key, v, values[i])
@@ -73,7 +87,7 @@ def test_each_key_overrides_alone():
                 continue
             one = _flat("variant=authors", f"{key}={spot_value}")
             changed = {k for k in base if base[k] != one[k]}
-            assert changed == {key}, (key, changed)
+            assert changed == {key} | DERIVED.get(key, set()), (key, changed)
 
 
 def test_variants_differ_only_in_listed_keys():
@@ -166,3 +180,131 @@ def test_authors_variant_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monke
     # the last step of every preferred segment is a subgoal
     assert m["subgoal/num_subgoals"] >= m["subgoal/num_segments"]
     assert "eval/score_final" in m
+
+
+# --------------------------------------------------------------------------- rows 2, 3, 7/40, 9, 15
+def test_query_counts_per_dataset_and_override_wins():
+    def queries(*overrides):
+        return _flat(*overrides)["labels.num_queries"]
+
+    assert queries("variant=paper", "data.name=hopper-medium-expert") == 100  # PT README: medium-expert
+    assert queries("variant=authors", "data.name=walker2d-medium-replay") == 500
+    assert queries("variant=paper", "data.name=drawer-open") == 200  # no PT count: the budget's
+    assert queries("variant=paper", "data.name=/data/d4rl/hopper_medium_expert-v2.hdf5", "data.source=file") == 100
+    assert queries("variant=paper", "data.name=hopper-medium-expert", "labels.num_queries=30") == 30  # Table 4
+    assert queries("variant=spot", "data.name=hopper-medium-expert") == 200
+
+
+def _prefs(q: int):
+    import numpy as np
+
+    from spot.data.labels import Preferences
+
+    return Preferences(np.arange(q) * 3, np.arange(q) * 3 + 1, np.zeros(q, np.float32), 2, "test")
+
+
+def test_eval_split_pt_subset_trains_on_all_and_evaluates_on_the_last_tenth():
+    import numpy as np
+
+    from spot import stages
+
+    prefs = _prefs(30)
+    train, held = stages.split_queries(prefs, config.load(None, ["variant=paper", "labels.eval_fraction=0.1"]))
+    np.testing.assert_array_equal(train.starts_1, prefs.starts_1)  # all N
+    np.testing.assert_array_equal(held.starts_1, [81, 84, 87])  # queries 27, 28, 29
+    train, held = stages.split_queries(prefs, config.load(None, ["variant=spot"]))
+    assert len(train) == 27 and len(held) == 3 and not set(train.starts_1) & set(held.starts_1)
+    assert len(stages.pt_eval_subset(_prefs(5), 0.1)) == 1  # at least one
+    assert len(stages.pt_eval_subset(_prefs(5), 0.0)) == 0
+
+
+def test_reward_training_length_in_pt_epochs():
+    from spot.reward import train
+
+    def steps(n, **kw):
+        return train.training_steps(config.RewardConfig(**kw), n)
+
+    # PT repo: 10000 epochs x (floor(N / 256) + 1) steps: 10k steps at N = 100, 20k at N = 500
+    assert steps(100, length="epochs", epochs=10_000) == 10_000
+    assert steps(500, length="epochs", epochs=10_000) == 20_000
+    assert steps(200, length="epochs", epochs=43, batch_size=32) == 43 * 7
+    assert steps(500, length="steps", steps=123) == 123
+
+
+def test_action_clipping_by_hand(tiny_drawer):
+    import numpy as np
+
+    from spot import stages
+    from spot.data import registry
+    from spot.reward import train
+
+    batch = {"act_1": np.array([[[1.0, -1.0, 0.5]]]), "act_2": np.array([[[-0.9995, 0.9995, 0.0]]]), "x": 1}
+    out = train.clip_actions(batch, 0.999)
+    np.testing.assert_array_equal(out["act_1"], [[[0.999, -0.999, 0.5]]])
+    np.testing.assert_array_equal(out["act_2"], [[[-0.999, 0.999, 0.0]]])
+    assert train.clip_actions(batch, 0.0) is batch and train.clip_actions(None, 0.999) is None
+
+    ds, _ = registry.load("drawer-open", "tiny")
+    reward = np.zeros(len(ds), np.float32)
+    cfg = config.load(None, ["variant=paper"])
+    data = stages.policy_transitions(cfg, ds, reward)
+    eps = 1e-5
+    assert np.abs(data.act).max() <= 1 - eps + 1e-7
+    np.testing.assert_allclose(data.act, np.clip(ds.actions, -(1 - eps), 1 - eps), rtol=0, atol=1e-7)
+    unclipped = stages.policy_transitions(config.load(None, ["variant=spot"]), ds, reward)
+    np.testing.assert_array_equal(unclipped.act, ds.actions.astype(np.float32))
+
+
+# --------------------------------------------------------------------------- row 2: human labels
+# The PT repo's human_label/ files at f71647b, shipped unchanged (PROVENANCE.md)
+SHIPPED = ROOT / "spot" / "data" / "pt_human_labels"
+
+
+def test_human_label_folder_only_for_the_real_file():
+    from spot import stages
+
+    real = {"source": "file", "name": "hopper_medium_replay-v2", "path": "/d/d4rl/hopper_medium_replay-v2.hdf5"}
+    assert stages.human_label_folder(real) == SHIPPED / "hopper-medium-replay-v2"
+    robomimic = {"source": "file", "name": "low_dim", "path": "/d/robomimic/can/mh/low_dim.hdf5"}
+    assert stages.human_label_folder(robomimic) == SHIPPED / "Can_mh"
+    # a spot-built dataset, read by path or by name: its card names the recipe
+    built = {"source": "file", "recipe": "d4rl-sac-locomotion", "path": "/d/hopper_medium_replay-v2.hdf5"}
+    assert stages.human_label_folder(built) is None
+    assert stages.human_label_folder({"source": "recipe", "recipe": "x", "name": "hopper-medium-replay"}) is None
+    assert stages.human_label_folder({"source": "file", "path": "/d/hopper_medium-v2.hdf5"}) is None  # no labels
+    cfg = config.load(None, ["variant=authors"])
+    assert stages.label_source(cfg, real) == ("human", str(SHIPPED / "hopper-medium-replay-v2"))
+    assert stages.label_source(cfg, built) == ("script", "")
+    assert stages.label_source(config.load(None, ["variant=spot"]), real) == ("script", "")
+
+
+@pytest.mark.parametrize(
+    "folder,queries,length",
+    [
+        ("hopper-medium-replay-v2", 500, 100),
+        ("hopper-medium-expert-v2", 100, 100),
+        ("walker2d-medium-replay-v2", 500, 100),
+        ("walker2d-medium-expert-v2", 100, 100),
+        ("Lift_ph", 100, 50),
+        ("Can_mh", 500, 100),
+    ],
+)
+def test_shipped_human_labels_read_safely(folder, queries, length):
+    """The shipped files go through spot's restricted unpickler, with PT's counts (PROVENANCE.md);
+    the query preset gives the same counts for the matching datasets."""
+    import numpy as np
+
+    from spot.data import labels
+
+    prefs = labels.read_pt_labels(SHIPPED / folder)
+    assert len(prefs) == queries and prefs.segment_length == length
+    assert set(np.unique(prefs.labels)) <= {0.0, 0.5, 1.0} and len(np.unique(prefs.labels)) >= 2
+    if folder.endswith("-v2"):
+        assert config.pt_query_count(folder) == queries
+
+
+def test_shipped_human_labels_are_package_data():
+    text = (ROOT / "pyproject.toml").read_text()
+    assert "data/pt_human_labels/*/*" in text
+    names = sorted(p.parent.name for p in SHIPPED.glob("*/label_human"))
+    assert len(names) == 8 and (SHIPPED / "PROVENANCE.md").is_file()

@@ -108,6 +108,23 @@ def _num_pairs(pairs: PrefPairs) -> int:
     return int(pairs.label.shape[0])
 
 
+def clip_actions(batch: Mapping[str, np.ndarray] | None, clip: float) -> Mapping[str, np.ndarray] | None:
+    """``batch`` with ``act_1``/``act_2`` clipped to ``±clip`` (``reward.clip_action``: the PT repo
+    clips its reward-model data to ±0.999); ``clip = 0`` or no batch: unchanged."""
+    if batch is None or clip <= 0:
+        return batch
+    return {**batch, **{k: np.clip(batch[k], -clip, clip) for k in ("act_1", "act_2") if k in batch}}
+
+
+def training_steps(reward_cfg: RewardConfig, num_pairs: int) -> int:
+    """Gradient steps of a reward-model run: ``reward.steps``, or with ``reward.length=epochs`` the
+    PT repo's count ``epochs * (floor(N / batch_size) + 1)`` for ``N`` training pairs
+    (``new_preference_reward_main.py``: ``interval = int(data_size / batch_size) + 1`` steps per epoch)."""
+    if reward_cfg.length == "epochs":
+        return reward_cfg.epochs * (num_pairs // reward_cfg.batch_size + 1)
+    return reward_cfg.steps
+
+
 # --------------------------------------------------------------------------- loss
 def _pair_terms(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Per-pair cross-entropy ``[B]``, correctness ``[B]`` and non-tie flag ``[B]``."""
@@ -274,7 +291,7 @@ def train_reward_model(
     micro_batch: int = 64,
 ) -> tuple[Params, dict[str, Any]]:
     """Train a reward model (``MR(cfg)`` or ``PT(cfg)``) on preference pairs for exactly
-    ``reward_cfg.steps`` steps.
+    :func:`training_steps` steps (``reward.steps``, or ``reward.epochs`` counted as the PT repo does).
 
     Args:
       model: the :class:`spot.reward.models.RewardModel` (``models.from_config(cfg)``).
@@ -291,7 +308,7 @@ def train_reward_model(
       lists ``step`` (steps done), ``train_loss``, ``train_acc`` (chunk means), ``eval_loss``,
       ``eval_acc``, and ``best_step``, ``best_eval_loss``, ``best_eval_acc``, ``batch_size``,
       ``eval_on``, ``compile_s`` (next to nothing when this process compiled the same programs
-      before), ``train_s``, ``steps_per_s``.
+      before), ``train_s``, ``steps_per_s``, ``steps`` (steps taken).
 
     Raises:
       NonFiniteError: a train or eval loss is NaN/inf.
@@ -300,15 +317,16 @@ def train_reward_model(
     train, held_out, eval_on = _checked_pairs(model, train_batch, eval_batch)
     init_key, train_key = jax.random.split(key)
     del key
-    state = init_state(model, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], reward_cfg.steps)
+    steps = training_steps(reward_cfg, _num_pairs(train))
+    state = init_state(model, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], steps)
     batch_size = min(reward_cfg.batch_size, _num_pairs(train))
-    length = loop.chunk_length(reward_cfg.steps, reward_cfg.eval_every)
+    length = loop.chunk_length(steps, reward_cfg.eval_every)
     eval_data, eval_weight = jax.device_put(
         loop.pad_minibatches(held_out, min(reward_cfg.batch_size, _num_pairs(held_out)))
     )
     train = jax.device_put(train)
 
-    train_chunk = make_train_chunk(model, batch_size, length, reward_cfg.steps, micro_batch)
+    train_chunk = make_train_chunk(model, batch_size, length, steps, micro_batch)
     evaluate = make_evaluate(model)
     compile_s = loop.compile_seconds(train_chunk, state, length, train, train_key) + loop.compile_seconds(
         evaluate, state.params, eval_data, eval_weight
@@ -317,7 +335,7 @@ def train_reward_model(
         train_chunk,
         state,
         (train, train_key),
-        steps=reward_cfg.steps,
+        steps=steps,
         length=length,
         losses={"loss": "reward/train_loss"},
         evaluate=lambda st: dict(
@@ -328,7 +346,7 @@ def train_reward_model(
         progress=progress,
         desc=f"reward ({model.kind})",
     )
-    history = _history(out, batch_size, eval_on, compile_s, reward_cfg.steps)
+    history = _history(out, batch_size, eval_on, compile_s, steps)
     return jax.device_put(out.best_params), history
 
 
@@ -351,6 +369,7 @@ def _history(out: Any, batch_size: int, eval_on: str, compile_s: float, steps: i
         compile_s=compile_s,
         train_s=out.loop_s,
         steps_per_s=steps / out.loop_s,
+        steps=steps,
     )
     return history
 

@@ -259,6 +259,20 @@ def make_triplets(
       ``(Triplets, info)``; ``info`` holds ``subgoal/num_segments``, ``subgoal/num_subgoals``,
       ``subgoal/num_triplets`` and ``subgoal/segments_without_subgoal``.
     """
+    triplets, _, info = make_triplets_with_segments(obs, act, mask, mode, draws, rng)
+    return triplets, info
+
+
+def make_triplets_with_segments(
+    obs: np.ndarray,
+    act: np.ndarray,
+    mask: np.ndarray,
+    mode: str = "next_subgoal",
+    draws: int = 1,
+    rng: np.random.Generator | None = None,
+) -> tuple[Triplets, np.ndarray, dict[str, float]]:
+    """:func:`make_triplets` plus the segment (row of ``obs``) of every triplet, ``[M]`` int, so
+    that a train/held-out split can keep each segment's triplets on one side."""
     if mode not in TRIPLETS:
         raise SpotError(f"subgoal triplets {mode!r}; expected one of {TRIPLETS}")
     if draws < 1:
@@ -294,7 +308,7 @@ def make_triplets(
         "subgoal/num_triplets": float(row.size),
         "subgoal/segments_without_subgoal": float((~mask.any(axis=1)).sum()),
     }
-    return triplets, info
+    return triplets, np.asarray(row, np.int64), info
 
 
 def extract(
@@ -305,13 +319,27 @@ def extract(
     ties: str = "skip",
     rng: np.random.Generator | None = None,
 ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
+    """:func:`extract_with_segments` without the segment ids."""
+    triplets, _, states, info = extract_with_segments(seg_1, seg_2, y, cfg, ties, rng)
+    return triplets, states, info
+
+
+def extract_with_segments(
+    seg_1: Segments,
+    seg_2: Segments,
+    y: np.ndarray,
+    cfg: SubgoalConfig,
+    ties: str = "skip",
+    rng: np.random.Generator | None = None,
+) -> tuple[Triplets, np.ndarray, np.ndarray, dict[str, float]]:
     """Preferred segments -> subgoal mask -> CVAE triplets, with counts for logging.
 
     ``rng`` draws the ``interval`` triplets (``subgoal.triplets``); unused otherwise.
 
     Returns:
-      ``(triplets, subgoals [N_g, obs_dim], info)``; ``subgoals`` are the extracted subgoal
-      states (the "real" set of the precision/recall diagnostic).
+      ``(triplets, segments [M], subgoals [N_g, obs_dim], info)``; ``segments`` is the preferred
+      segment each triplet comes from (:func:`make_triplets_with_segments`), ``subgoals`` the
+      extracted subgoal states (the "real" set of the precision/recall diagnostic).
 
     Raises:
       SpotError: if no triplet is left (every label a tie, or no step passes the filter).
@@ -320,14 +348,16 @@ def extract(
     mask = subgoal_mask(
         pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups, cfg.last_step
     )
-    triplets, info = make_triplets(pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng)
+    triplets, segments, info = make_triplets_with_segments(
+        pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng
+    )
     if triplets.s.shape[0] == 0:
         raise SpotError(
             f"no subgoal triplets from {len(y)} queries ({pref.obs.shape[0]} preferred segments, "
             f"subgoal.top_k={cfg.top_k}, subgoal.group={cfg.group!r}); expected at least one "
             "non-tied label and a top_k large enough to select a step"
         )
-    return triplets, pref.obs[mask], info
+    return triplets, segments, pref.obs[mask], info
 
 
 def random_subgoals(triplets: Triplets, observations: np.ndarray, rng: np.random.Generator) -> Triplets:
