@@ -104,6 +104,53 @@ def test_gaussian_log_prob_by_hand():
     np.testing.assert_allclose(iql.gaussian_log_prob(mean, log_std, act), [expected], rtol=1e-6)
 
 
+@pytest.mark.parametrize("order", ["parallel", "sequential"])
+def test_value_actor_and_critic_losses_by_hand(data, order):
+    """The three losses of one update against numpy formulas on the networks' outputs:
+    L_V = mean |tau - 1(u < 0)| u^2 with u = min_i Qbar_i(s, a) - V(s) (eq. 5);
+    L_pi = -mean min(exp(beta (min_i Qbar_i - V~(s))), 100) log N(a; mu(s), sigma^2) (eq. 7);
+    L_Q = mean_b sum_i (Q_i(s, a) - r - gamma mask V~(s'))^2 (eq. 6), where V~ is V before the
+    value step (parallel) or the just-updated V' (sequential)."""
+    cfg = dataclasses.replace(CFG, order=order)
+    state = iql.init_state(jax.random.key(7), 2, 2, cfg)
+    # perturb the target critics so that Qbar != Q, and shift rewards so u takes both signs
+    state = state._replace(target_critic_params=jax.tree.map(lambda p: p * 1.3, state.target_critic_params))
+    batch = jax.tree.map(lambda x: x[:16], data)
+    batch = batch._replace(rew=batch.rew + jnp.linspace(-2.0, 2.0, 16))
+    # move V's output bias to the median of Qbar - V, so that u takes both signs
+    u0 = jnp.min(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act), axis=0)
+    shift = jnp.median(u0 - state.value.apply_fn(state.value.params, batch.obs))
+    value_params = jax.tree_util.tree_map_with_path(
+        lambda path, p: p + shift if p.shape == (1,) and "bias" in jax.tree_util.keystr(path) else p,
+        state.value.params,
+    )
+    state = state._replace(value=state.value.replace(params=value_params))
+    new_state, m = iql.update(state, batch, cfg)
+
+    obs, act, rew, next_obs, mask = (np.asarray(x, np.float64) for x in batch)
+    f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+    q_bar = f64(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)).min(axis=0)
+    v = f64(state.value.apply_fn(state.value.params, batch.obs))
+    u = q_bar - v
+    tau = cfg.expectile
+    assert (u > 0).any() and (u < 0).any()
+    value_loss = np.mean(np.where(u < 0, 1 - tau, tau) * u**2)
+    np.testing.assert_allclose(m["iql/value_loss"], value_loss, rtol=1e-5)
+
+    value_params = state.value.params if order == "parallel" else new_state.value.params
+    v_tilde = f64(state.value.apply_fn(value_params, batch.obs))
+    v_next = f64(state.value.apply_fn(value_params, batch.next_obs))
+    w = np.minimum(np.exp(cfg.temperature * (q_bar - v_tilde)), 100.0)
+    mean, log_std = (f64(x) for x in state.actor.apply_fn(state.actor.params, batch.obs))
+    log_prob = np.sum(-0.5 * ((act - mean) / np.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi), axis=-1)
+    np.testing.assert_allclose(m["iql/actor_loss"], -np.mean(w * log_prob), rtol=1e-5)
+
+    q = f64(state.critic.apply_fn(state.critic.params, batch.obs, batch.act))  # [2, B]
+    target = rew + cfg.discount * mask * v_next
+    np.testing.assert_allclose(m["iql/critic_loss"], np.mean(np.sum((q - target) ** 2, axis=0)), rtol=1e-5)
+    np.testing.assert_allclose(m["iql/target_mean"], target.mean(), rtol=1e-5, atol=1e-6)
+
+
 def test_check_finite_raises_with_step_and_name():
     with pytest.raises(NonFiniteError) as err:
         loop.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)
