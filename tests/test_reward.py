@@ -142,6 +142,18 @@ def test_pt_causal_and_last_step(pt_params):
     np.testing.assert_allclose(last, r_hat[:, -1], rtol=1e-5, atol=1e-6)
 
 
+def test_pt_reward_at_t_reads_the_action_at_t(pt_params):
+    """Changing only a_t changes r_hat_t (PT reads r_hat_t at the action token of step t, after
+    s_t) and leaves r_hat_<t alone; a model reading r_hat_t at the state token would not see a_t."""
+    obs, act, ts, mask = segments(2, 8, seed=5)
+    r_hat, _, _ = pt_forward(pt_params, PT_TINY, obs, act, ts, mask)
+    for t in (0, 3, 7):
+        act2 = act.at[:, t].add(1.0)
+        r_hat2, _, _ = pt_forward(pt_params, PT_TINY, obs, act2, ts, mask)
+        np.testing.assert_allclose(r_hat2[:, :t], r_hat[:, :t], rtol=1e-5, atol=1e-6)
+        assert np.all(np.abs(r_hat2[:, t] - r_hat[:, t]) > 1e-4), t
+
+
 def test_pt_padding_mask(pt_params):
     obs, act, ts, mask = segments(2, 8, seed=3)
     real = 5
