@@ -15,8 +15,14 @@ them (dicts, lists, tuples, numbers, strings, None, and NamedTuples or dataclass
 spot* by qualified name, rebuilt from their fields) and a SHA-256 digest of both. An entry that is
 truncated, fails its digest, holds a pickle or an object array, names a type outside spot or
 has any other wrong structure is reported, deleted and recomputed, never used. Entries of the
-older pickle format (``<key>.pkl``) are never opened. Writes go to a temporary name and are
-renamed into place. The cache dir is ``$SPOT_CACHE_DIR`` (default ``~/.cache/spot/stages``).
+older pickle format (``<key>.pkl``) are never opened.
+
+Entries are read and written through the store (:mod:`spot.store`): ``<store>/stages/<key>.npz``
+when ``$SPOT_STORE`` names one (a shared folder or ``s3://bucket/prefix``), else the cache dir
+``$SPOT_CACHE_DIR`` (default ``~/.cache/spot/stages``). Writes are atomic (a temporary name renamed
+into place; one PUT on S3). :func:`cached` computes a missing entry under the store's lock on its
+key, so trials that need the same entry at the same time, on one machine or on several, compute it
+once: the others wait for the lock and then read the entry.
 """
 
 from __future__ import annotations
@@ -437,8 +443,8 @@ def _digest(tree_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def write_entry(path: Path, value: Any) -> None:
-    """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename."""
+def entry_bytes(value: Any) -> bytes:
+    """``value`` as the bytes of an entry (an ``.npz``)."""
     tree, arrays = encode(value)  # jax arrays are copied to host numpy arrays
     tree_bytes = json.dumps(tree).encode()
     meta = {
@@ -447,16 +453,22 @@ def write_entry(path: Path, value: Any) -> None:
     }
     buf = io.BytesIO()
     np.savez(buf, **meta, **arrays)
+    return buf.getvalue()
+
+
+def write_entry(path: Path, value: Any) -> None:
+    """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename."""
+    data = entry_bytes(value)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(buf.getvalue())
+    tmp.write_bytes(data)
     os.replace(tmp, path)
 
 
-def read_entry(path: Path, package: str = PACKAGE) -> Any:
-    """The value stored at ``path``; :class:`EntryError` if the entry cannot be used. Never unpickles."""
+def read_entry_bytes(data: bytes, package: str = PACKAGE) -> Any:
+    """The value an entry's bytes hold; :class:`EntryError` if they cannot be used. Never unpickles."""
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
     except Exception as e:  # noqa: BLE001 - a truncated zip, a pickle, an object array: all unusable
         raise EntryError(f"not a readable entry ({type(e).__name__}: {e})") from None
@@ -471,26 +483,46 @@ def read_entry(path: Path, package: str = PACKAGE) -> Any:
     return decode(tree, arrays, package)
 
 
+def read_entry(path: Path, package: str = PACKAGE) -> Any:
+    """The value stored at ``path``; :class:`EntryError` if the entry cannot be used. Never unpickles."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise EntryError(f"not a readable entry ({type(e).__name__}: {e})") from None
+    return read_entry_bytes(data, package)
+
+
 # --------------------------------------------------------------------------- the cache
+def _store() -> Any:
+    from spot import store as store_lib
+
+    return store_lib.stages(cache_dir())
+
+
 def entry_path(k: str) -> Path:
+    """The local file of entry ``k`` in the cache dir (the default store)."""
     return cache_dir() / f"{k}.npz"
 
 
 def load(k: str) -> tuple[bool, Any]:
     """``(found, value)`` of entry ``k``; an unusable entry is reported, deleted and not found."""
-    path = entry_path(k)
-    if not path.exists():
+    st = _store()
+    name = f"{k}.npz"
+    data = st.get_bytes(name)
+    if data is None:
         return False, None
     try:
-        return True, read_entry(path)
+        return True, read_entry_bytes(data)
     except EntryError as e:
-        warnings.warn(f"stage cache entry {path} is unusable ({e}); deleting and recomputing it", stacklevel=2)
-        path.unlink(missing_ok=True)
+        warnings.warn(
+            f"stage cache entry {st.describe(name)} is unusable ({e}); deleting and recomputing it", stacklevel=2
+        )
+        st.delete(name)
         return False, None
 
 
 def store(k: str, value: Any) -> None:
-    write_entry(entry_path(k), value)
+    _store().put_bytes(f"{k}.npz", entry_bytes(value))
 
 
 def cached(
@@ -498,13 +530,19 @@ def cached(
 ) -> tuple[Any, bool, str]:
     """``(value, hit, key)``: the cached value for ``deps``, or ``compute()`` stored under it.
 
-    ``code`` is the stage's code version; by default :func:`code_version` of ``compute`` (the code
-    of the stage function that defines it and of what that runs).
+    A miss is computed under the store's lock on the key: a process that finds the lock held
+    waits, then reads the entry the holder stored (a hit). ``code`` is the stage's code version;
+    by default :func:`code_version` of ``compute`` (the code of the stage function that defines it
+    and of what that runs).
     """
     k = key(stage, deps, code if code is not None else code_version(compute))
     found, value = load(k)
     if found:
         return value, True, k
-    value = compute()
-    store(k, value)
+    with _store().lock(k):
+        found, value = load(k)  # computed by another process while this one waited
+        if found:
+            return value, True, k
+        value = compute()
+        store(k, value)
     return value, False, k

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from spot import SpotError
+from spot import SpotError, store
 from spot.data.dataset import Dataset, RawDataset
 
 
@@ -121,12 +121,14 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
     path = dataset_path(e.name, size, seed)
-    with _lock(path):
+    with _lock(path), store.dataset_lock(path):  # the shared store (spot.store): built once, on one node
+        store.fetch_dataset(path, card_path(path))  # a build another node uploaded
         recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
         version = getattr(recipe, "RECIPE_VERSION", None)
         if path.exists() and card_path(path).exists() and not force:
             built = read_card(path).get("recipe_version")
             if version is None or built == version:
+                store.publish_dataset(path, card_path(path), if_missing=True)  # built before the store was named
                 return path
             if progress:
                 print(
@@ -141,6 +143,7 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         tmp = card_path(path).with_suffix(f".tmp-{os.getpid()}")
         tmp.write_text(json.dumps(card, indent=2, default=str))
         os.replace(tmp, card_path(path))
+        store.publish_dataset(path, card_path(path))
     return path
 
 
