@@ -1,6 +1,8 @@
 """``spot bench``: throughput, compile time and peak memory of each stage, at the paper's sizes.
 
-These are measurements, printed, never asserted in tests. ``--small`` shrinks every size so a
+These are measurements, printed, never asserted in tests; each names the device JAX ran on.
+``spot bench sweep FILE`` runs a whole sweep and prints where its trials' time went
+(:func:`bench_sweep`). ``--small`` shrinks every size so a
 check finishes in seconds. Peak memory is the process's ``ru_maxrss`` (it includes everything the
 process did before, so run one benchmark per process for clean numbers: the CLI does).
 
@@ -11,6 +13,7 @@ the relabelling program) on synthetic data, after compiling it ahead of time.
 from __future__ import annotations
 
 import resource
+import sys
 import time
 from typing import Any
 
@@ -255,7 +258,49 @@ BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": b
 
 
 def format_result(name: str, result: dict[str, Any]) -> str:
+    """The figures of one benchmark, and the device JAX ran it on."""
+    from spot import phases
+
     lines = [f"[{name}] {result.pop('what')}"]
     for key, value in result.items():
         lines.append(f"  {key:18s} {value:,.3f}" if isinstance(value, float) else f"  {key:18s} {value}")
+    lines.append(f"  {'device':18s} {phases.devices()}")
     return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- a whole sweep
+def bench_sweep(path: str, smoke: bool = False, **sweep_kwargs: Any) -> int:
+    """``spot bench sweep FILE [--smoke]``: run the sweep (:func:`spot.sweep.run_sweep`, which prints
+    its own summary and the totals of the time breakdown), then print one line per trial (seconds
+    per phase, :mod:`spot.phases`), the totals, the CPU utilisation of the whole command's process
+    tree (dataset builds, MLflow server, Ray and every trial) and the device the trials ran on.
+    Returns the exit code of ``spot sweep``."""
+    from spot import phases, sweep
+
+    spec = sweep.load(path, smoke=smoke)
+    try:
+        with phases.CpuMeter() as cpu:
+            rows = sweep.run_sweep(path, smoke=smoke, **sweep_kwargs)
+    except sweep.Interrupted as e:
+        print(f"interrupted: {e}", file=sys.stderr)
+        return e.exit_code
+    print(format_sweep_bench(rows, spec, cpu), flush=True)
+    return 0 if all(r.status == "FINISHED" for r in rows) else 1
+
+
+def format_sweep_bench(rows: list[Any], spec: Any, cpu: Any) -> str:
+    """The report of :func:`bench_sweep`: a title line, the per-trial breakdown and the command's
+    CPU utilisation (``cpu``: a finished :class:`spot.phases.CpuMeter`)."""
+    from spot.sweep.summary import format_breakdown
+
+    done = sum(r.status == "FINISHED" for r in rows)
+    table = format_breakdown(rows, spec.axis_keys, per_trial=True) or "(no trial was timed in this launch)"
+    return "\n".join(
+        [
+            f"\n[sweep] {spec.experiment}: {done}/{len(rows)} runs finished in {cpu.wall_s:.1f} s "
+            f"(the whole command: datasets, MLflow server, Ray, trials, summary)",
+            table,
+            f"command: {cpu.cpu_s:.1f} CPU-seconds over {cpu.wall_s:.1f} s: CPU utilisation "
+            f"{100 * cpu.util:.0f}% of {cpu.cpus} cores",
+        ]
+    )

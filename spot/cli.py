@@ -242,9 +242,15 @@ def _eval(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------- bench
-def _bench(args: argparse.Namespace) -> None:
+def _bench(args: argparse.Namespace) -> int | None:
     from spot import bench
 
+    if args.what == "sweep":
+        if not args.file:
+            raise SpotError("spot bench sweep needs the sweep file: spot bench sweep FILE [--smoke]")
+        return bench.bench_sweep(args.file, smoke=args.smoke)
+    if args.file or args.smoke:
+        raise SpotError(f"spot bench {args.what}: a sweep file and --smoke go with 'spot bench sweep'")
     kwargs = {"small": args.small}
     if args.what == "iql":
         kwargs["seeds"], kwargs["order"] = args.seeds, args.order
@@ -664,9 +670,11 @@ def _add_run(sub: Any) -> None:
         sub,
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
-        "spot bench iql --small\nspot bench iql --seeds 5 --order sequential",
+        "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench sweep sweeps/quickstart.yaml",
     )
-    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae"), help="the stage")
+    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sweep"), help="the stage, or a whole sweep")
+    d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
+    d.add_argument("--smoke", action="store_true", help="sweep: the file's smoke block")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
     d.add_argument("--seeds", type=_positive_int, default=1, help="iql: seeds as a vmap axis")
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")

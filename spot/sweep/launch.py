@@ -28,7 +28,7 @@ from typing import Any
 from spot import SpotError
 from spot import config as config_lib
 from spot.sweep.spec import Sweep, load, run_key, tag_value
-from spot.sweep.summary import Row, format_summary, paper_table, summarize
+from spot.sweep.summary import Row, breakdown_text, format_summary, log_fit_cpu, paper_table, summarize
 from spot.sweep.trial import RunFn, SweepContext, _trainable
 
 DEFAULT_STORAGE = Path("spot_runs") / "ray"
@@ -301,7 +301,7 @@ def _tuner(
         param_space=param_space,
         tune_config=tune.TuneConfig(
             max_concurrent_trials=max_concurrent,
-            reuse_actors=False,
+            reuse_actors=True,  # the trials ask for the same resources: the next trial reuses an actor's process
             trial_dirname_creator=_trial_dirname,
             trial_name_creator=_trial_name,
         ),
@@ -389,7 +389,16 @@ def _fit(
         tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
         {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]},
     )
-    _tuner(sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent).fit()
+    from mlflow.tracking import MlflowClient
+
+    from spot import phases
+
+    with phases.CpuMeter() as cpu:  # the sweep's CPU utilisation, printed at the end
+        _tuner(
+            sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent
+        ).fit()
+    with contextlib.suppress(Exception):  # a measurement: never the reason a launch fails
+        log_fit_cpu(MlflowClient(ctx.tracking_uri), ctx.parent_run_id, cpu)
     return _trial_errors(exp_dir)
 
 
@@ -874,6 +883,7 @@ def _launch(
         with _on_sigterm(on_sigterm):
             rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
             table = format_summary(rows, sweep.axis_keys)
+            timing = breakdown_text(client, ctx.parent_run_id, rows, sweep.axis_keys)
             _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
         paper = paper_table(sweep, store.uri, ctx.sweep_id, state_file.parent) if sweep.table and n_done else ""
@@ -892,6 +902,8 @@ def _launch(
         f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{link}{missing}",
         flush=True,
     )
+    if timing:
+        print(f"\n{timing}", flush=True)
     if paper:
         print(f"\n{paper}", flush=True)
     if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished

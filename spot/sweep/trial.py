@@ -8,6 +8,17 @@ sweep id and trial key is reported instead of running again), runs the others wi
 :func:`spot.pipeline.run` one after another, or together with :func:`spot.multiseed.run` (IQL
 vmapped over the seeds) for a ``seed_mode: vmap`` trial, and records a FAILED run for a seed that
 failed before the pipeline opened its own. Nothing here imports jax at module level.
+
+Tune reuses a trial's actor process for the next trial (``reuse_actors=True``: every trial of a
+sweep asks for the same resources), so the imports, the XLA client, jit's in-memory caches and the
+opened dataset carry over; the process settings are made once per process (:func:`_configure_once`).
+
+Each trial is timed by phase (:mod:`spot.phases`: start-up, dataset, compile, train, evaluate,
+tracking, other) and the breakdown is logged to every run the trial ran as ``time/trial_<phase>_s``,
+``time/trial_wall_s``, ``time/trial_cpu_s`` (CPU seconds of the trial's process, all threads),
+``time/trial_cpus`` (the CPUs it had) and the tags ``trial_device`` (``jax.devices()``) and
+``trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
+``spot bench sweep`` each trial's row (:func:`spot.sweep.summary.format_breakdown`).
 """
 
 from __future__ import annotations
@@ -15,12 +26,14 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import resource
 import sys
 import tempfile
+import time
 import uuid
 import warnings
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +55,7 @@ class SweepContext:
     parent_run_id: str
     tracking_uri: str
     axis_keys: tuple[str, ...]
+    created_at: float = field(default_factory=time.time)  # when the driver set the launch up (start-up's origin)
 
 
 # --------------------------------------------------------------------------- process setup
@@ -70,7 +84,8 @@ def cpu_slots(n: int) -> Iterator[list[int]]:
     CPUs. XLA sizes its CPU thread pools from the affinity mask, which makes this the thread-count
     setting that works (an ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by
     jaxlib 0.10). If ``n`` slots are not free (fractional CPUs, a trial as large as the node),
-    nothing is claimed or pinned. Yields the pinned CPUs (empty if none).
+    nothing is claimed or pinned. Yields the pinned CPUs (empty if none); the process's threads
+    get the CPUs they had back at the end (a reused actor runs the next trial in them).
     """
     allowed = sorted(os.sched_getaffinity(0))
     folder = Path(tempfile.gettempdir()) / "spot-cpu-slots"
@@ -89,6 +104,10 @@ def cpu_slots(n: int) -> Iterator[list[int]]:
                     os.sched_setaffinity(int(tid), cpus)
         yield cpus
     finally:
+        if held:  # unpinned again: a reused actor's next trial claims its own CPUs
+            for tid in os.listdir("/proc/self/task"):
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(int(tid), allowed)
         for _, f in held:
             f.close()
 
@@ -219,6 +238,15 @@ def _run_vmapped(
     ]
 
 
+def _open_data(overrides: dict[str, Any], seed: int, ctx: SweepContext) -> None:
+    """Open the trial's dataset (:func:`spot.pipeline.open_dataset`, kept open for this process's
+    later runs) as the ``data`` phase; an error is left to the run, which records it."""
+    from spot import phases, pipeline
+
+    with phases.phase("data"), contextlib.suppress(Exception):
+        pipeline.open_dataset(config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name}))
+
+
 def run_trial(
     overrides: dict[str, Any],
     seeds: list[int] | tuple[int, ...],
@@ -247,10 +275,10 @@ def run_trial(
     """
     from mlflow.tracking import MlflowClient
 
-    from spot import tracking
+    from spot import phases, tracking
 
     os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
-    client = MlflowClient(ctx.tracking_uri)
+    client = phases.timed_calls(MlflowClient(ctx.tracking_uri))
     finals: list[dict[str, Any]] = []
     failures: list[tuple[int, BaseException]] = []
     pending: dict[int, dict[str, str]] = {}
@@ -262,13 +290,17 @@ def run_trial(
             report(finals[-1])
         else:
             pending[seed] = _seed_tags(overrides, key, ctx, trial_id)
+    if pending and run_fn is None:
+        _open_data(overrides, next(iter(pending)), ctx)
     if vmap and pending:
         if run_fn is None:
             from spot import multiseed
 
             run_fn = multiseed.run
         try:
-            for final in _run_vmapped(client, overrides, pending, ctx, report, run_fn):
+            with phases.phase("train"):  # the runs: what is not data, compile, evaluate or tracking
+                vmapped = _run_vmapped(client, overrides, pending, ctx, report, run_fn)
+            for final in vmapped:
                 report(final)
                 finals.append(final)
         except Exception as e:  # noqa: BLE001 - every seed failed with it
@@ -280,7 +312,8 @@ def run_trial(
         run_fn = pipeline.run
     for seed, tags in pending.items():
         try:
-            final = _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
+            with phases.phase("train"):
+                final = _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
         except Exception as e:  # noqa: BLE001 - recorded, reported by Ray after the other seeds ran
             failures.append((seed, e))
             continue
@@ -293,28 +326,112 @@ def run_trial(
     return sorted(finals, key=lambda f: list(seeds).index(f["seed"]))
 
 
+# --------------------------------------------------------------------------- the trainable
+_PROCESS: dict[str, Any] = {"settings": None, "last_end": None}  # this process's trial settings, last trial's end
+
+
+def _configure_once(cpus: int, gpus: float) -> None:
+    """spot's and the trial's process settings (:func:`spot.runtime.configure`,
+    :func:`configure_process`), once per process: a reused actor already made them for the same
+    resources (a sweep's trials all ask for the same), and XLA has read them."""
+    from spot import runtime
+
+    if _PROCESS["settings"] == (cpus, gpus):
+        return
+    runtime.configure()  # spot's XLA flag, MUJOCO_GL and the compilation cache
+    configure_process(cpus, gpus)
+    _PROCESS["settings"] = (cpus, gpus)
+
+
+def _process_started() -> float:
+    """When this process started (``time.time()`` scale), from ``/proc``; 0 where unknown."""
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        boot = next(ln for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime"))
+        return float(boot.split()[1]) + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return 0.0
+
+
+def _startup_s(ctx: SweepContext, called_at: float) -> float:
+    """Seconds before the trial function was called: since the end of the previous trial in this
+    process (a reused actor), else since the process started or the launch was set up, whichever
+    is later (Ray may start worker processes before the launch needs them)."""
+    last = _PROCESS["last_end"]
+    since = last if last is not None else max(_process_started(), ctx.created_at)
+    return max(0.0, called_at - since)
+
+
+def _cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _log_breakdown(
+    ctx: SweepContext, finals: list[dict[str, Any]], values: dict[str, float], tags: dict[str, str]
+) -> None:
+    """The trial's breakdown, logged to each run it ran (not to runs found finished)."""
+    from mlflow.entities import Metric, RunTag
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(ctx.tracking_uri)
+    now = int(time.time() * 1000)
+    for final in finals:
+        if not final.get("skipped"):
+            client.log_batch(
+                final["run_id"],
+                metrics=[Metric(k, float(v), now, 0) for k, v in values.items()],
+                tags=[RunTag(k, v) for k, v in tags.items()],
+            )
+
+
 def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:
     """The Ray Tune function trainable: one trial = ``config['trial']`` (:meth:`Trial.to_config`).
 
-    The per-trial process settings are made here, first: Tune starts every trial in a fresh actor
-    process (``reuse_actors=False``) and nothing before this line imports jax.
+    The process settings are made first (once per process, :func:`_configure_once`): nothing
+    before this line imports jax. The trial is timed by phase (module docstring).
     """
+    called_at = time.time()
     from ray import tune
 
-    from spot import runtime
+    from spot import phases
 
     context = tune.get_context()
     need = context.get_trial_resources().required_resources
-    cpus = max(1, int(need.get("CPU", 1)))
-    with cpu_slots(cpus):
-        runtime.configure()  # spot's XLA flag and MUJOCO_GL
-        configure_process(cpus, float(need.get("GPU", 0.0)))
-        run_trial(
-            config["trial"]["overrides"],
-            config["trial"]["seeds"],
-            ctx,
-            trial_id=context.get_trial_id(),
-            report=tune.report,
-            run_fn=run_fn,
-            vmap=bool(config["trial"].get("vmap", False)),
-        )
+    cpus, gpus = max(1, int(need.get("CPU", 1))), float(need.get("GPU", 0.0))
+    startup, cpu0 = _startup_s(ctx, called_at), _cpu_s()
+    reused = _PROCESS["settings"] is not None
+    try:
+        with phases.measure("other") as clock, cpu_slots(cpus) as pinned:
+            with phases.phase("startup"):
+                _configure_once(cpus, gpus)
+                import jax  # noqa: F401 - the imports a trial needs, timed as start-up
+                import mlflow  # noqa: F401
+
+                from spot import pipeline  # noqa: F401
+
+                phases.listen_to_compiles()
+            clock.add("startup", startup)
+            finals = run_trial(
+                config["trial"]["overrides"],
+                config["trial"]["seeds"],
+                ctx,
+                trial_id=context.get_trial_id(),
+                report=tune.report,
+                run_fn=run_fn,
+                vmap=bool(config["trial"].get("vmap", False)),
+            )
+            cpu_s, spent = _cpu_s() - cpu0, clock.read()
+            values = {f"time/trial_{k}_s": v for k, v in spent.items()}
+            values.update(
+                {
+                    "time/trial_wall_s": startup + clock.wall,
+                    "time/trial_cpu_s": cpu_s,
+                    "time/trial_cpus": float(len(pinned) or len(os.sched_getaffinity(0))),
+                }
+            )
+            values["trial/cpu_util"] = cpu_s / max(clock.wall * values["time/trial_cpus"], 1e-9)
+            tags = {"trial_device": phases.devices(), "trial_process": "reused" if reused else "new"}
+        _log_breakdown(ctx, finals, values, tags)
+    finally:
+        _PROCESS["last_end"] = time.time()

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
+from spot import phases
 from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
@@ -212,6 +213,7 @@ def environment() -> dict[str, Any]:
     }
 
 
+@functools.cache  # 0.4-1 s a call; the packages do not change while a process runs
 def installed_distributions() -> dict[str, str]:
     """``{name: version}`` of every installed distribution (what ``pip freeze`` lists)."""
     out = {}
@@ -487,7 +489,7 @@ def start_run(
 
     uri = resolve_uri(cfg.tracking.uri)
     prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time
-    client = MlflowClient(uri)
+    client = phases.timed_calls(MlflowClient(uri))  # its calls are a sweep trial's 'tracking' phase
     exp_id = experiment_id(cfg.tracking.experiment, uri)
     close_dead_runs(client, [exp_id])  # runs left RUNNING by dead processes of this host
     tags = {**run_tags(cfg, card, extra_tags), **process_tags()}
