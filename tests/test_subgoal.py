@@ -113,6 +113,63 @@ def test_make_triplets_by_hand():
     }
 
 
+def test_triplet_segments_and_cvae_split_by_segment():
+    """Issue 11, bug 6: the CVAE's held-out triplets are whole segments; no preferred segment has
+    triplets on both sides of the split (the stage passes extract_with_segments' ids as groups)."""
+    import jax
+
+    from spot.subgoal import cvae
+
+    obs = (10.0 * np.arange(3)[:, None] + np.arange(5)[None, :])[..., None]
+    mask = np.array([[0, 1, 0, 0, 1], [0, 0, 1, 0, 0], [0, 0, 0, 0, 0]], bool)
+    (s, _, _), seg, _ = extract.make_triplets_with_segments(obs, -obs, mask)
+    np.testing.assert_array_equal(seg, [0, 0, 0, 0, 0, 1, 1, 1])
+    np.testing.assert_array_equal(s[:, 0] // 10, seg)  # obs[i, t] = 10 i + t
+    (_, _, g), seg, _ = extract.make_triplets_with_segments(obs, -obs, mask, "interval", draws=4)
+    np.testing.assert_array_equal(g[:, 0] // 10, seg)
+    groups = np.repeat(np.arange(40), 7)  # 40 segments of 7 triplets
+    for k in range(5):
+        train_idx, held_idx = cvae._split(jax.random.key(k), groups.size, 0.1, groups)
+        assert held_idx.size == 4 * 7 and train_idx.size + held_idx.size == groups.size
+        assert not set(groups[train_idx]) & set(groups[held_idx])
+    # extract() on real segments returns the preferred segment of each triplet
+    seg_a = extract.Segments(np.arange(20.0).reshape(1, 10, 2), np.zeros((1, 10, 1)), R[None], W[None])
+    two = extract.Segments(*(np.concatenate([x, x]) for x in seg_a))
+    trip, seg, _, info = extract.extract_with_segments(two, two, np.array([0.0, 1.0]), SubgoalConfig(top_k=10.0))
+    np.testing.assert_array_equal(seg, np.repeat([0, 1], 10))
+    assert trip.s.shape[0] == seg.size == info["subgoal/num_triplets"]
+
+
+def test_cvae_stage_passes_segments_as_groups(monkeypatch):
+    from types import SimpleNamespace
+
+    from spot import config, stages
+    from spot.subgoal import cvae
+
+    seen = {}
+
+    def fake_train(key, s, a, g, cfg, stats, progress=True, **kw):
+        seen.update(kw)
+        return "params", []
+
+    monkeypatch.setattr(cvae, "train_cvae", fake_train)
+    tracker = SimpleNamespace(set_tags=lambda tags: None, run_id="r")
+    ctx = SimpleNamespace(
+        cfg=config.load(None, ["budget=tiny"]),
+        keys={"cvae": None},
+        ds=SimpleNamespace(observations=np.zeros((4, 1), np.float32)),
+        progress=False,
+        tracker=tracker,
+        cached=lambda name, deps, compute: (compute(), "key"),
+        log=lambda *a, **k: None,
+    )
+    monkeypatch.setattr(stages, "save_model", lambda *a, **k: None)
+    trip = extract.Triplets(np.zeros((3, 1)), np.zeros((3, 1)), np.zeros((3, 1)))
+    rewards = SimpleNamespace(source=SimpleNamespace(cache_key="reward-key"))
+    stages.cvae_stage(ctx, (trip, np.zeros((1, 1)), np.array([4, 4, 9])), rewards)
+    np.testing.assert_array_equal(seen["groups"], [4, 4, 9])
+
+
 def test_extract_end_to_end():
     obs = np.arange(20.0).reshape(1, 10, 2)
     seg_good = extract.Segments(obs, np.zeros((1, 10, 1)), R[None], W[None])
