@@ -15,7 +15,11 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # (level, layer, module prefixes), lowest first. A module belongs to the layer with its longest prefix.
 LAYERS = [
-    (0, "base", ["spot", "spot.runtime", "spot.batches", "spot.nets", "spot.loop", "spot.cache", "spot.store"]),
+    (
+        0,
+        "base",
+        ["spot", "spot.runtime", "spot.phases", "spot.batches", "spot.nets", "spot.loop", "spot.cache", "spot.store"],
+    ),
     (1, "data", ["spot.data"]),
     (2, "config", ["spot.config"]),
     (3, "envs", ["spot.envs"]),
