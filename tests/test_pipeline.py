@@ -163,3 +163,53 @@ def test_baselines_run_end_to_end(method, tmp_path, spot_dirs, tiny_drawer, fres
         assert run.data.tags["cache.reward"] == "miss"
         again = _run(_cfg(tmp_path, f"method={method}", "iql.steps=100"))
         assert again.data.tags["cache.reward"] == "hit" and again.data.tags["cache.relabel"] == "hit"
+
+
+@pytest.mark.parametrize("method", ["spot", "pt"])
+def test_policy_reward_is_normalised_model_reward_plus_lambda_shape(
+    method, tmp_path, spot_dirs, tiny_drawer, monkeypatch
+):
+    """Eq. 13 in the pipeline: SPOT's policy trains on normalise(r_hat) + lambda (1 + cos(s', g_hat)) / 2
+    with g_hat = G(s, a) (prior mean); PT trains on normalise(r_hat) alone, although its run also
+    extracts subgoals and trains the CVAE for the Fig. 2 diagnostics."""
+    import dataclasses
+
+    from spot import stages
+    from spot.reward import relabel
+    from spot.subgoal import cvae
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+    seen = {}
+    shaping_stage = stages.shaping_stage
+
+    def capture_shaping(ctx, rewards, subgoals):
+        seen.update(ctx=ctx, rewards=rewards, subgoals=subgoals)
+        return shaping_stage(ctx, rewards, subgoals)
+
+    kind = stages.REWARD_KINDS["pt"]
+
+    def capture_policy(ctx, shaped, labelled):
+        seen["policy_reward"] = np.asarray(shaped.reward)
+        return kind.policy(ctx, shaped, labelled)
+
+    monkeypatch.setattr(stages, "shaping_stage", capture_shaping)
+    monkeypatch.setitem(stages.REWARD_KINDS, "pt", dataclasses.replace(kind, policy=capture_policy))
+    cfg = _cfg(tmp_path, f"method={method}", "shaping.weight=0.5", "iql.steps=100")
+    assert cfg.subgoal.diagnostics and cfg.relabel.normalize == "iql"
+    pipeline.run(cfg, progress=False)
+
+    ctx, rewards, subgoals = seen["ctx"], seen["rewards"], seen["subgoals"]
+    ds = ctx.ds
+    assert subgoals is not None  # both methods trained the CVAE
+    scale = stages.normalisation_scale(cfg, ctx.env_name)
+    normalised = relabel.normalize_rewards(rewards.model, ds, "iql", scale)
+    np.testing.assert_allclose(rewards.normalised, normalised, rtol=1e-6)
+    if method == "pt":
+        np.testing.assert_array_equal(seen["policy_reward"], rewards.normalised)
+        return
+    g_hat = np.asarray(cvae.generate(subgoals.cvae_params, ds.observations, ds.actions), np.float64)
+    s_next = ds.next_observations.astype(np.float64)
+    cos = np.sum(s_next * g_hat, 1) / (np.linalg.norm(s_next, axis=1) * np.linalg.norm(g_hat, axis=1))
+    expected = normalised + 0.5 * (1.0 + cos) / 2.0
+    np.testing.assert_allclose(seen["policy_reward"], expected, rtol=1e-4, atol=1e-5)
+    assert not np.allclose(seen["policy_reward"], normalised)
