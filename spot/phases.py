@@ -66,13 +66,15 @@ class Clock:
         self.totals = dict.fromkeys(PHASES, 0.0)
         self.stack = [base]
         self.start = self.since = time.perf_counter()
+        self.read_wall = 0.0
         self.start_wall = time.time()
         self.spans: list[list[float]] = []  # compile spans (wall clock), merged
 
-    def _switch(self) -> None:
+    def _switch(self) -> float:
         now = time.perf_counter()
         self.totals[self.stack[-1]] += now - self.since
         self.since = now
+        return now
 
     def push(self, name: str) -> None:
         if name not in PHASES:
@@ -95,8 +97,9 @@ class Clock:
         self.totals[name] += seconds
 
     def read(self) -> dict[str, float]:
-        """Seconds per phase so far (their sum is :attr:`wall` plus what :meth:`add` added)."""
-        self._switch()
+        """Seconds per phase so far; their sum is :attr:`read_wall` (the clock's wall time at this
+        read, from ``perf_counter``) plus what :meth:`add` added."""
+        self.read_wall = self._switch() - self.start
         return dict(self.totals)
 
     @property

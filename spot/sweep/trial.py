@@ -425,12 +425,12 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
             values = {f"time/trial_{k}_s": v for k, v in spent.items()}
             values.update(
                 {
-                    "time/trial_wall_s": startup + clock.wall,
+                    "time/trial_wall_s": startup + clock.read_wall,
                     "time/trial_cpu_s": cpu_s,
                     "time/trial_cpus": float(len(pinned) or len(os.sched_getaffinity(0))),
                 }
             )
-            values["trial/cpu_util"] = cpu_s / max(clock.wall * values["time/trial_cpus"], 1e-9)
+            values["trial/cpu_util"] = cpu_s / max(clock.read_wall * values["time/trial_cpus"], 1e-9)
             tags = {"trial_device": phases.devices(), "trial_process": "reused" if reused else "new"}
         _log_breakdown(ctx, finals, values, tags)
     finally:
