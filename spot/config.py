@@ -157,7 +157,9 @@ class RewardConfig:
         "epochs as the PT repo counts them, epochs * (floor(N / reward.batch_size) + 1) steps for N training queries",
         choices=("steps", "epochs"),
     )
-    epochs: int = F(10_000, "MR/PT epochs for reward.length=epochs (PT repo / authors' scripts: 10000)", range=(1, None))
+    epochs: int = F(
+        10_000, "MR/PT epochs for reward.length=epochs (PT repo / authors' scripts: 10000)", range=(1, None)
+    )
     batch_size: int = F(256, "preference pairs per step", range=(1, None))
     clip_action: float = F(
         0.0,
@@ -311,6 +313,24 @@ class IQLConfig:
         "updates per jitted lax.scan chunk (a run does exactly iql.steps: the last chunk is shorter when iql.steps is "
         "not a multiple)",
         range=(1, None),
+    )
+    actor_std: str = F(
+        "state_independent",
+        "actor log-std: state_independent = one learned vector (IQL reference); state_dependent = a linear head on "
+        "the actor's trunk (HPL's WiseRL IQL)",
+        choices=("state_independent", "state_dependent"),
+    )
+    log_std_min: float = F(
+        -5.0,
+        "lower clip of the actor's log-std (IQL reference -5; WiseRL HPL -7); the upper clip is 2",
+        range=(-20.0, 2.0),
+    )
+    actor_dist: str = F(
+        "gaussian",
+        "actor distribution: gaussian = N(tanh(MLP(s)), sigma) without squash correction (IQL reference); "
+        "tanh_gaussian = tanh-squashed N(MLP(s), sigma), log-prob with the tanh correction, action tanh(mean) "
+        "(WiseRL HPL)",
+        choices=("gaussian", "tanh_gaussian"),
     )
     clip_action: float = F(
         0.0,
@@ -562,6 +582,24 @@ _PT_PROTOCOL: dict[str, Any] = {
     "reward.clip_action": 0.999,
     "iql.clip_action": 1.0 - 1e-5,
 }
+
+# HPL's own IQL (WiseRL scripts/configs/hpl/tuned/*, row 41 of docs/fidelity.md) for `paper` and
+# `authors` (the authors' code has no HPL; it reports HPL from the HPL authors' codebase): the actor
+# choices at every budget, the sizes (batch 512, 3x256 networks) at budget paper only.
+HPL_IQL_CHOICES: dict[str, Any] = {
+    "iql.actor_std": "state_dependent",
+    "iql.log_std_min": -7.0,
+    "iql.actor_dist": "tanh_gaussian",
+}
+HPL_IQL_SIZES: dict[str, Any] = {"iql.batch_size": 512, "iql.hidden": (256, 256, 256)}
+
+
+def variant_method_preset(variant: str, method: str, budget: str) -> dict[str, Any]:
+    """What a variant changes for one method only (HPL's own IQL settings)."""
+    if variant in ("paper", "authors") and method == "hpl":
+        return {**HPL_IQL_CHOICES, **(HPL_IQL_SIZES if budget == "paper" else {})}
+    return {}
+
 
 # PT README / SGPbrl hyperparameter.sh query counts; robomimic: the PT label files' counts.
 PT_QUERY_COUNTS = {"-medium-expert": 100, "-medium-replay": 500, "-ph": 100, "-mh": 500}
@@ -1011,6 +1049,7 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat.update(suite_preset(data_name, method, budget))
     variant = _coerce("variant", user.get("variant", ExperimentConfig.variant))
     flat.update(VARIANT_PRESETS[variant])
+    flat.update(variant_method_preset(variant, method, budget))
     counts = _coerce("labels.query_counts", user.get("labels.query_counts", flat["labels.query_counts"]))
     if counts == "pt" and pt_query_count(data_name) is not None:
         flat["labels.num_queries"] = pt_query_count(data_name)  # below the YAML file and overrides

@@ -308,3 +308,30 @@ def test_shipped_human_labels_are_package_data():
     assert "data/pt_human_labels/*/*" in text
     names = sorted(p.parent.name for p in SHIPPED.glob("*/label_human"))
     assert len(names) == 8 and (SHIPPED / "PROVENANCE.md").is_file()
+
+
+# --------------------------------------------------------------------------- row 41: HPL's own IQL
+# WiseRL scripts/configs/hpl/tuned/*: batch 512, 3x256, squashed Gaussian, state-dependent log-std in
+# [-7, 2]; the sizes at budget paper only (presets set no sizes below it).
+HPL_ROW = {
+    "iql.actor_std": ("state_independent", "state_dependent", "state_dependent"),
+    "iql.log_std_min": (-5.0, -7.0, -7.0),
+    "iql.actor_dist": ("gaussian", "tanh_gaussian", "tanh_gaussian"),
+}
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_hpl_iql_settings_per_variant(variant):
+    i = VARIANTS.index(variant)
+    for budget, sizes in (("paper", (512, (256, 256, 256))), ("small", (256, (256, 256)))):
+        flat = config.to_flat(
+            config.load(
+                None, ["method=hpl", f"budget={budget}", "data.name=hopper-medium-replay", f"variant={variant}"]
+            )
+        )
+        for key, values in HPL_ROW.items():
+            assert flat[key] == values[i], (key, budget)
+        want = sizes if variant != "spot" else (256, (256, 256))
+        assert (flat["iql.batch_size"], flat["iql.hidden"]) == want, budget
+    spot_run = _flat(f"variant={variant}")  # other methods keep the reference IQL actor
+    assert spot_run["iql.actor_std"] == "state_independent" and spot_run["iql.actor_dist"] == "gaussian"

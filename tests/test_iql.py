@@ -151,6 +151,51 @@ def test_value_actor_and_critic_losses_by_hand(data, order):
     np.testing.assert_allclose(m["iql/target_mean"], target.mean(), rtol=1e-5, atol=1e-6)
 
 
+def test_tanh_gaussian_log_prob_by_hand():
+    mu = jnp.array([[0.0, 1.0]])
+    log_std = jnp.array([[0.0, math.log(0.5)]])
+    act = jnp.array([[0.5, 0.0]])
+    # a = tanh(u): log N(atanh(a); mu, sigma) - log(1 - a^2), summed over dims
+    u0, u1 = math.atanh(0.5), 0.0
+    dim0 = -0.5 * u0**2 - 0.5 * math.log(2 * math.pi) - math.log(1 - 0.25)
+    dim1 = -0.5 * ((u1 - 1.0) / 0.5) ** 2 - math.log(0.5) - 0.5 * math.log(2 * math.pi) - math.log(1.0)
+    np.testing.assert_allclose(iql.tanh_gaussian_log_prob(mu, log_std, act), [dim0 + dim1], rtol=1e-6)
+    cfg = dataclasses.replace(CFG, actor_dist="tanh_gaussian")
+    np.testing.assert_allclose(iql.actor_log_prob(cfg, mu, log_std, act), [dim0 + dim1], rtol=1e-6)
+    # actions at the bounds stay finite (clipped to 1 - 1e-6 before atanh)
+    assert np.isfinite(iql.tanh_gaussian_log_prob(mu, log_std, jnp.array([[1.0, -1.0]]))).all()
+
+
+def test_hpl_actor_state_dependent_std_squashed(data):
+    """HPL's WiseRL actor (iql.actor_std=state_dependent, log_std_min=-7, tanh_gaussian): the
+    log-std depends on the state and is clipped to [-7, 2]; the action is tanh(mu); one update of
+    the squashed actor's loss matches the formula."""
+    cfg = dataclasses.replace(CFG, actor_std="state_dependent", log_std_min=-7.0, actor_dist="tanh_gaussian")
+    state = iql.init_state(jax.random.key(1), 2, 2, cfg)
+    assert "log_std" not in state.actor.params["params"] and "Dense_1" in state.actor.params["params"]
+    obs = jnp.array([[0.0, 0.0], [0.9, -0.7], [-0.5, 0.3]])
+    mu, log_std = state.actor.apply_fn(state.actor.params, obs)
+    assert not np.allclose(log_std[0], log_std[1])
+    big = jax.tree.map(lambda p: p * 100.0, state.actor.params)
+    _, clipped = state.actor.apply_fn(big, obs)
+    assert float(clipped.min()) >= -7.0 and float(clipped.max()) <= 2.0
+    assert float(clipped.min()) == -7.0 or float(clipped.max()) == 2.0
+    np.testing.assert_allclose(iql.act(state.actor.params, obs, cfg), np.tanh(mu), rtol=1e-6)
+    default = iql.init_state(jax.random.key(1), 2, 2, CFG)  # the reference actor is unchanged
+    assert set(default.actor.params["params"]) == {"MLP_0", "Dense_0", "log_std"}
+
+    batch = jax.tree.map(lambda x: x[:16], data)
+    _, m = iql.update(state, batch, cfg)
+    q_bar = np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)).min(axis=0)
+    v = np.asarray(state.value.apply_fn(state.value.params, batch.obs))
+    w = np.minimum(np.exp(cfg.temperature * (q_bar - v)), 100.0)
+    mu, log_std = (np.asarray(x, np.float64) for x in state.actor.apply_fn(state.actor.params, batch.obs))
+    a = np.clip(np.asarray(batch.act, np.float64), -1 + 1e-6, 1 - 1e-6)
+    u = np.arctanh(a)
+    logp = np.sum(-0.5 * ((u - mu) / np.exp(log_std)) ** 2 - log_std - 0.5 * np.log(2 * np.pi) - np.log(1 - a**2), -1)
+    np.testing.assert_allclose(m["iql/actor_loss"], -np.mean(w * logp), rtol=1e-4)
+
+
 def test_check_finite_raises_with_step_and_name():
     with pytest.raises(NonFiniteError) as err:
         loop.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)

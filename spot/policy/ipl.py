@@ -300,7 +300,7 @@ def update(
 
     def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
         mean, log_std = state.actor.apply_fn(params, obs)
-        nll = -weights * iql.gaussian_log_prob(mean, log_std, act)
+        nll = -weights * iql.actor_log_prob(iql_cfg, mean, log_std, act)
         loss = mix(*split(nll), ipl_cfg.policy_replay_weight)
         return loss, {"ipl/actor_loss": loss, "ipl/log_std_mean": log_std.mean()}
 

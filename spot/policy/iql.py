@@ -7,7 +7,8 @@ One update (value, actor, critics, target) with the losses of the paper:
 * actor, eq. (7) (AWR): ``L_pi = -E[min(exp(beta (min_i Qbar_i(s, a) - V(s))), 100) log pi(a|s)]``;
   pi is a Gaussian with mean ``tanh(MLP(s))`` and a state-independent log-std clipped to [-5, 2],
   no tanh-squash correction (the reference's ``NormalTanhPolicy(state_dependent_std=False,
-  tanh_squash_distribution=False)``);
+  tanh_squash_distribution=False)``); ``iql.actor_std=state_dependent``, ``iql.log_std_min`` and
+  ``iql.actor_dist=tanh_gaussian`` give HPL's WiseRL actor (a log-std head, [-7, 2], squashed);
 * critics, eq. (6): ``L_Q = E[sum_i (Q_i(s, a) - r - gamma mask V(s'))^2]``, ``mask = 1 - terminal``;
 * target: ``Qbar <- tau_polyak Q + (1 - tau_polyak) Qbar``.
 
@@ -83,17 +84,31 @@ class IQLState(NamedTuple):
 
 # --------------------------------------------------------------------------- networks
 class Actor(nn.Module):
-    """Gaussian policy: mean ``tanh(MLP(s))``, state-independent ``log_std`` (clipped on use)."""
+    """Gaussian policy: mean ``tanh(MLP(s))``, state-independent ``log_std`` (clipped on use).
+
+    ``std="state_dependent"``: ``log_std`` is a second linear head on the trunk (parameters
+    ``Dense_1``); ``squash=True``: the returned mean is the pre-tanh ``mu`` of a tanh-squashed
+    Gaussian (:func:`actor_log_prob`; the action is ``tanh(mu)``). Both are HPL's WiseRL actor
+    (``iql.actor_std``, ``iql.actor_dist``); the defaults keep the reference IQL's parameters.
+    """
 
     hidden: tuple[int, ...]
     act_dim: int
+    std: str = "state_independent"
+    log_std_min: float = LOG_STD_MIN
+    squash: bool = False
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
         h = MLP(self.hidden, activate_final=True, kernel_init=orthogonal_init())(obs)
-        mean = nn.tanh(nn.Dense(self.act_dim, kernel_init=orthogonal_init())(h))
-        log_std = self.param("log_std", nn.initializers.zeros, (self.act_dim,))
-        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+        mean = nn.Dense(self.act_dim, kernel_init=orthogonal_init())(h)
+        if not self.squash:
+            mean = nn.tanh(mean)
+        if self.std == "state_dependent":
+            log_std = nn.Dense(self.act_dim, kernel_init=orthogonal_init())(h)
+        else:
+            log_std = self.param("log_std", nn.initializers.zeros, (self.act_dim,))
+        return mean, jnp.clip(log_std, self.log_std_min, LOG_STD_MAX)
 
 
 class Value(nn.Module):
@@ -127,10 +142,15 @@ class Critics(nn.Module):
         return jnp.stack([Critic(self.hidden)(obs, act) for _ in range(NUM_CRITICS)])
 
 
+def actor_net(cfg: IQLConfig, act_dim: int) -> Actor:
+    """The actor module of ``cfg`` (``iql.actor_std``, ``iql.log_std_min``, ``iql.actor_dist``)."""
+    return Actor(tuple(cfg.hidden), act_dim, cfg.actor_std, cfg.log_std_min, cfg.actor_dist == "tanh_gaussian")
+
+
 @functools.cache
 def _nets(cfg: IQLConfig, act_dim: int) -> tuple[Actor, nn.Module, Value]:
     hidden = tuple(cfg.hidden)
-    return Actor(hidden, act_dim), Critics(hidden), Value(hidden)
+    return actor_net(cfg, act_dim), Critics(hidden), Value(hidden)
 
 
 @functools.cache
@@ -174,6 +194,24 @@ def gaussian_log_prob(mean: jax.Array, log_std: jax.Array, act: jax.Array) -> ja
     """``log N(act; mean, diag(exp(log_std)^2))`` summed over the last axis."""
     z = (act - mean) * jnp.exp(-log_std)
     return jnp.sum(-0.5 * jnp.square(z) - log_std - 0.5 * math.log(2.0 * math.pi), axis=-1)
+
+
+SQUASH_EPS = 1e-6  # dataset actions clipped to +-(1 - eps) before atanh
+
+
+def tanh_gaussian_log_prob(mu: jax.Array, log_std: jax.Array, act: jax.Array) -> jax.Array:
+    """``log pi(a)`` of ``a = tanh(u)``, ``u ~ N(mu, exp(log_std)^2)``: ``log N(atanh(a); mu, sigma)
+    - sum log(1 - a^2)``, with ``a`` clipped to ``±(1 - SQUASH_EPS)``."""
+    a = jnp.clip(act, -1.0 + SQUASH_EPS, 1.0 - SQUASH_EPS)
+    return gaussian_log_prob(mu, log_std, jnp.arctanh(a)) - jnp.sum(jnp.log1p(-jnp.square(a)), axis=-1)
+
+
+def actor_log_prob(cfg: IQLConfig, mean: jax.Array, log_std: jax.Array, act: jax.Array) -> jax.Array:
+    """The actor's ``log pi(a | s)`` from its outputs: Gaussian, or tanh-squashed Gaussian
+    (``iql.actor_dist``)."""
+    if cfg.actor_dist == "tanh_gaussian":
+        return tanh_gaussian_log_prob(mean, log_std, act)
+    return gaussian_log_prob(mean, log_std, act)
 
 
 # --------------------------------------------------------------------------- state and update
@@ -250,7 +288,7 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
 
     def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
         mean, log_std = state.actor.apply_fn(params, batch.obs)
-        log_prob = gaussian_log_prob(mean, log_std, batch.act)
+        log_prob = actor_log_prob(cfg, mean, log_std, batch.act)
         loss = -(weights * log_prob).mean()
         return loss, {"iql/actor_loss": loss, "iql/log_std_mean": log_std.mean()}
 
@@ -392,7 +430,8 @@ def train(
 
 @functools.partial(jax.jit, static_argnames="cfg")
 def act(actor_params: Params, obs: jax.Array, cfg: IQLConfig) -> jax.Array:
-    """Deterministic (mean) action for ``obs [..., obs_dim]`` -> ``[..., act_dim]`` in [-1, 1]."""
-    act_dim = actor_params["params"]["log_std"].shape[-1]
-    mean, _ = Actor(tuple(cfg.hidden), act_dim).apply(actor_params, jnp.asarray(obs, jnp.float32))
-    return mean
+    """Deterministic (mean) action for ``obs [..., obs_dim]`` -> ``[..., act_dim]`` in [-1, 1]
+    (``tanh(mu)`` for the squashed actor)."""
+    act_dim = actor_params["params"]["Dense_0"]["bias"].shape[-1]
+    mean, _ = actor_net(cfg, act_dim).apply(actor_params, jnp.asarray(obs, jnp.float32))
+    return jnp.tanh(mean) if cfg.actor_dist == "tanh_gaussian" else mean
