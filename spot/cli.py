@@ -285,6 +285,8 @@ def _sweep(args: argparse.Namespace) -> int:
             max_concurrent=args.max_concurrent,
             tracking_uri=args.tracking_uri,
             storage=args.storage,
+            store=args.store,
+            tracking_host=args.tracking_host,
         )
     except sweep.Interrupted as e:
         print(f"interrupted: {e}", file=sys.stderr)
@@ -703,6 +705,16 @@ def _add_sweep(sub: Any) -> None:
     )
     d.add_argument("--tracking-uri", help="MLflow tracking URI (default: a loopback server on ./spot_runs/mlflow.db)")
     d.add_argument("--storage", default="spot_runs/ray", help="Ray Tune storage folder")
+    d.add_argument(
+        "--store",
+        help="store every node shares datasets and stage entries through: a folder on a shared filesystem "
+        "or s3://bucket/prefix (default: the file's store:, else $SPOT_STORE, else local folders)",
+    )
+    d.add_argument(
+        "--tracking-host",
+        help="with --address: bind the MLflow server spot starts to this address (e.g. 0.0.0.0) so trials on "
+        "other nodes reach it; unauthenticated, see docs/sweeps.md (default: 127.0.0.1)",
+    )
     d.add_argument("--dry-run", action="store_true", help="list the trials (axes, seeds) and exit; launches nothing")
     d.set_defaults(fn=_sweep)
 

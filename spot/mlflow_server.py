@@ -96,6 +96,10 @@ class MlflowServer:
       artifacts: folder the server stores artifacts in (``--artifacts-destination``); trials
         upload through the server, so they never need the path themselves.
       log_path: file for the server's stdout/stderr (default ``<artifacts>/../mlflow-server.log``).
+      host: the address the server binds (``--host``): loopback unless asked otherwise (a cluster
+        sweep's ``--tracking-host``).
+      advertise: the host name in :attr:`uri`, the address clients reach the server at (default
+        ``host``; give it when ``host`` is ``0.0.0.0``).
     """
 
     def __init__(
@@ -106,10 +110,12 @@ class MlflowServer:
         host: str = "127.0.0.1",
         port: int | None = None,
         log_path: Path | None = None,
+        advertise: str | None = None,
     ) -> None:
         self.backend_uri = backend_uri
         self.artifacts = artifacts.resolve()
         self.host = host
+        self.advertise = advertise or host
         self.port = port or free_port(host)
         self.log_path = log_path or self.artifacts.parent / "mlflow-server.log"
         self._proc: subprocess.Popen[bytes] | None = None
@@ -118,7 +124,7 @@ class MlflowServer:
 
     @property
     def uri(self) -> str:
-        return f"http://{self.host}:{self.port}"
+        return f"http://{self.advertise}:{self.port}"
 
     def server_env(self) -> dict[str, str]:
         """The server's environment: ours, telemetry off unless set, no job execution, no

@@ -296,3 +296,24 @@ def test_a_dataset_built_on_one_node_is_fetched_not_rebuilt_on_another(s3_env, t
     monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path / "node1"))
     registry.build("drawer-open", "tiny", 0, progress=False)
     assert versions(client, f"{prefix}-later/data/{built.name}")[f"{prefix}-later/data/{built.name}"] == 1
+
+
+# --------------------------------------------------------------------------- the sweep file's key
+def test_the_sweep_files_store_key(tmp_path):
+    from spot import sweep
+
+    path = tmp_path / "s.yaml"
+    path.write_text("base: {method: oracle}\nstore: {uri: s3://b/p/, endpoint_url: http://h:9000}\n")
+    s = sweep.load(path)
+    assert (s.store, dict(s.store_options)) == ("s3://b/p", {"endpoint_url": "http://h:9000"})
+    path.write_text("base: {method: oracle}\nstore: shared/store\n")
+    assert sweep.load(path).store == str(Path.cwd() / "shared" / "store")
+    for text, match in [
+        ("store: {uri: s3://b, region: x}\n", r"'store': 'region': unknown store option"),
+        ("store: {endpoint_url: http://h}\n", r"'store.uri': missing"),
+        ("store: gs://b/p\n", r"'store': 'gs://b/p': expected a folder path"),
+    ]:
+        path.write_text("base: {method: oracle}\n" + text)
+        with pytest.raises(SpotError, match=match) as info:
+            sweep.load(path)
+        assert str(path) in str(info.value)

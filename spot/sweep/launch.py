@@ -74,6 +74,7 @@ class _Store:
         return self.get_uri()
 
 
+LOOPBACK = "127.0.0.1"
 _SWEEP_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks", "databricks-uc")
 
 
@@ -96,9 +97,44 @@ def _check_tracking_uri(uri: str) -> str:
     return uri
 
 
+def _check_tracking_host(host: str | None, address: str | None, tracking_uri: str | None) -> None:
+    """``--tracking-host`` is for the server spot starts for a cluster sweep."""
+    from spot import tracking
+
+    if host is None:
+        return
+    if not address:
+        raise SpotError(
+            f"--tracking-host {host}: only for a cluster sweep (--address); a local sweep's server stays on loopback"
+        )
+    uri = tracking.given_uri(tracking_uri)
+    if uri and not uri.startswith("sqlite:"):
+        raise SpotError(
+            f"--tracking-host {host}: spot starts no server for --tracking-uri {uri}; give one or the other"
+        )
+    if not host.strip() or any(c in host for c in "/ :[]"):
+        raise SpotError(f"--tracking-host {host!r}: expected an IPv4 address or host name, e.g. 0.0.0.0")
+
+
+def _advertised_host(host: str, address: str | None) -> str:
+    """The address trials reach a server bound to ``host`` at: ``host`` itself, or for ``0.0.0.0``
+    this machine's address on the route to the Ray head (``address``)."""
+    if host != "0.0.0.0":
+        return host
+    peer, sep, port = (address or "").rpartition(":")
+    with contextlib.suppress(OSError):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # no packet is sent
+            s.connect((peer if sep and port.isdigit() else "10.255.255.255", int(port) if port.isdigit() else 1))
+            return s.getsockname()[0]
+    return socket.gethostbyname(socket.gethostname())
+
+
 @contextlib.contextmanager
-def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
-    """The tracking store of a launch; a SQLite store is served by a loopback server.
+def _tracking_store(
+    uri: str | None, root: Path, host: str | None = None, address: str | None = None
+) -> Iterator[_Store]:
+    """The tracking store of a launch; a SQLite store is served by a loopback server (bound to
+    ``host`` instead, for a cluster sweep's ``--tracking-host``).
 
     The server starts here but is only waited for by ``wait_ready()``, so that Ray can start
     meanwhile.
@@ -116,8 +152,24 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
     db.parent.mkdir(parents=True, exist_ok=True)
     backend = mlflow_server.sqlite_uri(db)
     artifacts = db.resolve().parent / "artifacts"
-    server = mlflow_server.MlflowServer(backend, artifacts, log_path=db.resolve().parent / "mlflow-server.log")
+    bind = host or LOOPBACK
+    server = mlflow_server.MlflowServer(
+        backend,
+        artifacts,
+        log_path=db.resolve().parent / "mlflow-server.log",
+        host=bind,
+        advertise=_advertised_host(bind, address),
+    )
     print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
+    if bind != LOOPBACK:
+        print(
+            f"WARNING: the MLflow server listens on {bind}:{server.port}, not on loopback (--tracking-host): "
+            "anyone who can reach that port can read, change and delete the runs and artifacts (MLflow's "
+            "server has no authentication). Keep it on a private network, firewalled to the cluster's "
+            "nodes (docs/sweeps.md, 'Multi-node sweeps').",
+            file=sys.stderr,
+            flush=True,
+        )
     server.start(wait=False)
     try:
         yield _Store(
@@ -129,9 +181,6 @@ def _tracking_store(uri: str | None, root: Path) -> Iterator[_Store]:
         )
     finally:
         server.stop()
-
-
-LOOPBACK = "127.0.0.1"
 
 
 def _local_ray_env() -> dict[str, str]:
@@ -166,7 +215,12 @@ def _init_ray(address: str | None) -> bool:
         "RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
         "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
     }  # no "View run" lines in the progress view
-    env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
+    from spot import store as store_lib
+
+    shared = {k: os.environ[k] for k in (store_lib.ENV_URI, store_lib.ENV_OPTIONS) if k in os.environ}
+    env_vars.update(shared)  # every node reads and writes the same store
+    if not (address and shared):  # with a shared store, each node of a cluster keeps its own local dirs
+        env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
     if address:
         _check_ray_address(address)
         try:
@@ -709,6 +763,8 @@ def run_sweep(
     storage: str | Path = DEFAULT_STORAGE,
     workdir: str | Path | None = None,
     run_fn: RunFn | None = None,
+    store: str | None = None,
+    tracking_host: str | None = None,
 ) -> list[Row]:
     """Run a sweep file end to end (``spot sweep``); return the summary rows.
 
@@ -724,6 +780,10 @@ def run_sweep(
       storage: Ray Tune storage folder (the launch's experiment is ``<storage>/<sweep id>``).
       workdir: where ``spot_runs/`` goes (default: the current directory).
       run_fn: the per-seed run function (default :func:`spot.pipeline.run`).
+      store: URI of the store the nodes share datasets and stage entries through (:mod:`spot.store`);
+        default: the file's ``store:``, else ``$SPOT_STORE``, else none (local folders).
+      tracking_host: with ``address`` and no server URI: bind the MLflow server spot starts to this
+        address (e.g. ``0.0.0.0``) so that trials on other nodes reach it; default loopback.
     """
     from spot import tracking
 
@@ -733,9 +793,10 @@ def run_sweep(
         raise SpotError(f"--max-concurrent {max_concurrent}: expected a positive number of trials")
     sweep = load(path, smoke=smoke)
     _check_tracking_uri(tracking.given_uri(tracking_uri))  # before anything is written
+    _check_tracking_host(tracking_host, address or os.environ.get("RAY_ADDRESS"), tracking_uri)
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
     state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
-    with _launch_lock(state_file, sweep.experiment):
+    with _launch_lock(state_file, sweep.experiment), _shared_store(sweep, store):
         return _launch(
             sweep,
             path,
@@ -748,7 +809,37 @@ def run_sweep(
             max_concurrent=max_concurrent,
             tracking_uri=tracking_uri,
             run_fn=run_fn,
+            tracking_host=tracking_host,
         )
+
+
+@contextlib.contextmanager
+def _shared_store(sweep: Sweep, uri: str | None) -> Iterator[None]:
+    """``$SPOT_STORE`` (and its options) for the launch: ``uri``, else the file's ``store:``, else as
+    set; the driver builds and uploads datasets there and Ray passes it to every trial."""
+    from spot import store as store_lib
+
+    uri = uri or sweep.store
+    env = store_lib.environment(uri, dict(sweep.store_options)) if uri else {}
+    old = {k: os.environ.get(k) for k in (store_lib.ENV_URI, store_lib.ENV_OPTIONS)}
+    if env:
+        os.environ.pop(store_lib.ENV_OPTIONS, None)
+        os.environ.update(env)
+    named = store_lib.configured()
+    print(
+        f"store: {named[0]} (datasets and stage entries shared by every node)"
+        if named
+        else "store: none (datasets and stage entries in each node's local folders)",
+        flush=True,
+    )
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 @contextlib.contextmanager
@@ -790,6 +881,7 @@ def _announce(
     address: str | None,
     max_concurrent: int | None,
     tracking_uri: str | None,
+    tracking_host: str | None = None,
 ) -> tuple[str | None, str]:
     """What the launch is (printed), the Ray address it uses and its resume command; refuses a
     trial that asks for more CPUs than a local machine has."""
@@ -814,10 +906,11 @@ def _announce(
             f"note: running on the Ray cluster at RAY_ADDRESS={address}; unset RAY_ADDRESS for a local sweep",
             flush=True,
         )
-    if address and not tracking.given_uri(tracking_uri):
+    if address and not tracking.given_uri(tracking_uri) and not tracking_host:
         print(
             "note: trials on other nodes cannot reach the loopback MLflow server; pass "
-            "--tracking-uri http://<host>:<port> of a server every node can reach",
+            "--tracking-uri http://<host>:<port> of a server every node can reach, or --tracking-host "
+            "to expose the one spot starts",
             flush=True,
         )
     if not address and sweep.resources["cpu"] > (os.cpu_count() or 1):  # before datasets are built
@@ -841,6 +934,7 @@ def _launch(
     max_concurrent: int | None,
     tracking_uri: str | None,
     run_fn: RunFn | None,
+    tracking_host: str | None = None,
 ) -> list[Row]:
     """:func:`run_sweep` once the launch holds its lock."""
     from spot import tracking
@@ -856,8 +950,9 @@ def _launch(
         address=address,
         max_concurrent=max_concurrent,
         tracking_uri=tracking_uri,
+        tracking_host=tracking_host,
     )
-    with _tracking_store(tracking_uri, root) as store:  # a served store starts while Ray and datasets do
+    with _tracking_store(tracking_uri, root, tracking_host, address) as store:  # a served store starts while Ray and datasets do
         client, ctx, errors, interrupted = _run_launch(
             sweep,
             store,

@@ -22,7 +22,19 @@ from typing import Any
 from spot import SpotError
 from spot import config as config_lib
 
-SWEEP_KEYS = ("name", "base", "grid", "zip", "seeds", "seed_mode", "resources", "max_concurrent", "table", "smoke")
+SWEEP_KEYS = (
+    "name",
+    "base",
+    "grid",
+    "zip",
+    "seeds",
+    "seed_mode",
+    "resources",
+    "max_concurrent",
+    "table",
+    "store",
+    "smoke",
+)
 SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources")
 SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
@@ -87,6 +99,11 @@ class Sweep:
     max_concurrent: int | None
     table: int | None = None
     """Paper table printed (ours beside the paper's) when the launch ends; see spot.tables."""
+    store: str | None = None
+    """URI of the store every node shares datasets and stage entries through (spot.store); None:
+    ``$SPOT_STORE``, else nothing shared."""
+    store_options: tuple[tuple[str, str], ...] = ()
+    """Store options (``endpoint_url``), as pairs."""
 
     @property
     def experiment(self) -> str:
@@ -213,6 +230,21 @@ def _table(value: Any, where: str) -> int | None:
     return value
 
 
+def _store(value: Any, where: str) -> tuple[str | None, tuple[tuple[str, str], ...]]:
+    """``store: URI`` or ``store: {uri: URI, endpoint_url: URL}`` -> (uri, options)."""
+    from spot import store as store_lib
+
+    if value is None:
+        return None, ()
+    if isinstance(value, dict):
+        rest = {k: v for k, v in value.items() if k != "uri"}
+        if "uri" not in value:
+            raise _err(where, "store.uri", "missing (the store's folder path or s3://bucket/prefix)")
+        options = store_lib.check_options(rest, f"{where}: 'store'")
+        return store_lib.check_uri(value["uri"], f"{where}: 'store.uri'"), tuple(sorted(options.items()))
+    return store_lib.check_uri(value, f"{where}: 'store'"), ()
+
+
 def _read(path: Path, where: str) -> dict[str, Any]:
     data = config_lib.read_yaml(path, where)  # size-bounded, UTF-8, no aliases, no duplicate keys
     if not isinstance(data, dict):
@@ -239,6 +271,7 @@ def _fields(data: dict[str, Any], where: str) -> dict[str, Any]:
         "resources": _resources(data.get("resources", {}), where),
         "max_concurrent": _max_concurrent(data.get("max_concurrent"), where, "max_concurrent"),
         "table": _table(data.get("table"), where),
+        **dict(zip(("store", "store_options"), _store(data.get("store"), where), strict=True)),
     }
 
 
