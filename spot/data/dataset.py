@@ -24,6 +24,7 @@ file stores ``next_observations`` we use them (the true next state); without the
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 from dataclasses import dataclass, field
 from typing import Any
@@ -71,6 +72,11 @@ class RawDataset:
         """The ``d4rl.qlearning_dataset`` view (see module docstring)."""
         n = len(self)
         keep = np.flatnonzero(~self.timeouts[: n - 1].astype(bool))  # rows 0..N-2, timeouts dropped
+        if keep.size == 0:
+            raise SpotError(
+                f"dataset '{self.name}': every one of its {n - 1} rows before the last is a timeout, so "
+                "it has no transitions (the qlearning view drops timeout rows); expected steps with timeouts = 0"
+            )
         if self.next_observations is not None:
             next_obs = self.next_observations[keep]
         else:
@@ -230,8 +236,10 @@ class Dataset:
         starts = np.asarray(starts, dtype=np.int64)
         if starts.ndim != 1:
             raise SpotError(f"{what} starts must be a 1-D array, got shape {starts.shape}")
-        if starts.size and (starts.min() < 0 or starts.max() + length > len(self)):
-            bad = int(np.argmax((starts < 0) | (starts + length > len(self))))
+        last = len(self) - length  # the last start whose segment fits; compared without adding to starts,
+        # which would overflow int64 for a start near 2**63 and wrap to a "valid" negative sum
+        if starts.size and (starts.min() < 0 or starts.max() > last):
+            bad = int(np.argmax((starts < 0) | (starts > last)))
             raise SpotError(
                 f"{what} {bad} starts at index {int(starts[bad])} with length {length}, past the end "
                 f"of dataset '{self.name}' ({len(self)} transitions); expected 0 <= start <= "
@@ -302,3 +310,29 @@ def raw_from_episodes(
         metadata=dict(metadata or {}),
         infos=infos,
     )
+
+
+@functools.lru_cache(maxsize=8)
+def _env_sizes(env_name: str) -> tuple[str, int, int]:
+    """``(env id, observation size, action size)`` of the evaluation env of ``env_name`` (built once)."""
+    from spot import envs
+
+    env = envs.make_env(env_name, 0)
+    try:
+        obs, act = env.observation_space.shape, env.action_space.shape
+        return envs.env_spec(env_name).env_id, int(np.prod(obs)), int(np.prod(act))
+    finally:
+        env.close()
+
+
+def check_against_env(ds: Dataset, env_name: str, where: str) -> None:
+    """Raise :class:`SpotError` unless the dataset's observation and action sizes are those of the
+    env its policy is evaluated in (checked before any training: a mismatch would otherwise fail
+    only at the first evaluation, after the reward model and much of IQL)."""
+    env_id, obs_dim, act_dim = _env_sizes(env_name)
+    for what, got, want in (("observation", ds.obs_dim, obs_dim), ("action", ds.act_dim, act_dim)):
+        if got != want:
+            raise SpotError(
+                f"{where}: {what}s have {got} dimensions, but the evaluation env of '{env_name}' ({env_id}) "
+                f"has {want}; expected a dataset recorded in that env"
+            )

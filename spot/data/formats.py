@@ -81,6 +81,19 @@ def _array(group: h5py.Group, key: str, path: Path, rank: int | None = None) -> 
     return node[()]
 
 
+def _flags(arr: np.ndarray, key: str, path: Path) -> np.ndarray:
+    """A 0/1 flag array (terminals, timeouts, dones) as bool; any other value is an error (a 3.5
+    would otherwise read as True)."""
+    if arr.dtype != np.bool_:
+        bad = np.flatnonzero((arr != 0) & (arr != 1))
+        if bad.size:
+            raise SpotError(
+                f"dataset file '{path}': '{key}' has the value {arr[bad[0]].item()!r} at row {int(bad[0])} "
+                f"({bad.size} rows not 0/1); expected flags 0 or 1"
+            )
+    return arr.astype(bool)
+
+
 def _raw_dataset(path: Path, **fields: Any) -> RawDataset:
     """Build a :class:`RawDataset`, prefixing any validation error with the file name."""
     try:
@@ -155,8 +168,8 @@ def read_d4rl_hdf5(path: str | Path) -> RawDataset:
         observations=arrays["observations"].astype(np.float32),
         actions=arrays["actions"].astype(np.float32),
         rewards=arrays["rewards"].astype(np.float32),
-        terminals=arrays["terminals"].astype(bool),
-        timeouts=arrays["timeouts"].astype(bool),
+        terminals=_flags(arrays["terminals"], "terminals", path),
+        timeouts=_flags(arrays["timeouts"], "timeouts", path),
         next_observations=None if next_obs is None else next_obs.astype(np.float32),
         name=path.stem,
         metadata=metadata,
@@ -324,7 +337,7 @@ def _robomimic_demo(
         "observations": _concat_obs(demo["obs"], keys, path, object_order),
         "actions": _array(demo, "actions", path, 2),
         "rewards": _array(demo, "rewards", path, 1),
-        "terminals": _array(demo, "dones", path, 1).astype(bool),
+        "terminals": _flags(_array(demo, "dones", path, 1), f"{demo.name.lstrip('/')}/dones", path),
     }
     if with_next:
         ep["next_observations"] = _concat_obs(demo["next_obs"], keys, path, object_order)

@@ -68,6 +68,11 @@ class Preferences:
                 raise SpotError(
                     f"preferences '{self.source}': '{key}' has dtype {arrays[key].dtype}; expected integers"
                 )
+            if arrays[key].size and int(arrays[key].max()) > np.iinfo(np.int64).max:  # exact: Python ints
+                raise SpotError(
+                    f"preferences '{self.source}': '{key}' has start index {int(arrays[key].max())}; expected "
+                    f"at most {np.iinfo(np.int64).max}"
+                )
         if not np.isin(arrays["labels"], (0.0, 0.5, 1.0)).all():
             raise SpotError(
                 f"preferences '{self.source}': labels {np.unique(arrays['labels'])}; expected values in {{0, 0.5, 1}}"
@@ -116,24 +121,39 @@ class Preferences:
             raise SpotError(f"preference file '{path}' does not exist")
         try:
             z = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, zipfile.BadZipFile) as err:
-            raise SpotError(f"preference file '{path}' is not a readable npz file ({err})") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise SpotError(
+                f"preference file '{path}' is not a readable npz file ({err or type(err).__name__})"
+            ) from None
         if not isinstance(z, np.lib.npyio.NpzFile):
             raise SpotError(f"preference file '{path}' holds a single array; expected an npz archive")
         with z:
-            fields = {k: z[k] for k in z.files}
+            fields = {}
+            for k in z.files:
+                try:
+                    fields[k] = z[k]
+                except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # object arrays, damage
+                    raise SpotError(
+                        f"preference file '{path}': array '{k}' cannot be read without pickles ({err}); "
+                        "expected numeric arrays as written by `spot labels make`"
+                    ) from None
         keys = ("starts_1", "starts_2", "labels", "segment_length", "source")
         missing = [k for k in keys if k not in fields]
         if missing:
             raise SpotError(f"preference file '{path}': missing keys {missing}; found {sorted(fields)}")
-        try:
-            return cls(
-                fields["starts_1"],
-                fields["starts_2"],
-                fields["labels"],
-                int(fields["segment_length"]),
-                str(fields["source"]),
+        length, source = fields["segment_length"], fields["source"]
+        if length.shape != () or length.dtype.kind not in "iu":
+            raise SpotError(
+                f"preference file '{path}': 'segment_length' is an array of shape {length.shape} and dtype "
+                f"{length.dtype}; expected one integer"
             )
+        if source.shape != () or source.dtype.kind not in "U":
+            raise SpotError(
+                f"preference file '{path}': 'source' has shape {source.shape} and dtype {source.dtype}; "
+                "expected one string"
+            )
+        try:
+            return cls(fields["starts_1"], fields["starts_2"], fields["labels"], int(length), str(source))
         except SpotError as err:
             raise SpotError(f"preference file '{path}': {err}") from None
 
@@ -296,6 +316,9 @@ def _unpickle_ints(path: Path) -> np.ndarray:
         raise SpotError(f"label file '{path}' holds a {type(value).__name__}; expected a list or numpy array")
     if not integers:
         raise SpotError(f"label file '{path}' holds other values; expected a 1-D sequence of integers")
+    big = max((int(v) for v in value), default=0)  # exact (Python ints): a uint64 or huge int does not wrap
+    if big > np.iinfo(np.int64).max:
+        raise SpotError(f"label file '{path}' holds the integer {big}; expected at most {np.iinfo(np.int64).max}")
     return np.asarray(value, dtype=np.int64)
 
 

@@ -109,49 +109,140 @@ def _lock(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+STALE_TEMP_S = 600.0  # a temp file of a dead process is removed once this old (another host may share the dir)
+_VERIFIED: set[tuple[str, int, int]] = set()  # (path, mtime_ns, size) of files this process verified
+
+
+def clean_stale_temp(folder: Path, min_age_s: float = STALE_TEMP_S) -> list[Path]:
+    """Remove ``*.tmp-<pid>`` files in ``folder`` left by killed writers: the process ``pid`` no
+    longer runs here and the file is older than ``min_age_s`` (the age guards a writer on another
+    host sharing the folder). Returns the removed paths."""
+    import re
+    import time
+
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for tmp in folder.iterdir():
+        m = re.search(r"\.tmp-(\d+)$", tmp.name)
+        if m is None or not tmp.is_file() or int(m[1]) == os.getpid():
+            continue
+        try:
+            os.kill(int(m[1]), 0)
+            continue  # alive
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError):  # alive (another user's), or not a pid
+            continue
+        try:
+            if time.time() - tmp.stat().st_mtime >= min_age_s:
+                tmp.unlink()
+                removed.append(tmp)
+        except FileNotFoundError:
+            pass
+    return removed
+
+
+def _damage(path: Path, card: dict[str, Any], record: bool = True) -> str | None:
+    """Why the built file ``path`` cannot be used, or None. A card with ``sha256`` is checked against
+    the file's; a card from before checksums (none recorded) is checked by reading the file, and
+    gets the checksum recorded when it reads."""
+    from spot.data import formats
+    from spot.data.fetch import sha256_file
+
+    st = path.stat()
+    stamp = (str(path), st.st_mtime_ns, st.st_size)
+    if stamp in _VERIFIED:
+        return None
+    want = card.get("sha256")
+    if want is not None:
+        if card.get("bytes") is not None and card["bytes"] != st.st_size:
+            return f"{st.st_size} bytes; its card records {card['bytes']}"
+        got = sha256_file(path)
+        if got != want:
+            return f"sha256 {got}; its card records {want}"
+    else:
+        try:
+            formats.read_d4rl_hdf5(path)
+        except SpotError as err:
+            return str(err)
+        if not record:  # a listing reads without the build lock: it leaves the card alone
+            return None
+        _write_card(path, {**card, "sha256": sha256_file(path), "bytes": st.st_size})
+    _VERIFIED.add(stamp)
+    return None
+
+
+def _write_card(path: Path, card: dict[str, Any]) -> None:
+    tmp = card_path(path).with_name(f"{card_path(path).name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(card, indent=2, default=str))
+    os.replace(tmp, card_path(path))
+
+
 def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True, force: bool = False) -> Path:
     """Build a registered dataset with its local recipe (once) and return the file path.
 
-    A cached build is reused unless ``force`` or its card's ``recipe_version`` differs from the
-    recipe's ``RECIPE_VERSION`` (recipes without one are never stale).
+    A cached build is reused unless ``force``, its card's ``recipe_version`` differs from the
+    recipe's ``RECIPE_VERSION`` (recipes without one are never stale), or the file is damaged: its
+    sha256 (recorded in the card) differs, or, for a card from before checksums, it does not read.
+    A damaged or stale build is rebuilt. Temp files of killed builds are removed first.
     """
     from spot.data import formats
+    from spot.data.fetch import sha256_file
 
     e = entry(name)
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
     path = dataset_path(e.name, size, seed)
     with _lock(path), store.dataset_lock(path):  # the shared store (spot.store): built once, on one node
+        clean_stale_temp(path.parent)
         store.fetch_dataset(path, card_path(path))  # a build another node uploaded
         recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
         version = getattr(recipe, "RECIPE_VERSION", None)
         if path.exists() and card_path(path).exists() and not force:
-            built = read_card(path).get("recipe_version")
-            if version is None or built == version:
+            card = _card_or_none(path)
+            built = card.get("recipe_version") if card is not None else None
+            if card is None:
+                why = f"its card {card_path(path)} is not a JSON object"
+            elif version is not None and built != version:
+                why = f"it was built by recipe version {built}; rebuilding with version {version}"
+            else:
+                why = _damage(path, card)
+                why = None if why is None else f"it is damaged ({why})"
+            if why is None:
                 store.publish_dataset(path, card_path(path), if_missing=True)  # built before the store was named
                 return path
-            if progress:
-                print(
-                    f"spot: {path.name} was built by recipe version {built}; rebuilding with version {version}",
-                    file=sys.stderr,
-                )
+            if progress or "damaged" in why:
+                print(f"spot: rebuilding {path.name}: {why}", file=sys.stderr)
         raw, card = recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
         card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
         if version is not None:
             card["recipe_version"] = version
         formats.write_d4rl_hdf5(raw, path, card)
-        tmp = card_path(path).with_suffix(f".tmp-{os.getpid()}")
-        tmp.write_text(json.dumps(card, indent=2, default=str))
-        os.replace(tmp, card_path(path))
+        st = path.stat()
+        _write_card(path, {**card, "sha256": sha256_file(path), "bytes": st.st_size})
+        _VERIFIED.add((str(path), st.st_mtime_ns, st.st_size))
         store.publish_dataset(path, card_path(path))
     return path
 
 
+def _card_or_none(path: Path) -> dict[str, Any] | None:
+    try:
+        card = json.loads(card_path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return card if isinstance(card, dict) else None
+
+
 def read_card(path: Path) -> dict[str, Any]:
+    """The card of a built file (``{}`` if none); :class:`SpotError` if it is not a JSON object."""
     cp = card_path(path)
-    if cp.exists():
-        return json.loads(cp.read_text())
-    return {}
+    if not cp.exists():
+        return {}
+    card = _card_or_none(path)
+    if card is None:
+        raise SpotError(f"dataset card '{cp}' is not a JSON object; rebuild with `spot data build --force`")
+    return card
 
 
 def load_raw(
@@ -186,14 +277,33 @@ def load(
 ) -> tuple[Dataset, dict[str, Any]]:
     """Like :func:`load_raw` but returns the ``qlearning_dataset`` view."""
     raw, card = load_raw(name, size, seed, source=source, progress=progress)
-    ds = raw.qlearning()
+    try:
+        ds = raw.qlearning()
+    except SpotError as err:
+        raise SpotError(f"dataset file '{card['path']}': {err}" if card.get("path") else str(err)) from None
     return ds.replace(name=card.get("name") or ds.name), card
 
 
+def check_fits_env(ds: Dataset, card: dict[str, Any], env_name: str) -> None:
+    """:func:`spot.data.dataset.check_against_env` for a loaded dataset, the error naming its file."""
+    from spot.data.dataset import check_against_env
+
+    where = f"dataset file '{card['path']}'" if card.get("path") else f"dataset '{card.get('name') or ds.name}'"
+    check_against_env(ds, env_name, where)
+
+
 def cached() -> list[dict[str, Any]]:
-    """Every built dataset in the cache dir, with its card."""
+    """Every built dataset in the cache dir, with its card and ``status``: ``ok``, or why it is
+    unusable (no card, damaged: it is rebuilt when next used)."""
     out = []
     for path in sorted(data_dir().glob("*.hdf5")):
-        card = read_card(path)
-        out.append({"path": str(path), **{k: card.get(k) for k in ("name", "size", "seed", "transitions", "episodes")}})
+        card = _card_or_none(path)
+        if card is None:
+            status = "no readable card (rebuilt when used)"
+        else:
+            why = _damage(path, card, record=False)
+            status = "ok" if why is None else f"damaged: {why} (rebuilt when used)"
+        card = card or {}
+        keys = ("name", "size", "seed", "transitions", "episodes")
+        out.append({"path": str(path), **{k: card.get(k) for k in keys}, "status": status})
     return out

@@ -186,6 +186,63 @@ def _save(result: sac.SACResult, path: Path) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+    _write_checksum(path)
+
+
+def checksum_path(path: Path) -> Path:
+    """The sidecar ``<cache file>.sha256`` holding the cache file's sha256 (the file itself, its
+    name and format are unchanged by it: a file cached before checksums still loads)."""
+    return path.with_name(path.name + ".sha256")
+
+
+def _write_checksum(path: Path) -> str:
+    from spot.data.fetch import sha256_file
+
+    digest = sha256_file(path)
+    side = checksum_path(path)
+    tmp = side.with_name(f"{side.name}.tmp-{os.getpid()}")
+    tmp.write_text(f"{digest}  {path.name}\n")
+    os.replace(tmp, side)
+    return digest
+
+
+def _load_checked(path: Path, env_id: str, seed: int, cfg: sac.SACConfig, progress: bool) -> sac.SACResult | None:
+    """The cached SAC run at ``path``, or None when it is damaged (then it is moved to
+    ``<name>.damaged`` and trained again). With a ``.sha256`` sidecar the file's sum must match it;
+    without one (cached before checksums) the file must load, and the sidecar is then written."""
+    from spot.data.fetch import sha256_file
+
+    side = checksum_path(path)
+    want = None
+    if side.exists():
+        try:
+            want = side.read_text().split()[0]
+        except (OSError, UnicodeDecodeError, IndexError):
+            want = ""
+    why = None
+    if want is not None and (got := sha256_file(path)) != want:
+        why = f"sha256 {got}, but {side.name} records {want or 'nothing readable'}"
+    else:
+        try:
+            result = _load(path, env_id, seed, cfg)
+        except MemoryError:
+            raise
+        except Exception as err:  # noqa: BLE001 - a truncated or altered msgpack can raise anything
+            why = f"it does not load ({type(err).__name__}: {err})"[:500]
+        else:
+            if want is None:
+                digest = _write_checksum(path)
+                if progress:
+                    print(
+                        f"spot: SAC cache {path.name} had no checksum; it loads, recorded sha256 {digest}",
+                        file=sys.stderr,
+                    )
+            return result
+    aside = path.with_suffix(".damaged")
+    os.replace(path, aside)
+    side.unlink(missing_ok=True)
+    print(f"spot: SAC cache {path} is damaged ({why}); moved to {aside.name}, training it again", file=sys.stderr)
+    return None
 
 
 def _load(path: Path, env_id: str, seed: int, cfg: sac.SACConfig) -> sac.SACResult:
@@ -221,8 +278,13 @@ def train_or_load_sac(
     with open(path.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
+            from spot.data.registry import clean_stale_temp
+
+            clean_stale_temp(path.parent)  # temp files of killed builds (dead pid, old)
             if path.exists():
-                return _load(path, env_id, seed, cfg), True
+                cached = _load_checked(path, env_id, seed, cfg, progress)
+                if cached is not None:
+                    return cached, True
             checkpoint = path.with_suffix(".ckpt")
             if progress and checkpoint.exists():
                 print(f"spot: resuming SAC {env_id} ({size}, seed {seed}) from {checkpoint}", file=sys.stderr)
