@@ -31,7 +31,10 @@ def _data_list(args: argparse.Namespace) -> None:
     if built:
         print("\nbuilt:")
         for b in built:
-            print(f"  {b['name']} size={b['size']} seed={b['seed']} transitions={b['transitions']}  {b['path']}")
+            print(
+                f"  {b['name']} size={b['size']} seed={b['seed']} transitions={b['transitions']}  {b['path']}"
+                + ("" if b["status"] == "ok" else f"  [{b['status']}]")
+            )
 
 
 def _data_build(args: argparse.Namespace) -> None:
@@ -298,6 +301,8 @@ def _sweep(args: argparse.Namespace) -> int:
 def _tables(args: argparse.Namespace) -> None:
     from spot import tables
 
+    if args.out:
+        tables.check_out(args.out)  # before reading any run
     if args.results:
         from spot import results
 
@@ -315,7 +320,7 @@ def _tables(args: argparse.Namespace) -> None:
     if args.table == 1 and args.format == "md":
         text += _aggregate_text(runs, args.metric)
     if args.out:
-        Path(args.out).write_text(text)
+        tables.write_out(args.out, text)
         print(f"wrote {args.out}")
     else:
         print(text, end="")

@@ -24,7 +24,7 @@ from typing import Any
 from spot import stages
 from spot.config import ExperimentConfig
 from spot.stages import Context
-from spot.tracking import Tracker
+from spot.tracking import Tracker, record
 
 
 def run(
@@ -46,9 +46,12 @@ def run(
     with _tracking(cfg, card, tracker, parent_run_id, extra_tags, ds) as tr:
         ctx = Context(cfg, ds, card, env_name, tr, _keys(cfg.seed), progress, on_eval)
         ctx.times["time/data_s"] = data_s
-        labelled, shaped = before_policy(ctx, kind)
-        policy = ctx.stage("iql", kind.policy, shaped, labelled)
-        return stages.finish(ctx, policy, t_start)
+        try:
+            labelled, shaped = before_policy(ctx, kind)
+            policy = ctx.stage("iql", kind.policy, shaped, labelled)
+            return stages.finish(ctx, policy, t_start)
+        finally:
+            record.remove_run_temp(ctx.artifacts)  # its files were logged to the run
 
 
 def before_policy(ctx: Context, kind: stages.RewardKind) -> tuple[stages.Labelled | None, stages.Shaped]:

@@ -21,7 +21,6 @@ the scale IQL's hyperparameters expect.
 
 from __future__ import annotations
 
-import tempfile
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -34,7 +33,7 @@ import numpy as np
 from spot import SpotError, cache, phases
 from spot import config as config_lib
 from spot.config import ExperimentConfig
-from spot.tracking import Tracker
+from spot.tracking import Tracker, record
 
 
 # --------------------------------------------------------------------------- typed outputs
@@ -107,7 +106,7 @@ class Context:
     keys: dict[str, Any]  # PRNG keys per stage: reward, cvae, shaping, policy
     progress: bool = True
     on_eval: Callable[[dict[str, float]], None] | None = None
-    artifacts: Path = field(default_factory=lambda: Path(tempfile.mkdtemp(prefix="spot-run-")))
+    artifacts: Path = field(default_factory=lambda: record.run_temp_dir())  # $SPOT_CACHE_DIR/tmp
     times: dict[str, float] = field(default_factory=dict)
 
     def log(self, metrics: Mapping[str, Any], step: int | None = None) -> None:

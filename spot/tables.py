@@ -36,6 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import cache
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -866,3 +867,23 @@ def _text_table(table: pd.DataFrame, col_values: list[Any], width: int) -> str:
             left = "" if r == 0 else keys[r - 1]
             lines.append((left.ljust(key_w) + "".join("  " + cols[i][r].rjust(widths[i]) for i in block)).rstrip())
     return "\n".join(lines) + "\n"
+
+
+def check_out(path: str | Path) -> None:
+    """:class:`SpotError` unless ``--out`` names a file that can be written: its folder exists and
+    it is not a folder itself."""
+    out = Path(path)
+    folder = out.parent if str(out.parent) else Path(".")
+    if not folder.is_dir():
+        raise SpotError(f"--out {path}: folder '{folder}' does not exist; expected a file in an existing folder")
+    if out.is_dir():
+        raise SpotError(f"--out {path}: is a folder; expected a file name")
+
+
+def write_out(path: str | Path, text: str) -> None:
+    """Write a table to ``path`` (checked with :func:`check_out`); an OS error is a :class:`SpotError`."""
+    check_out(path)
+    try:
+        Path(path).write_text(text)
+    except OSError as err:
+        raise SpotError(f"--out {path}: cannot write it ({err.strerror})") from None

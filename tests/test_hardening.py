@@ -8,7 +8,9 @@ the pipeline (tests/sweep_driver.py), so a launch takes seconds of training-free
 from __future__ import annotations
 
 import ipaddress
+import json
 import os
+import platform
 import re
 import signal
 import socket
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from spot import SpotError
 from spot.mlflow_server import sqlite_uri
 
 HERE = Path(__file__).resolve().parent
@@ -554,3 +557,194 @@ def test_more_cpus_per_trial_than_the_cluster_has_is_refused_before_any_run(tmp_
         )
     )
     assert [r for r in squatter.requests if "runs" in r] == []
+
+
+# --------------------------------------------------------------------------- caches healed (item 5)
+def _fake_recipe(monkeypatch, calls: list):
+    """A registered 'fake-task' whose recipe builds a 20-row dataset and counts its builds."""
+    import types
+
+    import numpy as np
+
+    from spot.data import registry
+    from spot.data.dataset import RawDataset
+
+    def build(name, size, seed, cache_dir, progress=True):
+        calls.append(name)
+        rng = np.random.default_rng(len(calls))
+        n = 20
+        raw = RawDataset(
+            observations=rng.normal(size=(n, 3)).astype(np.float32),
+            actions=rng.uniform(-1, 1, size=(n, 2)).astype(np.float32),
+            rewards=rng.normal(size=n).astype(np.float32),
+            terminals=np.zeros(n, bool),
+            timeouts=np.arange(n) % 10 == 9,
+            name=name,
+        )
+        return raw, {"recipe": "fake"}
+
+    fake = types.ModuleType("spot.recipes.fake")
+    fake.RECIPE_VERSION, fake.build = 1, build
+    monkeypatch.setitem(sys.modules, "spot.recipes.fake", fake)
+    monkeypatch.setitem(registry.REGISTRY, "fake-task", registry.Entry("fake-task", "test", "fake", "fake"))
+
+
+@pytest.fixture
+def data_dir(tmp_path, monkeypatch):
+    from spot.data import registry
+
+    monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setattr(registry, "_VERIFIED", set())  # what this process verified: nothing yet
+    return tmp_path / "data"
+
+
+def test_a_built_dataset_carries_its_sha256_and_a_damaged_one_is_rebuilt(data_dir, monkeypatch, capsys):
+    from spot.data import registry
+    from spot.data.fetch import sha256_file
+
+    calls = []
+    _fake_recipe(monkeypatch, calls)
+    path = registry.build("fake-task", "tiny", 0, progress=False)
+    card = registry.read_card(path)
+    assert card["sha256"] == sha256_file(path) and card["bytes"] == path.stat().st_size
+    registry._VERIFIED.clear()
+    assert registry.build("fake-task", "tiny", 0, progress=False) == path and len(calls) == 1  # verified, reused
+    # truncated: listed as damaged, then rebuilt on use
+    path.write_bytes(path.read_bytes()[:100])
+    (listed,) = registry.cached()
+    assert listed["status"].startswith(f"damaged: 100 bytes; its card records {card['bytes']}")
+    registry.load("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 2 and "spot: rebuilding fake-task__tiny__seed0.hdf5: it is damaged (100 bytes" in (
+        capsys.readouterr().err
+    )
+    assert registry.cached()[0]["status"] == "ok"
+    # one byte changed, same size: the sum differs
+    registry._VERIFIED.clear()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 3 and registry.read_card(path)["sha256"] == sha256_file(path)
+
+
+def test_a_dataset_card_from_before_checksums_is_verified_by_reading_it(data_dir, monkeypatch):
+    from spot.data import registry
+    from spot.data.fetch import sha256_file
+
+    calls = []
+    _fake_recipe(monkeypatch, calls)
+    path = registry.build("fake-task", "tiny", 0, progress=False)
+    card = registry.read_card(path)
+    legacy = {k: v for k, v in card.items() if k not in ("sha256", "bytes")}
+    registry.card_path(path).write_text(json.dumps(legacy))
+    registry._VERIFIED.clear()
+    assert registry.cached()[0]["status"] == "ok" and "sha256" not in registry.read_card(path)  # listing: read only
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 1 and registry.read_card(path)["sha256"] == sha256_file(path)  # it reads: sum recorded
+    # a legacy card beside a file that does not read: rebuilt
+    registry.card_path(path).write_text(json.dumps(legacy))
+    path.write_bytes(b"not hdf5")
+    registry._VERIFIED.clear()
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 2 and registry.read_card(path)["sha256"] == sha256_file(path)
+    # a card that is not JSON: rebuilt, and read_card names it
+    registry.card_path(path).write_text("{oops")
+    with pytest.raises(SpotError, match=r"dataset card '.*fake-task__tiny__seed0.card.json' is not a JSON object"):
+        registry.read_card(path)
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 3
+
+
+def test_stale_temp_files_of_dead_processes_are_removed(data_dir, monkeypatch):
+    from spot.data import registry
+
+    calls = []
+    _fake_recipe(monkeypatch, calls)
+    data_dir.mkdir(parents=True)
+    dead, alive = _dead_pid(), os.getppid()
+    old = time.time() - 2 * registry.STALE_TEMP_S
+    files = {
+        "dead_old": data_dir / f"x.hdf5.tmp-{dead}",
+        "dead_young": data_dir / f"y.hdf5.tmp-{dead}",
+        "alive_old": data_dir / f"z.hdf5.tmp-{alive}",
+        "not_temp": data_dir / "notes.tmp-abc",
+    }
+    for name, f in files.items():
+        f.write_text("partial")
+        if name != "dead_young":
+            os.utime(f, (old, old))
+    registry.build("fake-task", "tiny", 0, progress=False)
+    left = {name for name, f in files.items() if f.exists()}
+    assert left == {"dead_young", "alive_old", "not_temp"}
+
+
+def _sac_result(steps: int = 3):
+    import numpy as np
+
+    from spot.policy import sac
+
+    cfg = sac.SACConfig()
+    snaps = [sac.Snapshot(i, float(i), 0.5, {"w": np.full((2, 2), i, np.float32)}) for i in range(steps)]
+    replay = {"observations": np.arange(6, dtype=np.float32).reshape(3, 2)}
+    return sac.SACResult("Hopper-v5", 0, cfg, snaps, replay, {"total": 1.0}, (0,))
+
+
+def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_damaged(tmp_path, monkeypatch, capsys):
+    """The SAC cache file keeps its name and format; a .sha256 sidecar is written beside it. A file
+    without one (cached before checksums) loads and gets one; a damaged file is moved aside and the
+    run trained again (sac.train_sac stubbed: no simulator)."""
+    from spot.policy import sac
+    from spot.recipes import locomotion
+
+    trained = []
+
+    def fake_train(env_id, cfg, seed, **kw):
+        trained.append(env_id)
+        return _sac_result()
+
+    monkeypatch.setattr(sac, "train_sac", fake_train)
+    path = locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0)
+    side = locomotion.checksum_path(path)
+    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    assert (
+        not hit
+        and trained == ["Hopper-v5"]
+        and side.read_text().split()
+        == [
+            __import__("spot.data.fetch", fromlist=["x"]).sha256_file(path),
+            path.name,
+        ]
+    )
+    side.unlink()  # cached before checksums: it loads, the sidecar is written
+    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    assert hit and len(result.snapshots) == 3 and side.exists() and len(trained) == 1
+    path.write_bytes(path.read_bytes()[:50])  # truncated
+    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    err = capsys.readouterr().err
+    assert not hit and len(trained) == 2 and "is damaged (sha256 " in err and "training it again" in err
+    assert path.with_suffix(".damaged").exists() and side.exists()
+    side.unlink()
+    path.write_bytes(path.read_bytes()[:50])  # truncated and no sidecar: it does not load
+    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    assert not hit and len(trained) == 3 and "it does not load" in capsys.readouterr().err
+    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    assert hit and len(trained) == 3
+
+
+# --------------------------------------------------------------------------- files in the configured folders (item 10)
+def test_run_temp_folders_live_under_the_cache_dir_and_dead_ones_are_removed(tmp_path, monkeypatch):
+    from spot import runtime
+    from spot.tracking import record
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "cache"))
+    root = tmp_path / "cache" / "tmp"
+    killed = root / f"spot-run-{_dead_pid()}-abc"  # a killed run's, made on this host
+    killed.mkdir(parents=True)
+    (killed / ".host").write_text(platform.node())
+    (root / f"spot-run-{os.getppid()}-live").mkdir()  # a running process's
+    folder = record.run_temp_dir()
+    assert folder.parent == root and folder.name.startswith(f"spot-run-{os.getpid()}-")
+    assert sorted(p.name for p in root.iterdir()) == sorted([folder.name, f"spot-run-{os.getppid()}-live"])
+    record.remove_run_temp(folder)
+    assert not folder.exists()
+    assert runtime.jax_cache_dir().is_relative_to(tmp_path / "cache")  # the JAX compilation cache too

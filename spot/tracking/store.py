@@ -67,11 +67,27 @@ def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
     return uri
 
 
+_ANSWERED: set[str] = set()  # tracking servers that answered in this process
+
+
+def check_server(uri: str) -> None:
+    """For an ``http(s)://`` tracking URI: :class:`SpotError` within about 10 s if the server does not
+    answer (MLflow's client retries for minutes before a traceback). Checked once per process."""
+    if not uri.startswith(("http://", "https://")) or uri in _ANSWERED:
+        return
+    from spot.mlflow_server import check_reachable
+
+    check_reachable(uri)
+    _ANSWERED.add(uri)
+
+
 def reader(uri: str | None = None) -> Any:
     """An ``MlflowClient`` on the store :func:`resolve_uri` picks for reading."""
     from mlflow.tracking import MlflowClient
 
-    return MlflowClient(tracking_uri=resolve_uri(uri, read=True))
+    resolved = resolve_uri(uri, read=True)
+    check_server(resolved)
+    return MlflowClient(tracking_uri=resolved)
 
 
 def experiment_id(name: str, uri: str) -> str:
@@ -80,6 +96,7 @@ def experiment_id(name: str, uri: str) -> str:
 
     from spot.tracking.locking import prepare_store
 
+    check_server(uri)  # an http(s) server that does not answer: a clear error, not minutes of retries
     prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time
     client = MlflowClient(uri)
     exp = client.get_experiment_by_name(name)
