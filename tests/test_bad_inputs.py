@@ -18,7 +18,64 @@ NOT_UTF8 = b"method: oracle\niql:\n  lr: \xff\xfe\n"
 ALIAS_BOMB = "a: &a [x, x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a, *a]\nc: [*b, *b, *b]\n"
 SWEEP = "name: bad\nbase: {method: oracle, budget: tiny}\n"
 
-# (id, argv, files {name: text or bytes}, what the error line must contain)
+
+def _d4rl(obs_dim: int = 11, act_dim: int = 3, **change):
+    """A writer of a 40-row D4RL hdf5 file (Hopper's sizes by default), ``change`` replacing arrays."""
+
+    def write(path: Path) -> None:
+        import h5py
+        import numpy as np
+
+        rng = np.random.default_rng(0)
+        n = 40
+        arrays = {
+            "observations": rng.normal(size=(n, obs_dim)).astype(np.float32),
+            "actions": rng.uniform(-1, 1, size=(n, act_dim)).astype(np.float32),
+            "rewards": rng.normal(size=n).astype(np.float32),
+            "terminals": np.zeros(n, np.float32),
+            "timeouts": (np.arange(n) % 20 == 19).astype(np.float32),
+            **change,
+        }
+        with h5py.File(path, "w") as f:
+            for key, arr in arrays.items():
+                f.create_dataset(key, data=arr)
+
+    return write
+
+
+def _labels(**change):
+    """A writer of a ``spot labels make`` .npz file of 2 queries of length 5, ``change`` replacing arrays."""
+
+    def write(path: Path) -> None:
+        import numpy as np
+
+        fields = {
+            "starts_1": np.array([0, 3]),
+            "starts_2": np.array([10, 20]),
+            "labels": np.array([0.0, 1.0], np.float32),
+            "segment_length": np.int64(5),
+            "source": np.str_("script"),
+            **change,
+        }
+        with open(path, "wb") as fh:
+            np.savez(fh, **fields)
+
+    return write
+
+
+def _terminals_3_5():
+    import numpy as np
+
+    t = np.zeros(40, np.float32)
+    t[7] = 3.5
+    return t
+
+
+HOPPER = "hopper-medium.hdf5"  # the file's stem names the evaluation env (Hopper-v5: 11-D observations, 3-D actions)
+RUN_FILE = ["run", "method=oracle", "budget=tiny", f"data.name={HOPPER}"]
+LABELS_INFO = ["labels", "info", "q.npz", "--dataset", HOPPER]
+
+# (id, argv, files {name: text, bytes or a writer of the file}, what the error line must contain)
 CASES = [
     ("nan-lr", ["run", "iql.lr=nan"], {}, "config key 'iql.lr': value 'nan' is not a finite number"),
     ("inf-weight", ["run", "shaping.weight=inf"], {}, "config key 'shaping.weight': value 'inf' is not a finite"),
@@ -112,6 +169,88 @@ CASES = [
         {"s.yaml": SWEEP + "grid: {iql.lr: [0.1]}\n"},
         "tracking URI 'sqlite://x.db': a sweep logs to",
     ),
+    # datasets (issue 15, items 6 and 7): checked when the run loads them, before any training
+    (
+        "terminals-3.5",
+        RUN_FILE,
+        {HOPPER: _d4rl(terminals=_terminals_3_5())},
+        f"dataset file '{HOPPER}': 'terminals' has the value 3.5 at row 7 (1 rows not 0/1); expected flags 0 or 1",
+    ),
+    (
+        "timeouts-2",
+        RUN_FILE,
+        {HOPPER: _d4rl(timeouts=__import__("numpy").full(40, 2.0))},
+        "'timeouts' has the value 2.0 at row 0 (40 rows not 0/1)",
+    ),
+    (
+        "every-step-a-timeout",
+        RUN_FILE,
+        {HOPPER: _d4rl(timeouts=__import__("numpy").ones(40, bool))},
+        "every one of its 39 rows before the last is a timeout, so it has no transitions",
+    ),
+    (
+        "observation-size",
+        RUN_FILE,
+        {HOPPER: _d4rl(obs_dim=5)},
+        "observations have 5 dimensions, but the evaluation env of 'hopper-medium' (Hopper-v5) has 11",
+    ),
+    (
+        "action-size",
+        RUN_FILE,
+        {HOPPER: _d4rl(act_dim=4)},
+        "actions have 4 dimensions, but the evaluation env of 'hopper-medium' (Hopper-v5) has 3",
+    ),
+    (
+        "unreachable-tracking-server",
+        [*RUN_FILE, "tracking.uri=http://127.0.0.1:9"],
+        {HOPPER: _d4rl()},
+        "tracking server http://127.0.0.1:9 does not answer",
+    ),
+    # label files
+    (
+        "label-start-near-2^63",
+        LABELS_INFO,
+        {HOPPER: _d4rl(), "q.npz": _labels(starts_1=__import__("numpy").array([2**63 - 3, 0]))},
+        "segment 1 of query 0 starts at index 9223372036854775805 with length 5, past the end of dataset",
+    ),
+    (
+        "label-start-uint64",
+        LABELS_INFO,
+        {HOPPER: _d4rl(), "q.npz": _labels(starts_2=__import__("numpy").array([2**64 - 1, 0], "uint64"))},
+        "'starts_2' has start index 18446744073709551615; expected at most 9223372036854775807",
+    ),
+    (
+        "label-array-segment-length",
+        LABELS_INFO,
+        {HOPPER: _d4rl(), "q.npz": _labels(segment_length=__import__("numpy").array([5, 5]))},
+        "preference file 'q.npz': 'segment_length' is an array of shape (2,) and dtype int64; expected one integer",
+    ),
+    (
+        "label-object-array",
+        LABELS_INFO,
+        {HOPPER: _d4rl(), "q.npz": _labels(starts_2=__import__("numpy").array([1, "a", None], object))},
+        "preference file 'q.npz': array 'starts_2' cannot be read without pickles",
+    ),
+    ("label-zero-bytes", LABELS_INFO, {HOPPER: _d4rl(), "q.npz": b""}, "preference file 'q.npz' is not a readable npz"),
+    # tables
+    (
+        "tables-out-missing-folder",
+        ["tables", "--table", "1", "--results", "r.csv", "--out", "nope/t.md"],
+        {},
+        "--out nope/t.md: folder 'nope' does not exist; expected a file in an existing folder",
+    ),
+    (
+        "tables-out-a-folder",
+        ["tables", "--table", "1", "--results", "r.csv", "--out", "."],
+        {},
+        "--out .: is a folder; expected a file name",
+    ),
+    (
+        "tables-unreachable-tracking-server",
+        ["tables", "--table", "1", "--tracking-uri", "http://127.0.0.1:9"],
+        {},
+        "tracking server http://127.0.0.1:9 does not answer",
+    ),
     (
         "sweep-huge-seed",
         ["sweep", "s.yaml"],
@@ -123,6 +262,9 @@ CASES = [
 
 def _write(folder: Path, files: dict[str, str | bytes]) -> None:
     for name, content in files.items():
+        if callable(content):
+            content(folder / name)
+            continue
         data = content if isinstance(content, bytes) else content.encode()
         (folder / name).write_bytes(data)
 
@@ -132,17 +274,19 @@ def test_bad_input_is_one_clear_error(tmp_path, monkeypatch, capsys, argv, files
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     _write(tmp_path, files)
-    before = sorted(p.name for p in tmp_path.iterdir())
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
     rc = cli.main(argv)
     out, err = capsys.readouterr()
     lines = err.strip().splitlines()
     assert rc == 2, err
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     assert expected in lines[0], lines[0]
-    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no store, no sweep record
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before  # no store or record; inputs unchanged
 
 
-@pytest.mark.parametrize("case", ["nan-lr", "alias-bomb", "sweep-not-utf8"])
+@pytest.mark.parametrize(
+    "case", ["nan-lr", "alias-bomb", "sweep-not-utf8", "every-step-a-timeout", "unreachable-tracking-server"]
+)
 def test_bad_input_in_a_real_process(tmp_path, case):
     from conftest import run_cli
 
