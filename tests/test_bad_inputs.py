@@ -206,6 +206,18 @@ CASES = [
         {HOPPER: _d4rl()},
         "tracking server http://127.0.0.1:9 does not answer",
     ),
+    (
+        "run-unsupported-tracking-uri",
+        [*RUN_FILE, "tracking.uri=ftp://host/x"],
+        {HOPPER: _d4rl()},
+        "tracking URI 'ftp://host/x': scheme 'ftp' is not one MLflow stores runs in",
+    ),
+    (
+        "tables-sqlite-two-slashes",
+        ["tables", "--table", "1", "--tracking-uri", "sqlite://x.db"],
+        {},
+        "tracking URI 'sqlite://x.db': expected sqlite:///relative/path.db or sqlite:////absolute/path.db",
+    ),
     # label files
     (
         "label-start-near-2^63",

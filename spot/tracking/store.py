@@ -43,6 +43,8 @@ def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
     the user. A SQLite store that is read must exist.
     """
     uri = given_uri(uri)
+    if uri:
+        check_uri(uri)
     if not read:
         if uri:
             return uri
@@ -79,6 +81,26 @@ def check_server(uri: str) -> None:
 
     check_reachable(uri)
     _ANSWERED.add(uri)
+
+
+SCHEMES = ("", "file", "sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks", "databricks-uc", "uc")
+"""The tracking URI schemes MLflow's client accepts (its UnsupportedModelRegistryStoreURIException list)."""
+
+
+def check_uri(uri: str) -> None:
+    """:class:`SpotError` for a tracking URI MLflow cannot use (which it reports with a traceback,
+    after a run's data has loaded): an unknown scheme, or a ``sqlite:`` URI not of the form
+    ``sqlite:///relative.db`` / ``sqlite:////absolute.db``."""
+    import re
+
+    scheme = m[1].lower() if (m := re.match(r"([A-Za-z][A-Za-z0-9+.-]*):", uri)) and len(m[1]) > 1 else ""
+    if scheme.split("+")[0] not in SCHEMES:
+        raise SpotError(
+            f"tracking URI '{uri}': scheme '{scheme}' is not one MLflow stores runs in; expected "
+            "sqlite:///path.db, http(s)://host:port, a folder, or postgresql/mysql/mssql://..."
+        )
+    if scheme == "sqlite" and (sqlite_path(uri) is None or not str(sqlite_path(uri)).strip("/")):
+        raise SpotError(f"tracking URI '{uri}': expected sqlite:///relative/path.db or sqlite:////absolute/path.db")
 
 
 def reader(uri: str | None = None) -> Any:
