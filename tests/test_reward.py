@@ -343,3 +343,15 @@ def test_nan_loss_names_the_step():
     with pytest.raises(train.NonFiniteError) as err:
         train.train_reward_model(MR(MR_TINY), key, synthetic_pairs(num_pairs, 5, 0), eval_b, cfg, progress=False)
     assert (err.value.step, err.value.loss_name) == (100, "reward/eval_loss")
+
+
+def test_training_length_in_pt_epochs_is_the_steps_taken():
+    """reward.length=epochs: the run takes epochs * (N // batch + 1) steps (PT repo)."""
+    batch = synthetic_pairs(10, 5, 0)
+    cfg = RewardConfig(length="epochs", epochs=3, batch_size=4, eval_every=5, steps=1000)
+    _, history = train.train_reward_model(MR(MR_TINY), jax.random.key(0), batch, None, cfg, progress=False)
+    assert history["steps"] == 9 == history["step"][-1]  # 3 epochs x (10 // 4 + 1)
+    _, history = train.train_reward_model(
+        MR(MR_TINY), jax.random.key(0), batch, None, dataclasses.replace(cfg, length="steps", steps=7), progress=False
+    )
+    assert history["steps"] == 7 == history["step"][-1]
