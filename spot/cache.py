@@ -120,6 +120,34 @@ def _plain(value: Any) -> bool:
     return False
 
 
+def _state_names(glb: Mapping[str, Any]) -> frozenset[str]:
+    """Globals of a module that hold process state, not code: the names its functions assign with
+    ``global`` (``STORE_GLOBAL``) and private mutable containers (``_seen: set = set()``). Their
+    values change as a process runs (a reused Ray actor runs trial after trial), so they are left
+    out of code versions."""
+    name = glb.get("__name__")
+    if name in _STATE_CACHE:
+        return _STATE_CACHE[name]
+    out = {k for k, v in glb.items() if k.startswith("_") and isinstance(v, (set, list, dict))}
+    for value in list(glb.values()):
+        target = _unwrap(value)
+        if getattr(target, "__module__", None) != name:
+            continue
+        codes = [target.__code__] if hasattr(target, "__code__") else []
+        if isinstance(target, type):
+            codes += [_unwrap(v).__code__ for v in vars(target).values() if hasattr(_unwrap(v), "__code__")]
+        for co in codes:
+            for c in _walk_code(co):
+                out.update(i.argval for i in dis.get_instructions(c) if i.opname in ("STORE_GLOBAL", "DELETE_GLOBAL"))
+    result = frozenset(out)
+    if isinstance(name, str):
+        _STATE_CACHE[name] = result
+    return result
+
+
+_STATE_CACHE: dict[str, frozenset[str]] = {}
+
+
 def _usable(value: Any) -> bool:
     """A global a definition's code may run: a module, a function or a class."""
     target = _unwrap(value)
@@ -170,9 +198,10 @@ class _Code:
         _hash_code(code, h)
         h.update(_const_repr((fn.__defaults__ or ()) + tuple(sorted((fn.__kwdefaults__ or {}).items()))).encode())
         glb = getattr(fn, "__globals__", {})
+        state = _state_names(glb)
         for c in _walk_code(code):
             for name in c.co_names:
-                if name in glb:
+                if name in glb and name not in state:
                     value = glb[name]
                     if _plain(value):
                         h.update(f"{name}={_const_repr(value)}".encode())
@@ -218,7 +247,10 @@ class _Code:
         self.parts[name] = ""  # placeholder: import cycles end here
         module = importlib.import_module(name)
         h, deps = hashlib.sha256(), []
+        state = _state_names(vars(module))
         for attr, value in sorted(vars(module).items()):
+            if attr in state:
+                continue
             target = _unwrap(value)
             if getattr(target, "__module__", None) == name and (
                 isinstance(target, type) or hasattr(target, "__code__")

@@ -326,3 +326,17 @@ def test_figures_read_a_cvae_entry_and_refuse_a_pickle(cache_dir, tmp_path):
     with pytest.raises(SpotError, match="is not a stage-cache entry"):
         figures.load_cvae(tmp_path / "cvae-old.pkl")
     assert not marker.exists()
+
+
+def test_process_state_in_module_globals_is_not_code(monkeypatch):
+    """Module globals a process fills as it runs (a private set of servers that answered, of files
+    verified) are state, not code: a reused Ray actor's second trial gets the same keys as its first."""
+    from spot.data import registry
+    from spot.tracking import store as tracking_store
+
+    before = cache.code_version(stages.learned_reward)
+    monkeypatch.setattr(tracking_store, "_ANSWERED", {"http://127.0.0.1:5000"})
+    monkeypatch.setattr(registry, "_VERIFIED", {("/data/x.hdf5", 1, 2)})
+    cache._STATE_CACHE.clear()
+    assert cache.code_version(stages.learned_reward) == before
+    assert {"_ANSWERED", "_VERIFIED"} <= cache._state_names(vars(tracking_store)) | cache._state_names(vars(registry))
