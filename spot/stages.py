@@ -108,6 +108,7 @@ class Context:
     on_eval: Callable[[dict[str, float]], None] | None = None
     artifacts: Path = field(default_factory=lambda: record.run_temp_dir())  # $SPOT_CACHE_DIR/tmp
     times: dict[str, float] = field(default_factory=dict)
+    cache_hits: list[str] = field(default_factory=list)  # stage-cache keys read (hits), in order
 
     def log(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
         self.tracker.log_metrics(metrics, step=step)
@@ -124,8 +125,33 @@ class Context:
     def stage(self, name: str, fn: Callable[..., Any], *inputs: Any) -> Any:
         """Run one stage, timed as ``time/<name>_s`` (stages marked :func:`untimed` are not)."""
         if getattr(fn, "untimed", False):
-            return fn(self, *inputs)
+            return self._run_evicting(name, fn, inputs)
         with self.timed(name):
+            return self._run_evicting(name, fn, inputs)
+
+    def _run_evicting(self, name: str, fn: Callable[..., Any], inputs: tuple) -> Any:
+        """``fn(self, *inputs)``; when it fails on a value its stage-cache hits returned (an entry
+        that decodes, digest and all, to a value of the wrong structure: KeyError, TypeError...),
+        those entries are deleted and the stage runs once more, computing them again."""
+        before = len(self.cache_hits)
+        try:
+            return fn(self, *inputs)
+        except SpotError:
+            raise
+        except (KeyError, TypeError, AttributeError, IndexError, ValueError) as e:
+            hits = self.cache_hits[before:]
+            if not hits:
+                raise
+            del self.cache_hits[before:]
+            import warnings
+
+            warnings.warn(
+                f"stage '{name}': cached entries {hits} do not fit it ({type(e).__name__}: {e}); "
+                "deleting and recomputing them",
+                stacklevel=2,
+            )
+            for k in hits:
+                cache._store().delete(f"{k}.npz")  # the entry's store (local folder or spot.store URI)
             return fn(self, *inputs)
 
     def cached(self, name: str, deps: dict[str, Any], compute: Callable[[], Any]) -> tuple[Any, str]:
@@ -135,6 +161,8 @@ class Context:
         ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
         with the same key and ``computed``)."""
         value, hit, key = cache.cached(name, deps, compute)
+        if hit:
+            self.cache_hits.append(key)
         self.tracker.set_tags(
             {
                 f"cache.{name}": "hit" if hit else "miss",

@@ -748,3 +748,40 @@ def test_run_temp_folders_live_under_the_cache_dir_and_dead_ones_are_removed(tmp
     record.remove_run_temp(folder)
     assert not folder.exists()
     assert runtime.jax_cache_dir().is_relative_to(tmp_path / "cache")  # the JAX compilation cache too
+
+
+def test_a_stage_cache_entry_that_does_not_fit_its_stage_is_evicted_and_recomputed(tmp_path, monkeypatch):
+    """An entry with a valid digest that decodes to the wrong value for its stage (here a dict
+    without 'history') made the stage raise KeyError on every rerun; now it is deleted and the
+    stage runs once more."""
+    import numpy as np
+
+    from spot import cache, config, stages
+    from spot.tracking.record import MemoryTracker
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "cache"))
+    computed = []
+
+    def compute():
+        computed.append(1)
+        return {"history": {"loss": np.ones(2)}}
+
+    def stage(ctx):
+        out, _ = ctx.cached("reward", {"d": 1}, compute)
+        return float(out["history"]["loss"].sum())
+
+    k = cache.key("reward", {"d": 1}, cache.code_version(compute))
+    cache.store(k, {"params": np.zeros(1)})  # well-formed, digest and all, but not this stage's value
+    ctx = stages.Context(config.resolve({}), None, {}, "drawer-open", MemoryTracker(), {}, artifacts=tmp_path)
+    with pytest.warns(UserWarning, match=r"stage 'reward': cached entries .* do not fit it \(KeyError"):
+        assert ctx.stage("reward", stage) == 2.0
+    assert computed == [1]
+    ctx2 = stages.Context(config.resolve({}), None, {}, "drawer-open", MemoryTracker(), {}, artifacts=tmp_path)
+    assert ctx2.stage("reward", stage) == 2.0 and computed == [1]  # the recomputed entry is a hit now
+
+    def buggy(ctx):  # a stage that fails on a fresh value is not retried forever: it raises
+        ctx.cached("reward", {"d": 1}, compute)
+        raise KeyError("bug")
+
+    with pytest.raises(KeyError, match="bug"), pytest.warns(UserWarning, match="do not fit"):
+        ctx2.stage("reward", buggy)
