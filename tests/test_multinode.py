@@ -17,7 +17,6 @@ computed and 2 reused; nothing in the nodes' local stage caches; the paper table
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import secrets
 import shutil
@@ -30,7 +29,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_store import BUCKET, moto_server, versions
+from tests.test_store import moto_server, versions
 
 REPO = Path(__file__).resolve().parents[1]
 RAY = str(Path(sys.executable).parent / "ray")
@@ -87,8 +86,8 @@ def _start_node(args: list[str], env: dict[str, str], log: Path, stack: contextl
 
 def _alive_nodes(address: str, env: dict[str, str]) -> int:
     code = (
-        "import ray, logging; ray.init(address=%r, logging_level=logging.ERROR); "
-        "print(sum(n['Alive'] for n in ray.nodes()))" % address
+        f"import ray, logging; ray.init(address={address!r}, logging_level=logging.ERROR); "
+        "print(sum(n['Alive'] for n in ray.nodes()))"
     )
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
     try:
@@ -134,7 +133,14 @@ def launched(tmp_path_factory):
         node = ["--node-ip-address=127.0.0.1", "--num-cpus=1"]
         env_a, env_b = _env(root, "node_a", common), _env(root, "node_b", common)
         _start_node(
-            ["--head", f"--port={port}", "--include-dashboard=false", *node, '--resources={"node_a": 1}', f"--temp-dir={ray_tmp / 'a'}"],
+            [
+                "--head",
+                f"--port={port}",
+                "--include-dashboard=false",
+                *node,
+                '--resources={"node_a": 1}',
+                f"--temp-dir={ray_tmp / 'a'}",
+            ],
             env_a,
             root / "node_a.log",
             stack,
@@ -192,7 +198,9 @@ def runs(launched):
     out = launched["out"]
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-4000:]
     runs_dir = launched["root"] / "driver" / "spot_runs"
-    with MlflowServer(sqlite_uri(runs_dir / "mlflow.db"), runs_dir / "artifacts", log_path=runs_dir / "again.log") as srv:
+    with MlflowServer(
+        sqlite_uri(runs_dir / "mlflow.db"), runs_dir / "artifacts", log_path=runs_dir / "again.log"
+    ) as srv:
         client = MlflowClient(srv.uri)
         exp = client.get_experiment_by_name("multinode-smoke")
         children = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "trial_key" in r.data.tags]

@@ -952,7 +952,8 @@ def _launch(
         tracking_uri=tracking_uri,
         tracking_host=tracking_host,
     )
-    with _tracking_store(tracking_uri, root, tracking_host, address) as store:  # a served store starts while Ray and datasets do
+    # a served store starts while Ray and datasets do
+    with _tracking_store(tracking_uri, root, tracking_host, address) as store:
         client, ctx, errors, interrupted = _run_launch(
             sweep,
             store,
