@@ -38,8 +38,9 @@ def prebuild_datasets(sweep: Sweep) -> list[Path]:
     """Build every registry dataset the sweep's runs need, here on the driver, before trials start.
 
     A build uses all the driver's cores, where inside a trial it would be pinned to the trial's
-    CPUs while the other trials wait on its lock. Files given as paths are left alone. On a
-    cluster whose nodes do not share ``$SPOT_DATA_DIR`` the trials still build what they miss.
+    CPUs while the other trials wait on its lock. Files given as paths are left alone. With a
+    store (:mod:`spot.store`) each build is uploaded, and trials on other nodes download it; on a
+    cluster without one whose nodes do not share ``$SPOT_DATA_DIR`` the trials build what they miss.
     """
     from spot.data import registry
 
