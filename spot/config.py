@@ -332,6 +332,12 @@ class IQLConfig:
         "(WiseRL HPL)",
         choices=("gaussian", "tanh_gaussian"),
     )
+    actor_dropout: float = F(
+        0.0,
+        "dropout after each hidden layer of the actor while training (IQL, IPL); none when acting (PT repo "
+        "adroit/robomimic configs, IPL robomimic: 0.1)",
+        range=(0.0, 0.9),
+    )
     clip_action: float = F(
         0.0,
         "dataset actions the policy (IQL, IPL) trains on clipped to +-clip_action; 0 = no clipping (IQL "
@@ -594,11 +600,16 @@ HPL_IQL_CHOICES: dict[str, Any] = {
 HPL_IQL_SIZES: dict[str, Any] = {"iql.batch_size": 512, "iql.hidden": (256, 256, 256)}
 
 
-def variant_method_preset(variant: str, method: str, budget: str) -> dict[str, Any]:
-    """What a variant changes for one method only (HPL's own IQL settings)."""
+def variant_method_preset(variant: str, method: str, budget: str, data_name: str = "") -> dict[str, Any]:
+    """What a variant changes for one method or suite only: HPL's own IQL settings; actor dropout
+    0.1 on robomimic (PT repo robomimic/adroit configs, IPL robomimic configs)."""
+    out: dict[str, Any] = {}
     if variant in ("paper", "authors") and method == "hpl":
-        return {**HPL_IQL_CHOICES, **(HPL_IQL_SIZES if budget == "paper" else {})}
-    return {}
+        out.update(HPL_IQL_CHOICES, **(HPL_IQL_SIZES if budget == "paper" else {}))
+    robomimic_file = data_name.endswith((".hdf5", ".h5")) and Path(data_name).stem.startswith("low_dim")
+    if variant in ("paper", "authors") and data_name and (suite_of(data_name) == "robosuite" or robomimic_file):
+        out["iql.actor_dropout"] = 0.1
+    return out
 
 
 # PT README / SGPbrl hyperparameter.sh query counts; robomimic: the PT label files' counts.
@@ -1049,7 +1060,7 @@ def resolve(*layers: dict[str, Any]) -> ExperimentConfig:
     flat.update(suite_preset(data_name, method, budget))
     variant = _coerce("variant", user.get("variant", ExperimentConfig.variant))
     flat.update(VARIANT_PRESETS[variant])
-    flat.update(variant_method_preset(variant, method, budget))
+    flat.update(variant_method_preset(variant, method, budget, data_name))
     counts = _coerce("labels.query_counts", user.get("labels.query_counts", flat["labels.query_counts"]))
     if counts == "pt" and pt_query_count(data_name) is not None:
         flat["labels.num_queries"] = pt_query_count(data_name)  # below the YAML file and overrides

@@ -335,3 +335,20 @@ def test_hpl_iql_settings_per_variant(variant):
         assert (flat["iql.batch_size"], flat["iql.hidden"]) == want, budget
     spot_run = _flat(f"variant={variant}")  # other methods keep the reference IQL actor
     assert spot_run["iql.actor_std"] == "state_independent" and spot_run["iql.actor_dist"] == "gaussian"
+
+
+# --------------------------------------------------------------------------- row 39: actor dropout
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_actor_dropout_on_robomimic_only(variant):
+    """PT repo adroit/robomimic configs and IPL's robomimic configs: actor dropout 0.1."""
+    want = 0.0 if variant == "spot" else 0.1
+    for name, expected in (
+        ("lift-ph", want),
+        ("can-mh", want),
+        ("/d/robomimic/lift/ph/low_dim.hdf5", want),
+        ("hopper-medium-replay", 0.0),
+        ("drawer-open", 0.0),
+    ):
+        for method in ("pt", "ipl"):
+            flat = config.to_flat(config.load(None, [f"method={method}", f"variant={variant}", f"data.name={name}"]))
+            assert flat["iql.actor_dropout"] == expected, (name, method)

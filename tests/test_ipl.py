@@ -192,6 +192,23 @@ def test_update_jit_matches_no_jit(eager_update):
     assert int(jit_state.step) == 1
 
 
+def test_actor_dropout_changes_only_the_actor_loss(eager_update):
+    """iql.actor_dropout (fidelity row 39, IPL robomimic 0.1) drops out the actor's hidden units
+    in its loss, keyed by the update's dropout key; the critic and value losses are unchanged."""
+    import dataclasses
+
+    _, fb, replay, _, metrics = eager_update
+    cfg = dataclasses.replace(IQL_CFG, actor_dropout=0.5)
+    state = ipl.init_state(jax.random.key(3), OBS, ACT, cfg)  # the same parameters as the fixture's
+    fn = jax.jit(ipl.update, static_argnames=("iql_cfg", "ipl_cfg"))
+    _, m1 = fn(state, fb, replay, cfg, IPL_CFG, jax.random.key(0))
+    _, m2 = fn(state, fb, replay, cfg, IPL_CFG, jax.random.key(1))
+    assert float(m1["ipl/actor_loss"]) != float(m2["ipl/actor_loss"])
+    assert float(m1["ipl/actor_loss"]) != float(metrics["ipl/actor_loss"])
+    for name in ("ipl/value_loss", "ipl/pref_loss"):
+        np.testing.assert_allclose(m1[name], metrics[name], rtol=1e-5, atol=1e-6, err_msg=name)
+
+
 def test_update_losses_match_numpy(eager_update):
     """Value, preference and chi^2 losses of one update recomputed in numpy from the networks
     (segment 1, segment 2 and replay rows, replay terminals, V(s') clipped at +-0.5)."""

@@ -196,6 +196,28 @@ def test_hpl_actor_state_dependent_std_squashed(data):
     np.testing.assert_allclose(m["iql/actor_loss"], -np.mean(w * logp), rtol=1e-4)
 
 
+def test_actor_dropout_in_training_only(data):
+    """iql.actor_dropout (row 39): the actor's loss sees dropped-out hidden units, keyed by the
+    update's dropout key; acting is deterministic and has the same parameters as without dropout."""
+    cfg = dataclasses.replace(CFG, actor_dropout=0.5)
+    state = iql.init_state(jax.random.key(2), 2, 2, cfg)
+    plain = iql.init_state(jax.random.key(2), 2, 2, CFG)
+    jax.tree.map(np.testing.assert_array_equal, state.actor.params, plain.actor.params)
+    obs = data.obs[:8]
+    np.testing.assert_array_equal(iql.act(state.actor.params, obs, cfg), iql.act(plain.actor.params, obs, CFG))
+    batch = jax.tree.map(lambda x: x[:32], data)
+    _, m0 = iql.update(plain, batch, CFG)
+    _, m1 = iql.update(state, batch, cfg, jax.random.key(0))
+    _, m1_again = iql.update(state, batch, cfg, jax.random.key(0))
+    _, m2 = iql.update(state, batch, cfg, jax.random.key(1))
+    assert float(m1["iql/actor_loss"]) == float(m1_again["iql/actor_loss"])
+    assert float(m1["iql/actor_loss"]) != float(m2["iql/actor_loss"])
+    assert float(m1["iql/actor_loss"]) != float(m0["iql/actor_loss"])
+    np.testing.assert_allclose(m1["iql/value_loss"], m0["iql/value_loss"], rtol=1e-6)  # only the actor drops
+    with pytest.raises(ValueError, match="dropout key"):
+        iql.update(state, batch, cfg)
+
+
 def test_check_finite_raises_with_step_and_name():
     with pytest.raises(NonFiniteError) as err:
         loop.check_finite({"iql/critic_loss": jnp.array([1.0, jnp.nan]), "iql/q_mean": jnp.array([0.0, 0.0])}, 400)

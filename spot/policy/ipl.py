@@ -243,7 +243,12 @@ def _critic_objective(
 
 
 def update(
-    state: IQLState, fb: FeedbackPairs, replay: Transitions | None, iql_cfg: IQLConfig, ipl_cfg: IPLConfig
+    state: IQLState,
+    fb: FeedbackPairs,
+    replay: Transitions | None,
+    iql_cfg: IQLConfig,
+    ipl_cfg: IPLConfig,
+    dropout_key: jax.Array | None = None,
 ) -> tuple[IQLState, dict[str, jax.Array]]:
     """One IPL-IQL update (value, critics, actor, target), pure.
 
@@ -253,6 +258,7 @@ def update(
       replay: a minibatch ``obs [R, obs_dim]`` ... (its ``rew`` is unused); ignored, and may be
         ``None``, when ``ipl_cfg.use_replay`` is off.
       iql_cfg, ipl_cfg: hyperparameters (static).
+      dropout_key: key of the actor's dropout masks (only with ``iql.actor_dropout > 0``).
 
     Returns:
       ``(new_state, metrics)`` with scalar metrics named ``ipl/...``.
@@ -299,7 +305,7 @@ def update(
     weights = iql.awr_weights(adv, iql_cfg.temperature)
 
     def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
-        mean, log_std = state.actor.apply_fn(params, obs)
+        mean, log_std = iql.apply_actor(iql_cfg, state.actor, params, obs, dropout_key)
         nll = -weights * iql.actor_log_prob(iql_cfg, mean, log_std, act)
         loss = mix(*split(nll), ipl_cfg.policy_replay_weight)
         return loss, {"ipl/actor_loss": loss, "ipl/log_std_mean": log_std.mean()}
@@ -350,12 +356,14 @@ def sampled_update(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tupl
     ) -> tuple[IQLState, dict[str, jax.Array]]:
         if ipl_cfg.use_replay and replay_data is None:
             raise SpotError("ipl.use_replay is on but no replay data was given")
-        fb_key, replay_key = jax.random.split(jax.random.fold_in(key, state.step))
+        step_key = jax.random.fold_in(key, state.step)
+        fb_key, replay_key = jax.random.split(step_key)
+        dropout_key = jax.random.fold_in(step_key, 1) if iql_cfg.actor_dropout > 0 else None
         replay = None
         if ipl_cfg.use_replay:
             idx = jax.random.randint(replay_key, (iql_cfg.batch_size,), 0, replay_data.obs.shape[0])
             replay = jax.tree.map(lambda x: x[idx], replay_data)
-        return update(state, sample_feedback(fb_key, feedback, ipl_cfg), replay, iql_cfg, ipl_cfg)
+        return update(state, sample_feedback(fb_key, feedback, ipl_cfg), replay, iql_cfg, ipl_cfg, dropout_key)
 
     return step
 

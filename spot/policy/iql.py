@@ -97,10 +97,12 @@ class Actor(nn.Module):
     std: str = "state_independent"
     log_std_min: float = LOG_STD_MIN
     squash: bool = False
+    dropout: float = 0.0  # after each hidden layer in training (iql.actor_dropout); none when acting
 
     @nn.compact
-    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        h = MLP(self.hidden, activate_final=True, kernel_init=orthogonal_init())(obs)
+    def __call__(self, obs: jax.Array, deterministic: bool = True) -> tuple[jax.Array, jax.Array]:
+        trunk = MLP(self.hidden, activate_final=True, kernel_init=orthogonal_init(), dropout=self.dropout or None)
+        h = trunk(obs, deterministic=deterministic)
         mean = nn.Dense(self.act_dim, kernel_init=orthogonal_init())(h)
         if not self.squash:
             mean = nn.tanh(mean)
@@ -144,7 +146,26 @@ class Critics(nn.Module):
 
 def actor_net(cfg: IQLConfig, act_dim: int) -> Actor:
     """The actor module of ``cfg`` (``iql.actor_std``, ``iql.log_std_min``, ``iql.actor_dist``)."""
-    return Actor(tuple(cfg.hidden), act_dim, cfg.actor_std, cfg.log_std_min, cfg.actor_dist == "tanh_gaussian")
+    return Actor(
+        tuple(cfg.hidden),
+        act_dim,
+        cfg.actor_std,
+        cfg.log_std_min,
+        cfg.actor_dist == "tanh_gaussian",
+        cfg.actor_dropout,
+    )
+
+
+def apply_actor(
+    cfg: IQLConfig, state: TrainState, params: Params, obs: jax.Array, dropout_key: jax.Array | None
+) -> tuple[jax.Array, jax.Array]:
+    """The actor's ``(mean, log_std)`` in training: with dropout (``iql.actor_dropout > 0``) from
+    ``dropout_key``, which must then be given."""
+    if cfg.actor_dropout > 0:
+        if dropout_key is None:
+            raise ValueError("iql.actor_dropout > 0 needs a dropout key")
+        return state.apply_fn(params, obs, deterministic=False, rngs={"dropout": dropout_key})
+    return state.apply_fn(params, obs)
 
 
 @functools.cache
@@ -249,7 +270,9 @@ def init_state(
     )
 
 
-def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLState, dict[str, jax.Array]]:
+def update(
+    state: IQLState, batch: Transitions, cfg: IQLConfig, dropout_key: jax.Array | None = None
+) -> tuple[IQLState, dict[str, jax.Array]]:
     """One IQL update (value, actor, critics, target), pure; ``cfg.order`` picks which value
     network the actor and critics see (module docstring).
 
@@ -257,6 +280,7 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
       state: current state.
       batch: a minibatch, ``obs [B, obs_dim]``, ``act [B, act_dim]``, ``rew/mask [B]``.
       cfg: hyperparameters (static).
+      dropout_key: key of the actor's dropout masks (only with ``iql.actor_dropout > 0``).
 
     Returns:
       ``(new_state, metrics)`` with scalar metrics named ``iql/...``.
@@ -287,7 +311,7 @@ def update(state: IQLState, batch: Transitions, cfg: IQLConfig) -> tuple[IQLStat
     weights = awr_weights(adv, cfg.temperature)
 
     def actor_loss_fn(params: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
-        mean, log_std = state.actor.apply_fn(params, batch.obs)
+        mean, log_std = apply_actor(cfg, state.actor, params, batch.obs, dropout_key)
         log_prob = actor_log_prob(cfg, mean, log_std, batch.act)
         loss = -(weights * log_prob).mean()
         return loss, {"iql/actor_loss": loss, "iql/log_std_mean": log_std.mean()}
@@ -325,8 +349,10 @@ def sampled_update(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array
     ``data`` drawn with ``fold_in(key, state.step)``, so one key can serve a whole run."""
 
     def step(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
-        idx = jax.random.randint(jax.random.fold_in(key, state.step), (cfg.batch_size,), 0, data.rew.shape[0])
-        return update(state, jax.tree.map(lambda x: x[idx], data), cfg)
+        step_key = jax.random.fold_in(key, state.step)
+        idx = jax.random.randint(step_key, (cfg.batch_size,), 0, data.rew.shape[0])
+        dropout_key = jax.random.fold_in(step_key, 1) if cfg.actor_dropout > 0 else None
+        return update(state, jax.tree.map(lambda x: x[idx], data), cfg, dropout_key)
 
     return step
 
