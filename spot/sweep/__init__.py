@@ -12,7 +12,11 @@ MLflow is the record: the driver creates the experiment and a parent run; each (
 a child run tagged with the sweep id, the Ray trial id, a ``trial_key`` (hash of the override dict
 and seed) and one ``axis.<key>`` tag per axis. With no tracking URI the driver serves a SQLite
 store through a loopback ``mlflow server`` (:mod:`spot.mlflow_server`), so no trial writes SQLite
-itself.
+itself; for a cluster sweep ``--tracking-host`` binds that server where other nodes reach it.
+
+Multi-node: a store named by the file's ``store:`` or ``--store`` (:mod:`spot.store`, passed to
+every trial as ``$SPOT_STORE``) holds the datasets the driver built and the stage-cache entries,
+so a trial on any node finds them, and each shared stage is computed once (a lock on its key).
 
 Resume and failures: ``--resume`` restores the Ray experiment (``Tuner.restore``) after closing
 the runs an interrupted launch left RUNNING (they become KILLED). A trial first looks in MLflow
