@@ -352,3 +352,27 @@ def test_actor_dropout_on_robomimic_only(variant):
         for method in ("pt", "ipl"):
             flat = config.to_flat(config.load(None, [f"method={method}", f"variant={variant}", f"data.name={name}"]))
             assert flat["iql.actor_dropout"] == expected, (name, method)
+
+
+def test_auto_labels_are_the_human_files_only_on_the_real_file():
+    """labels.source=auto (paper/authors): the shipped PT human queries for the real
+    hopper-medium-replay-v2 file; the scripted teacher for a spot-built dataset of the same name."""
+    import numpy as np
+
+    from spot import stages
+    from spot.data import labels
+    from tests.conftest import make_dataset
+
+    ds = make_dataset([1000] * 402, obs_dim=2, act_dim=1)  # rows past PT's largest index (401337 + 100)
+    cfg = config.load(None, ["method=pt", "variant=paper", "data.name=hopper-medium-replay"])
+    assert cfg.labels.num_queries == 500 and cfg.labels.source == "auto"
+    real = {"source": "file", "name": "hopper_medium_replay-v2", "path": "/d/d4rl/hopper_medium_replay-v2.hdf5"}
+    prefs = stages.make_preferences(cfg, ds, real)
+    shipped = labels.read_pt_labels(SHIPPED / "hopper-medium-replay-v2")
+    np.testing.assert_array_equal(prefs.starts_1, shipped.starts_1)
+    np.testing.assert_array_equal(prefs.labels, shipped.labels)
+    assert prefs.segment_length == 100 and prefs.source == str(SHIPPED / "hopper-medium-replay-v2")
+    built = {**real, "recipe": "d4rl-sac-locomotion"}
+    scripted = stages.make_preferences(cfg, ds, built)
+    assert len(scripted) == 500 and scripted.segment_length == cfg.labels.segment_length
+    assert not np.array_equal(scripted.starts_1, shipped.starts_1)
