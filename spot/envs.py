@@ -37,6 +37,7 @@ episodes still running, so a jitted policy is called ``max_episode_steps`` times
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -47,6 +48,7 @@ import gymnasium as gym
 import numpy as np
 
 from spot import SpotError
+from spot.data.dataset import Dataset
 from spot.data.formats import ROBOMIMIC_OBS_KEYS
 
 Family = Literal["locomotion", "metaworld", "robosuite"]
@@ -334,3 +336,34 @@ def evaluate(policy_fn: Callable[[np.ndarray], Any], name: str, episodes: int, s
         "returns": returns,
         "lengths": lengths,
     }
+
+
+# ---------------------------------------------------------------- datasets against their env
+@functools.lru_cache(maxsize=8)
+def _env_sizes(env_name: str) -> tuple[str, int, int]:
+    """``(env id, observation size, action size)`` of the evaluation env of ``env_name`` (built once)."""
+    env = make_env(env_name, 0)
+    try:
+        obs, act = env.observation_space.shape, env.action_space.shape
+        return env_spec(env_name).env_id, int(np.prod(obs)), int(np.prod(act))
+    finally:
+        env.close()
+
+
+def check_against_env(ds: Dataset, env_name: str, where: str) -> None:
+    """Raise :class:`SpotError` unless the dataset's observation and action sizes are those of the
+    env its policy is evaluated in (checked before any training: a mismatch would otherwise fail
+    only at the first evaluation, after the reward model and much of IQL)."""
+    env_id, obs_dim, act_dim = _env_sizes(env_name)
+    for what, got, want in (("observation", ds.obs_dim, obs_dim), ("action", ds.act_dim, act_dim)):
+        if got != want:
+            raise SpotError(
+                f"{where}: {what}s have {got} dimensions, but the evaluation env of '{env_name}' ({env_id}) "
+                f"has {want}; expected a dataset recorded in that env"
+            )
+
+
+def check_fits_env(ds: Dataset, card: dict[str, Any], env_name: str) -> None:
+    """:func:`check_against_env` for a loaded dataset, the error naming its file."""
+    where = f"dataset file '{card['path']}'" if card.get("path") else f"dataset '{card.get('name') or ds.name}'"
+    check_against_env(ds, env_name, where)

@@ -40,6 +40,7 @@ from pathlib import Path
 from types import TracebackType
 
 from spot import SpotError
+from spot.tracking.store import check_reachable  # noqa: F401 (re-exported: the launch checks a server with it)
 
 _PR_SET_PDEATHSIG = 1
 NONCE_TAG = "spot.server_nonce."
@@ -64,21 +65,6 @@ def is_local_store(uri: str) -> bool:
     Such a store is served through :class:`MlflowServer` instead of being written by every trial.
     """
     return uri.startswith(("sqlite:", "file:")) or "://" not in uri
-
-
-def check_reachable(uri: str, timeout: float = 10.0) -> None:
-    """Raise SpotError within about ``timeout`` s if nothing answers HTTP at ``uri`` (MLflow's own
-    client would retry for minutes). Any HTTP answer counts, an error status included."""
-    try:
-        with urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=timeout):
-            return
-    except urllib.error.HTTPError:
-        return  # it answers (behind authentication, or a proxy without /health)
-    except (urllib.error.URLError, OSError, ValueError) as e:
-        reason = getattr(e, "reason", e)
-        raise SpotError(
-            f"tracking server {uri} does not answer ({reason}); start it, or pass another --tracking-uri"
-        ) from None
 
 
 def _die_with_parent() -> None:  # runs in the child between fork and exec

@@ -73,13 +73,12 @@ def before_policy(ctx: Context, kind: stages.RewardKind) -> tuple[stages.Labelle
 def _load(cfg: ExperimentConfig, progress: bool) -> tuple[Any, dict[str, Any], str, float]:
     """The dataset, its card, its evaluation env (checked to exist, before any training) and the load time."""
     from spot import envs
-    from spot.data import registry
 
     t0 = time.perf_counter()
     ds, card = open_dataset(cfg, progress)
     env_name = card.get("name") or ds.name
     envs.env_spec(env_name)
-    registry.check_fits_env(ds, card, env_name)  # observation and action sizes, before any training
+    envs.check_fits_env(ds, card, env_name)  # observation and action sizes, before any training
     return ds, card, env_name, time.perf_counter() - t0
 
 

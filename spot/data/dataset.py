@@ -24,7 +24,6 @@ file stores ``next_observations`` we use them (the true next state); without the
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 from dataclasses import dataclass, field
 from typing import Any
@@ -310,29 +309,3 @@ def raw_from_episodes(
         metadata=dict(metadata or {}),
         infos=infos,
     )
-
-
-@functools.lru_cache(maxsize=8)
-def _env_sizes(env_name: str) -> tuple[str, int, int]:
-    """``(env id, observation size, action size)`` of the evaluation env of ``env_name`` (built once)."""
-    from spot import envs
-
-    env = envs.make_env(env_name, 0)
-    try:
-        obs, act = env.observation_space.shape, env.action_space.shape
-        return envs.env_spec(env_name).env_id, int(np.prod(obs)), int(np.prod(act))
-    finally:
-        env.close()
-
-
-def check_against_env(ds: Dataset, env_name: str, where: str) -> None:
-    """Raise :class:`SpotError` unless the dataset's observation and action sizes are those of the
-    env its policy is evaluated in (checked before any training: a mismatch would otherwise fail
-    only at the first evaluation, after the reward model and much of IQL)."""
-    env_id, obs_dim, act_dim = _env_sizes(env_name)
-    for what, got, want in (("observation", ds.obs_dim, obs_dim), ("action", ds.act_dim, act_dim)):
-        if got != want:
-            raise SpotError(
-                f"{where}: {what}s have {got} dimensions, but the evaluation env of '{env_name}' ({env_id}) "
-                f"has {want}; expected a dataset recorded in that env"
-            )

@@ -284,14 +284,6 @@ def load(
     return ds.replace(name=card.get("name") or ds.name), card
 
 
-def check_fits_env(ds: Dataset, card: dict[str, Any], env_name: str) -> None:
-    """:func:`spot.data.dataset.check_against_env` for a loaded dataset, the error naming its file."""
-    from spot.data.dataset import check_against_env
-
-    where = f"dataset file '{card['path']}'" if card.get("path") else f"dataset '{card.get('name') or ds.name}'"
-    check_against_env(ds, env_name, where)
-
-
 def cached() -> list[dict[str, Any]]:
     """Every built dataset in the cache dir, with its card and ``status``: ``ok``, or why it is
     unusable (no card, damaged: it is rebuilt when next used)."""

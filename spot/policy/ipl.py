@@ -255,10 +255,8 @@ def update(
     Args:
       state: current state.
       fb: ``B`` pairs already cut to their window, ``obs_* [B, S, obs_dim]``, ``label [B]``.
-      replay: a minibatch ``obs [R, obs_dim]`` ... (its ``rew`` is unused); ignored, and may be
-        ``None``, when ``ipl_cfg.use_replay`` is off.
-      iql_cfg, ipl_cfg: hyperparameters (static).
-      dropout_key: key of the actor's dropout masks (only with ``iql.actor_dropout > 0``).
+      replay: a minibatch ``obs [R, obs_dim]`` ... (``rew`` unused); may be ``None`` without replay.
+      iql_cfg, ipl_cfg: hyperparameters (static); dropout_key: the actor's dropout masks' key.
 
     Returns:
       ``(new_state, metrics)`` with scalar metrics named ``ipl/...``.

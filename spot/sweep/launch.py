@@ -938,7 +938,6 @@ def _launch(
     tracking_host: str | None = None,
 ) -> list[Row]:
     """:func:`run_sweep` once the launch holds its lock."""
-    from spot import tracking
 
     state = _state(sweep, path, state_file, resume=resume)
     address, command = _announce(
@@ -984,6 +983,19 @@ def _launch(
             _close_parent(client, ctx, rows, table, interrupted=interrupted)
         n_done = sum(r.status == "FINISHED" for r in rows)
         paper = paper_table(sweep, store.uri, ctx.sweep_id, state_file.parent) if sweep.table and n_done else ""
+    _print_outcome(sweep, store, ctx, rows, table, timing, paper, command)
+    if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished
+        raise Interrupted(signal.SIGINT)
+    return rows
+
+
+def _print_outcome(
+    sweep: Sweep, store: Any, ctx: Any, rows: list[Row], table: str, timing: str, paper: str, command: str
+) -> None:
+    """The end of a launch's output: the summary table, how to open the runs, what is missing."""
+    from spot import tracking
+
+    n_done = sum(r.status == "FINISHED" for r in rows)
     link = (
         f"\nthen open the sweep's runs: {tracking.ui.sweep_url(ctx.experiment_id, ctx.sweep_id, store.link_base)}"
         if store.link_base
@@ -1003,6 +1015,3 @@ def _launch(
         print(f"\n{timing}", flush=True)
     if paper:
         print(f"\n{paper}", flush=True)
-    if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished
-        raise Interrupted(signal.SIGINT)
-    return rows

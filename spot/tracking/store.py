@@ -9,6 +9,8 @@
 from __future__ import annotations
 
 import os
+import urllib.error
+import urllib.request
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -69,6 +71,21 @@ def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
     return uri
 
 
+def check_reachable(uri: str, timeout: float = 10.0) -> None:
+    """Raise SpotError within about ``timeout`` s if nothing answers HTTP at ``uri`` (MLflow's own
+    client would retry for minutes). Any HTTP answer counts, an error status included."""
+    try:
+        with urllib.request.urlopen(f"{uri.rstrip('/')}/health", timeout=timeout):
+            return
+    except urllib.error.HTTPError:
+        return  # it answers (behind authentication, or a proxy without /health)
+    except (urllib.error.URLError, OSError, ValueError) as e:
+        reason = getattr(e, "reason", e)
+        raise SpotError(
+            f"tracking server {uri} does not answer ({reason}); start it, or pass another --tracking-uri"
+        ) from None
+
+
 _ANSWERED: set[str] = set()  # tracking servers that answered in this process
 
 
@@ -77,8 +94,6 @@ def check_server(uri: str) -> None:
     answer (MLflow's client retries for minutes before a traceback). Checked once per process."""
     if not uri.startswith(("http://", "https://")) or uri in _ANSWERED:
         return
-    from spot.mlflow_server import check_reachable
-
     check_reachable(uri)
     _ANSWERED.add(uri)
 
