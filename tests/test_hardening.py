@@ -192,7 +192,12 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
     assert parent.info.status == "KILLED" and parent.data.tags["failure_reason"] == "launch stopped by SIGTERM"
     children = [r for r in runs if "trial_key" in r.data.tags]
     assert len(children) >= 2 and all(r.info.status == "KILLED" for r in children)
-    assert all(r.data.tags["failure_reason"] == "launch stopped by SIGTERM" for r in children)
+    # The trial whose process was SIGKILLed may have had its run closed first by a trial that
+    # started in its place (a new run closes the runs of dead processes of its host).
+    reasons = [r.data.tags["failure_reason"] for r in children]
+    died = re.compile(r"process \d+ on .+ ended without closing the run \(closed by a later command\)")
+    assert all(reason == "launch stopped by SIGTERM" or died.fullmatch(reason) for reason in reasons), reasons
+    assert sum(reason == "launch stopped by SIGTERM" for reason in reasons) >= len(children) - 1, reasons
     # Each run names the host and process that opened it.
     for r in [parent, *children]:
         assert r.data.tags["spot.host"] == socket.gethostname() and r.data.tags["spot.pid"].isdigit()
