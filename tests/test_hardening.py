@@ -804,3 +804,65 @@ def test_a_stage_cache_entry_that_does_not_fit_its_stage_is_evicted_and_recomput
 
     with pytest.raises(KeyError, match="bug"), pytest.warns(UserWarning, match="do not fit"):
         ctx2.stage("reward", buggy)
+
+
+# --------------------------------------------------------------------------- kill -9 of spot run at each stage
+def _spot_run(root: Path, cache: str, uri: str) -> subprocess.Popen:
+    args = ["run", "method=spot", "budget=tiny", "data.name=drawer-open", f"tracking.uri={uri}"]
+    env = {**_env(root), "SPOT_CACHE_DIR": str(root / cache)}
+    cmd = [sys.executable, "-m", "spot.cli", *args, "tracking.experiment=k"]
+    return subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def _entries(folder: Path) -> set[str]:
+    return {p.name for p in folder.glob("*.npz")} if folder.exists() else set()
+
+
+@pytest.mark.slow
+def test_spot_run_killed_at_each_stage_then_rerun_loses_nothing(tmp_path):
+    """kill -9 of `spot run` in its dataset build, then just after each stage-cache entry it writes
+    (so in the next stage: relabelling, subgoals, CVAE, IQL); each rerun goes on from what the
+    killed one finished. In the end: one FINISHED run whose scores equal an uninterrupted run's,
+    the killed runs closed KILLED, every entry readable, no temp file left."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import cache
+
+    uri = sqlite_uri(tmp_path / "m.db")
+    clean = _spot_run(tmp_path, "clean-cache", uri)
+    assert clean.wait(600) == 0, clean.stdout.read()[-3000:]
+    folder, kills = tmp_path / "cache", 0
+    data = tmp_path / "data"
+    while True:
+        before = _entries(folder)
+        proc = _spot_run(tmp_path, "cache", uri)
+        deadline = time.monotonic() + 600
+        if kills == 0:  # in the dataset build: once its card's lock or a temp file shows up
+            while proc.poll() is None and not list(data.glob("drawer-open*")) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        else:  # just after one more stage-cache entry
+            while proc.poll() is None and len(_entries(folder)) <= len(before) and time.monotonic() < deadline:
+                time.sleep(0.05)
+        if proc.poll() is not None:
+            break
+        proc.kill()
+        proc.wait()
+        kills += 1
+        assert kills < 12, "the run never finished"
+    out = proc.stdout.read()
+    assert proc.returncode == 0, out[-3000:]
+    assert kills >= 3  # the build and at least two stages were cut
+    runs = MlflowClient(uri).search_runs([MlflowClient(uri).get_experiment_by_name("k").experiment_id])
+    finished = [r for r in runs if r.info.status == "FINISHED"]
+    assert len(finished) == 2  # the clean run and the last rerun
+    killed = [r for r in runs if r.info.status != "FINISHED"]
+    # a run killed before it opened its MLflow run leaves none; every other is closed KILLED with the reason
+    assert all(
+        r.info.status == "KILLED" and "ended without closing the run" in r.data.tags["failure_reason"] for r in killed
+    )
+    clean_run, last = sorted(finished, key=lambda r: r.info.start_time)
+    scores = {k: v for k, v in clean_run.data.metrics.items() if k.startswith(("eval/", "iql/"))}
+    assert scores and {k: last.data.metrics.get(k) for k in scores} == pytest.approx(scores, rel=1e-5)
+    assert not list(folder.glob("*.tmp*")) and not list(data.glob("*.tmp*"))
+    for entry in folder.glob("*.npz"):
+        cache.read_entry(entry)  # verified: digest and structure (raises on a torn entry)
