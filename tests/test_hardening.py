@@ -807,9 +807,9 @@ def test_a_stage_cache_entry_that_does_not_fit_its_stage_is_evicted_and_recomput
 
 
 # --------------------------------------------------------------------------- kill -9 of spot run at each stage
-def _spot_run(root: Path, cache: str, uri: str) -> subprocess.Popen:
+def _spot_run(root: Path, cache: str, uri: str, data: str = "data") -> subprocess.Popen:
     args = ["run", "method=spot", "budget=tiny", "data.name=drawer-open", f"tracking.uri={uri}"]
-    env = {**_env(root), "SPOT_CACHE_DIR": str(root / cache)}
+    env = {**_env(root), "SPOT_CACHE_DIR": str(root / cache), "SPOT_DATA_DIR": str(root / data)}
     cmd = [sys.executable, "-m", "spot.cli", *args, "tracking.experiment=k"]
     return subprocess.Popen(cmd, cwd=root, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
@@ -829,7 +829,7 @@ def test_spot_run_killed_at_each_stage_then_rerun_loses_nothing(tmp_path):
     from spot import cache
 
     uri = sqlite_uri(tmp_path / "m.db")
-    clean = _spot_run(tmp_path, "clean-cache", uri)
+    clean = _spot_run(tmp_path, "clean-cache", uri, data="clean-data")
     assert clean.wait(600) == 0, clean.stdout.read()[-3000:]
     folder, kills = tmp_path / "cache", 0
     data = tmp_path / "data"
