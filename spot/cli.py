@@ -666,10 +666,13 @@ def _add_run(sub: Any) -> None:
         "spot eval 3f9c2a61d0b84e7f9a6c1e2d4b5a7c90 --episodes 10 --tracking-uri sqlite:///spot_runs/mlflow.db",
         description="Download a run's policy (models/policy) and config, rebuild its evaluation env "
         "and evaluate the policy's mean action on the run's evaluation seeds. With the "
-        "run's eval.episodes this reproduces its eval/score_final.",
+        "run's last-evaluation episodes (eval.final_episodes, else eval.episodes) this reproduces its "
+        "eval/score_final.",
     )
     d.add_argument("run_id", help="MLflow run id")
-    d.add_argument("--episodes", type=_positive_int, help="episodes (default: the run's eval.episodes)")
+    d.add_argument(
+        "--episodes", type=_positive_int, help="episodes (default: the run's eval.final_episodes, else eval.episodes)"
+    )
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.set_defaults(fn=_eval)
 

@@ -140,8 +140,9 @@ def _tracking(
 
 def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | None = None) -> dict[str, Any]:
     """Evaluate the policy a run saved (``models/policy``) again, in the env and with the episode
-    seeds the run evaluated it with (``episodes`` defaults to the run's ``eval.episodes``; the
-    first ``eval.episodes`` episodes are the run's). Returns the scores and the run's logged
+    seeds the run evaluated it with (``episodes`` defaults to the episodes of the run's last
+    evaluation, ``eval.final_episodes`` or else ``eval.episodes``; the first ``episodes`` are the
+    run's). Returns the scores and the run's logged
     ``eval/score_final``, ``logged_score_final``.
     """
     import numpy as np
@@ -151,7 +152,7 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
 
     params, head = tracking.load_model(run_id, "policy", tracking_uri)
     cfg = tracking.run_config(run_id, tracking_uri)
-    n = episodes or cfg.eval.episodes
+    n = episodes or cfg.eval.final_episodes or cfg.eval.episodes
     actor = params["actor"]
     res = envs.evaluate(lambda o: np.asarray(iql.act(actor, o, cfg.iql)), head["env"], n, seed=int(head["eval_seed"]))
     logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")

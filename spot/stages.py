@@ -630,6 +630,13 @@ def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shap
 
 
 # --------------------------------------------------------------------------- policy stages
+def eval_episodes(cfg: ExperimentConfig, step: int) -> int:
+    """Episodes of the evaluation after ``step`` updates: ``eval.final_episodes`` after the last
+    update when it is set, else ``eval.episodes``."""
+    final = cfg.eval.final_episodes
+    return final if final > 0 and step >= cfg.iql.steps else cfg.eval.episodes
+
+
 def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
     """``evaluate(actor_params, step)``: the policy's mean action in the evaluation env."""
     from spot import envs
@@ -642,7 +649,7 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
             res = envs.evaluate(
                 lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)),
                 ctx.env_name,
-                cfg.eval.episodes,
+                eval_episodes(cfg, step),
                 seed=eval_seed(cfg),
             )
         ctx.log(

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from spot import NonFiniteError, SpotError, config, pipeline, tracking
+from spot import NonFiniteError, SpotError, config, pipeline, stages, tracking
 from spot.policy import iql
 
 
@@ -21,6 +21,13 @@ def test_eval_steps_by_hand():
     assert iql.eval_steps(50, 100) == [0, 50]
     with pytest.raises(SpotError):
         iql.eval_steps(100, 0)
+
+
+def test_the_last_evaluation_uses_final_episodes():
+    cfg = config.load(None, ["budget=tiny", "iql.steps=250", "eval.episodes=4", "eval.final_episodes=20"])
+    assert [stages.eval_episodes(cfg, step) for step in (0, 100, 249, 250)] == [4, 4, 4, 20]
+    unset = config.load(None, ["budget=tiny", "iql.steps=250", "eval.episodes=4"])
+    assert [stages.eval_episodes(unset, step) for step in (0, 250)] == [4, 4]
 
 
 class _Counter:
@@ -128,6 +135,7 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
             "iql.steps=200",
             "eval.every=100",
             "eval.episodes=2",
+            "eval.final_episodes=3",
             f"tracking.uri={uri}",
             "tracking.experiment=e",
         ],
@@ -138,7 +146,8 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
     logged_return = [m for m in client.get_metric_history(run_id, "eval/return") if m.step == 200][0].value
 
     res = pipeline.evaluate_run(run_id, uri)
-    assert (res["episodes"], res["steps"], res["env"]) == (2, 200, "drawer-open")
+    # the last evaluation ran eval.final_episodes (3), and spot eval defaults to the same episodes
+    assert (res["episodes"], res["steps"], res["env"]) == (3, 200, "drawer-open")
     # same policy, same env seeds: the same episodes, so the same score and return
     assert res["score_mean"] == pytest.approx(out["eval/score_final"], rel=1e-9, abs=1e-12)
     assert res["score_mean"] == pytest.approx(res["logged_score_final"], rel=1e-9, abs=1e-12)

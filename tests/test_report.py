@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 from conftest import run_cli
 
@@ -154,3 +155,30 @@ def test_text_table_fits_the_terminal_and_rounds(runs):
     text = tables.format_table(t, "text", width=120)
     assert "63.7±2.5* (85.1)" in text  # SPOT hopper: mean 63.67 rounds up; paper 85.08
     assert len([ln for ln in tables.format_table(t, "text", width=60).splitlines() if "hopper" in ln]) > 1
+
+
+def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
+    # the control sweep (experiment lab_controls) holds only the two controls, on hopper; SPOT's arm
+    # of each control is SPOT's Table 1 runs, and a control run (method spot too) never joins SPOT's arm
+    spot = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+    random_sg = spot.assign(experiment="lab_controls", **{"params.subgoal.source": "random"})
+    constant = spot.assign(experiment="lab_controls", **{"params.shaping.kind": "constant"})
+    random_sg = random_sg.assign(
+        run_id=["c1", "c2", "c3"], config_hash="random", **{"metrics.eval/score_final": [40.0, 44.0, 45.0]}
+    )
+    constant = constant.assign(
+        run_id=["c4", "c5", "c6"], config_hash="constant", **{"metrics.eval/score_final": [70.0, 71.0, 75.0]}
+    )
+    mixed = runs.assign(**{"params.subgoal.source": "attention"})
+    both = pd.concat([mixed, random_sg, constant], ignore_index=True)
+    rows = report.build(both)
+    rnd = _row(rows, "C", "spot vs random")
+    # hopper only (the controls ran there): mean(61, 64, 66) - mean(40, 44, 45) = 63.667 - 43 = 20.667
+    assert rnd.experiment == "lab_table1+lab_controls" and rnd.datasets == ["hopper-medium-replay"]
+    assert rnd.effect.value == pytest.approx(191 / 3 - 43) and rnd.verdict == stats.SUPPORTED
+    const = _row(rows, "C", "spot vs constant")
+    assert const.effect.value == pytest.approx(191 / 3 - 72) and const.verdict == stats.NOT_SUPPORTED
+    assert any("walker2d-medium-replay left out" in n for n in const.notes)
+    # claim 1 with the controls in the same frame: SPOT's arm is still the six Table 1 runs
+    moved = pd.concat([mixed, random_sg.assign(experiment="lab_table1")], ignore_index=True)
+    assert _row(report.build(moved), "1", "spot vs pt").effect.value == pytest.approx(8.5)
