@@ -271,6 +271,15 @@ class CVAEConfig:
         "= as recorded (the authors' code)",
         choices=("zscore", "raw"),
     )
+    schedule: str = F(
+        "offline",
+        "when the CVAE trains: offline = after the reward model, on the subgoals of its best checkpoint over all "
+        "training queries (no dropout), cvae.steps steps of cvae.batch_size triplets; online = during reward "
+        "learning (the authors' code): one step per reward-model step on the triplets of that step's minibatch, "
+        "extracted from the training forward pass (dropout on), cvae.steps and cvae.batch_size unused; the CVAE "
+        "is then part of the reward stage's cache entry",
+        choices=("offline", "online"),
+    )
 
 
 @dataclass(frozen=True)
@@ -292,6 +301,12 @@ class ShapingConfig:
     )
     potential_terminal: bool = F(
         True, "Phi(s') = 0 where the transition terminates (Ng et al.); the authors' code does not mask"
+    )
+    state_action: bool = F(
+        False,
+        "subgoals are a state and an action: the CVAE decodes (g_s, g_a) and the cosine term is (cos(s, g_s) + 1)/2 + "
+        "(cos(a, g_a) + 1)/2 on the current s, a, in [0, 2] (the authors' state_action option); false = the state-only "
+        "cosine on s' (eq. 11-12). Needs shaping.kind cosine, constant or none",
     )
 
 
@@ -714,6 +729,7 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
         "shaping.subgoal": "sample",  # subgoal_cvae_model.py: a prior sample (its noise from a fixed key)
         "cvae.loss": "authors",
         "cvae.inputs": "raw",  # PrefTransformer.py vae_train_step, raw batches
+        "cvae.schedule": "online",  # PrefTransformer.py train: one CVAE step per PT step, that minibatch's triplets
         "iql.order": "sequential",  # learner.py: critic target uses the just-updated value network
     },
 }
@@ -1087,6 +1103,16 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
         kind == "none" or cfg.labels.source != "human" or bool(cfg.labels.path),
         "labels.source=human needs labels.path (a folder of PT label files; labels.source=auto uses the files "
         "shipped with spot when the dataset is the real file they index)",
+    )
+    _rule(
+        not cfg.shaping.state_action or cfg.shaping.kind in ("cosine", "constant", "none"),
+        f"shaping.state_action=true is implemented for shaping.kind cosine (and its constant control); got "
+        f"shaping.kind={cfg.shaping.kind!r}",
+    )
+    _rule(
+        cfg.cvae.schedule == "offline" or cfg.subgoal.source == "attention",
+        "cvae.schedule=online trains on the attention subgoals of each minibatch; the control "
+        "subgoal.source=random needs cvae.schedule=offline",
     )
     _rule(
         kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,

@@ -50,11 +50,13 @@ class Labelled:
 
 @dataclass(frozen=True)
 class RewardModel:
-    """A trained reward model: its parameters and the stage-cache key that identifies it."""
+    """A trained reward model: its parameters and the stage-cache key that identifies it; ``cvae``:
+    the CVAE trained with it (``cvae.schedule=online``: ``{"params", "history"}``), else None."""
 
     kind: str
     params: Any
     cache_key: str
+    cvae: Any = None
 
 
 @dataclass(frozen=True)
@@ -344,7 +346,10 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
 
     cfg = ctx.cfg
     model = models.from_config(cfg)
+    online = online_cvae(cfg)
     deps = _reward_deps(ctx, labelled, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
+    if online:  # the CVAE trained with the reward model is part of its entry
+        deps["cvae_online"] = {"subgoal": cfg.subgoal, "cvae": cfg.cvae, "state_action": cfg.shaping.state_action}
 
     def compute() -> dict[str, Any]:
         clip = cfg.reward.clip_action
@@ -355,8 +360,18 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
             reward_train.clip_actions(labelled.eval_batch, clip),
             cfg.reward,
             progress=ctx.progress,
+            companion=_online_companion(ctx) if online else None,
         )
-        return {"params": params, "history": history}
+        if not online:
+            return {"params": params, "history": history}
+        cvae_history = [
+            {"step": step, **{k: history["companion"][k][i] for k in history["companion"]}}
+            for i, step in enumerate(history["step"])
+        ]
+        state = history.pop("companion_state")
+        cvae = {"params": state.params, "history": cvae_history, "steps": int(state.step)}
+        history.pop("companion")
+        return {"params": params, "history": history, "cvae": cvae}
 
     out, key = ctx.cached("reward", deps, compute)
     h = out["history"]
@@ -375,7 +390,7 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
         kind=model.kind,
         cache_key=key,
     )
-    return RewardModel(model.kind, out["params"], key)
+    return RewardModel(model.kind, out["params"], key, out.get("cvae"))
 
 
 def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
@@ -484,6 +499,23 @@ def needs_subgoals(cfg: ExperimentConfig) -> bool:
     return cfg.reward.kind == "pt" and (cfg.shaping.kind != "none" or cfg.subgoal.diagnostics)
 
 
+def online_cvae(cfg: ExperimentConfig) -> bool:
+    """The CVAE trains during reward learning (``cvae.schedule=online``) in runs that need one."""
+    return cfg.cvae.schedule == "online" and needs_subgoals(cfg)
+
+
+def _online_companion(ctx: Context) -> Any:
+    """The online CVAE as the reward trainer's companion (:mod:`spot.subgoal.online`), initialised
+    with the ``cvae`` key."""
+    from spot.reward.train import Companion
+    from spot.subgoal import online
+
+    cfg = ctx.cfg
+    state = online.init_state(ctx.keys["cvae"], ctx.ds.observations, ctx.ds.act_dim, cfg.cvae, cfg.shaping.state_action)
+    step = online.OnlineCVAE(cfg.subgoal, cfg.cvae, cfg.shaping.state_action)
+    return Companion(step, state, {"cvae/loss": "cvae/loss"})
+
+
 def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
     """Eq. 5-6: attention subgoals on the preferred training segments -> (s, a, g) triplets."""
     import jax
@@ -505,29 +537,35 @@ def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
                 batch[f"obs_{side}"], batch[f"act_{side}"], np.asarray(r_hat), np.asarray(attn), ctx.cfg.subgoal
             )
         )
+    goal_actions = ctx.cfg.shaping.state_action  # subgoals are states and actions
     triplets, segments, states, info = extract.extract_with_segments(
-        sides[0], sides[1], batch["label"], ctx.cfg.subgoal, rng=np.random.default_rng(ctx.cfg.seed)
+        sides[0],
+        sides[1],
+        batch["label"],
+        ctx.cfg.subgoal,
+        rng=np.random.default_rng(ctx.cfg.seed),
+        goal_actions=goal_actions,
     )
     if ctx.cfg.subgoal.source == "random":  # the control: same count, random dataset states
-        triplets = extract.random_subgoals(triplets, ctx.ds.observations, np.random.default_rng([ctx.cfg.seed, 1]))
-        states = triplets.g
+        rng = np.random.default_rng([ctx.cfg.seed, 1])
+        triplets = extract.random_subgoals(triplets, ctx.ds.observations, rng, ctx.ds.actions if goal_actions else None)
+        states = triplets.g[:, : ctx.ds.obs_dim]
     ctx.log(info)
     return triplets, states, segments
 
 
-def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
-    """Eq. 7: the CVAE G(s, a) -> g trained on the triplets; cached. Its held-out triplets
-    (``cvae/heldout_*``) are whole preferred segments: no segment has triplets on both sides."""
+def _offline_cvae(ctx: Context, triplets: Any, segments: np.ndarray, rewards: Rewards) -> tuple[dict[str, Any], str]:
+    """``cvae.schedule=offline``: the CVAE trained on the extracted triplets, cached under its own key."""
     from spot.subgoal import cvae
 
     cfg = ctx.cfg
-    triplets, states, segments = extracted
     deps = {
         "reward": rewards.source.cache_key,
         "subgoal": cfg.subgoal,
         "cvae": cfg.cvae,
         "seed": cfg.seed,
         "split": "segment",
+        **({"goal": "state_action"} if cfg.shaping.state_action else {}),
     }
     out, key = ctx.cached(
         "cvae",
@@ -544,12 +582,29 @@ def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
                     cvae.obs_stats(ctx.ds.observations),
                     progress=ctx.progress,
                     groups=segments,
+                    goal_actions=cfg.shaping.state_action,
                 ),
                 strict=False,
             )
         ),
     )
-    ctx.tracker.set_tags({"cache.cvae_key": key, "cache.reward_key": rewards.source.cache_key})
+    ctx.tracker.set_tags({"cache.cvae_key": key})
+    return out, key
+
+
+def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
+    """Eq. 7: the CVAE G(s, a) -> g. ``cvae.schedule=offline``: trained here on the triplets of the
+    best checkpoint, cached; its held-out triplets (``cvae/heldout_*``) are whole preferred segments
+    (no segment has triplets on both sides). ``online``: the CVAE the reward stage trained alongside
+    the reward model (``RewardModel.cvae``, in the reward stage's cache entry; ``cvae/steps`` = its
+    steps); the triplets here only feed the diagnostics."""
+    triplets, states, segments = extracted
+    if online_cvae(ctx.cfg):
+        out, key = rewards.source.cvae, rewards.source.cache_key
+        ctx.log({"cvae/steps": out["steps"]})
+    else:
+        out, key = _offline_cvae(ctx, triplets, segments, rewards)
+    ctx.tracker.set_tags({"cache.reward_key": rewards.source.cache_key})
     for row in out["history"]:
         ctx.log({k: v for k, v in row.items() if k != "step"}, step=int(row["step"]))
     save_model(
@@ -615,7 +670,7 @@ def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shap
     ctx.tracker.log_series("diag/extrap_bin_in", bins, table.mean_error[0])
     ctx.tracker.log_series("diag/extrap_bin_ood", bins, table.mean_error[1])
     ctx.tracker.log_artifact(diagnostics.plot_extrapolation({ctx.cfg.method: table}, art / "extrapolation_error.png"))
-    generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)
+    generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)[:, : ds.obs_dim]
     ctx.log(diagnostics.precision_recall(subgoals.states, generated))
     ctx.tracker.log_artifact(diagnostics.plot_projection(ds.observations, generated, art / "subgoal_projection.png"))
     ctx.tracker.log_dict(

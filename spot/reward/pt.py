@@ -114,13 +114,21 @@ class PreferenceTransformer(nn.Module):
 
         Returns: ``r_hat [B, T]``, ``w [B, T]``, ``logit [B]``, all float32.
         """
+        r_hat, w, logit, _ = self.with_attention(obs, act, timesteps, mask, deterministic)
+        return r_hat, w, logit
+
+    def with_attention(
+        self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array, deterministic: bool = True
+    ) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+        """``(r_hat, w, logit)`` of :meth:`__call__` and the preference attention ``A [B, T, T]`` of the
+        same pass (the online CVAE reads the training pass's, dropout on: ``spot.subgoal.online``)."""
         r_hat, attn = self.attention(obs, act, timesteps, mask, deterministic)
         valid = mask > 0
         row_weight = valid.astype(jnp.float32)
         row_weight = row_weight / jnp.maximum(row_weight.sum(axis=1, keepdims=True), 1.0)
         w = jnp.einsum("bt,btj->bj", row_weight, attn)  # column mean over real query rows
         logit = jnp.sum(w * r_hat, axis=1)  # == mean_t z_t, z_t = sum_j A_tj r_hat_j
-        return r_hat, w, logit
+        return r_hat, w, logit, attn
 
     def attention(
         self, obs: jax.Array, act: jax.Array, timesteps: jax.Array, mask: jax.Array, deterministic: bool = True
@@ -260,6 +268,30 @@ class PT:
     ) -> tuple[jax.Array, jax.Array, jax.Array]:
         """``(r_hat, w, logit)`` (:func:`forward`); dropout on iff ``dropout_key`` is given."""
         return forward(params, self.cfg, obs, act, timesteps, mask, dropout_key)
+
+    def apply_attention(
+        self,
+        params: Params,
+        obs: jax.Array,
+        act: jax.Array,
+        timesteps: jax.Array,
+        mask: jax.Array,
+        dropout_key: jax.Array | None = None,
+    ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """``(r_hat [B, T], A [B, T, T], logit [B])`` of one pass (dropout on iff ``dropout_key``):
+        :meth:`apply`'s reward and logit with the preference attention of the same pass."""
+        deterministic = dropout_key is None
+        r_hat, _, logit, attn = make_model(self.cfg).apply(
+            params,
+            obs,
+            act,
+            timesteps,
+            mask,
+            deterministic,
+            method=PreferenceTransformer.with_attention,
+            rngs=None if deterministic else {"dropout": dropout_key},
+        )
+        return r_hat, attn, logit
 
     def optimizer(self, total_steps: int) -> optax.GradientTransformation:
         """AdamW(0.9, ``pt.b2``) with :func:`learning_rate` (Table 5: b2 0.99, linear warmup, constant)."""

@@ -24,6 +24,12 @@ Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
   gradient as one pass, with less peak memory and faster on CPU (docs/benchmarks.md).
 * After each chunk: held-out loss/accuracy; the parameters with the best held-out loss are kept
   (PT repo ``best_model.pkl``). A non-finite loss raises :class:`NonFiniteError` naming the step.
+* A companion learner (``companion=``, :class:`Companion`; the online CVAE of
+  ``cvae.schedule=online``, built by the stages from ``spot.subgoal.online``) takes one step after
+  every update on that update's training forward pass (:class:`ForwardPass`: the minibatch, PT's
+  per-step rewards and preference attention, dropout on, parameters before the update), with its
+  own key; the reward model's keys, minibatches and parameters are the same as without it. Its
+  state rides in the scan state, its metrics in the chunk rows, and its final state is returned.
 
 The model is any :class:`spot.reward.models.RewardModel` (``MR(cfg)``, ``PT(cfg)``).
 """
@@ -71,6 +77,32 @@ class PrefPairs(NamedTuple):
     timesteps_2: jax.Array
     mask_2: jax.Array
     label: jax.Array
+
+
+class ForwardPass(NamedTuple):
+    """One update's training forward pass, as a companion sees it: the minibatch's segments
+    (``obs_* [B, T, o]``, ``act_* [B, T, a]``), PT's per-step rewards ``r_hat_* [B, T]`` and
+    preference attention ``attn_* [B, T, T]`` (dropout on), and ``label [B]``."""
+
+    obs_1: jax.Array
+    act_1: jax.Array
+    r_hat_1: jax.Array
+    attn_1: jax.Array
+    obs_2: jax.Array
+    act_2: jax.Array
+    r_hat_2: jax.Array
+    attn_2: jax.Array
+    label: jax.Array
+
+
+class Companion(NamedTuple):
+    """A learner trained alongside the reward model: ``step(state, ForwardPass, key) -> (state,
+    metrics)`` (hashable: compiled programs are kept per step function), its initial ``state``, and
+    the metrics to check for NaN/inf (metric -> reported name)."""
+
+    step: Callable[[Any, ForwardPass, jax.Array], tuple[Any, dict]]
+    state: Any
+    losses: Mapping[str, str]
 
 
 def pref_pairs(batch: Mapping[str, np.ndarray], where: str = "preference batch") -> PrefPairs:
@@ -231,16 +263,88 @@ def make_update(
     return update
 
 
-def make_train_chunk(model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int = 64) -> loop.Chunk:
+COMPANION_STREAM = 0x5EED5
+"""``fold_in(step_key, COMPANION_STREAM)`` is a companion's key at a step: no key of the reward
+model's (``split(step_key)`` gives the threefry counter pairs (0, 2) and (1, 3); this is (0, 0x5EED5))."""
+
+
+def make_companion_update(
+    model: RewardModel, batch_size: int, steps: int, micro_batch: int, companion_step: Callable
+) -> Callable[[tuple, PrefPairs, jax.Array], tuple[tuple, dict]]:
+    """``update((reward_state, companion_state), data, key)``: :func:`make_update`'s step of the
+    reward model (the same minibatch, dropout masks, loss and parameters), reading the preference
+    attention of the same pass (``model.apply_attention``), then one ``companion_step`` on that
+    pass (:class:`ForwardPass`) with the key ``fold_in(step_key, COMPANION_STREAM)``."""
+    tx = model.optimizer(steps)
+    n_micro = micro_batches(batch_size, micro_batch)
+    cat = functools.partial(jnp.concatenate, axis=0)
+
+    def micro_loss(params: Params, mb: PrefPairs, dropout_key: jax.Array) -> tuple[jax.Array, tuple]:
+        r_hat, attn, logit = model.apply_attention(
+            params,
+            cat([mb.obs_1, mb.obs_2]),
+            cat([mb.act_1, mb.act_2]),
+            cat([mb.timesteps_1, mb.timesteps_2]),
+            cat([mb.mask_1, mb.mask_2]),
+            dropout_key,
+        )
+        b = mb.label.shape[0]
+        ce, correct, non_tie = _pair_terms(logit[:b], logit[b:], mb.label)
+        counts = jnp.stack([jnp.sum(correct & non_tie), jnp.sum(non_tie)]).astype(jnp.float32)
+        return ce.mean(), (counts, (r_hat[:b], attn[:b], r_hat[b:], attn[b:]))
+
+    def update(state: tuple, data: PrefPairs, key: jax.Array) -> tuple[tuple, dict]:
+        rs, cs = state
+        step_key = jax.random.fold_in(key, rs.step)
+        batch_key, dropout_key = jax.random.split(step_key)
+        idx = batch_indices(batch_key, _num_pairs(data), batch_size).reshape(n_micro, -1)
+
+        def accumulate(carry: tuple, i: jax.Array) -> tuple[tuple, tuple]:
+            mb = jax.tree.map(lambda x: x[idx[i]], data)
+            (loss, (counts, out)), grads = jax.value_and_grad(micro_loss, has_aux=True)(
+                rs.params, mb, jax.random.fold_in(dropout_key, i)
+            )
+            return jax.tree.map(jnp.add, carry, (loss, counts, grads)), out
+
+        zeros = (jnp.zeros(()), jnp.zeros(2), jax.tree.map(jnp.zeros_like, rs.params))
+        (loss, counts, grads), outs = jax.lax.scan(accumulate, zeros, jnp.arange(n_micro))
+        grads = jax.tree.map(lambda g: g / n_micro, grads)
+        updates, opt_state = tx.update(grads, rs.opt_state, rs.params)
+        rs_next = RewardState(optax.apply_updates(rs.params, updates), opt_state, rs.step + 1)
+        r1, a1, r2, a2 = (x.reshape(-1, *x.shape[2:]) for x in outs)  # [n_micro, b, ...] -> [B, ...]
+        mb = jax.tree.map(lambda x: x[idx.reshape(-1)], data)
+        fp = ForwardPass(mb.obs_1, mb.act_1, r1, a1, mb.obs_2, mb.act_2, r2, a2, mb.label)
+        cs, c_metrics = companion_step(cs, fp, jax.random.fold_in(step_key, COMPANION_STREAM))
+        metrics = {"loss": loss / n_micro, "acc": counts[0] / jnp.maximum(counts[1], 1.0), **c_metrics}
+        return (rs_next, cs), metrics
+
+    return update
+
+
+def make_train_chunk(
+    model: RewardModel,
+    batch_size: int,
+    length: int,
+    steps: int,
+    micro_batch: int = 64,
+    companion_step: Callable | None = None,
+) -> loop.Chunk:
     """Jitted ``chunk(state, n, data, key) -> (state, {loss, acc, active} [length])``: ``n <= length``
-    steps of :func:`make_update` (:func:`spot.loop.make_chunk`, ``"stack"``). Kept per arguments,
-    so a second run with the same model and sizes reuses the compiled program."""
-    return _train_chunk(model, batch_size, length, steps, micro_batch)
+    steps of :func:`make_update` (:func:`spot.loop.make_chunk`, ``"stack"``), or of
+    :func:`make_companion_update` with a ``companion_step`` (the state is then ``(reward_state,
+    companion_state)``). Kept per arguments, so a second run with the same model and sizes reuses
+    the compiled program."""
+    return _train_chunk(model, batch_size, length, steps, micro_batch, companion_step)
 
 
 @functools.lru_cache(maxsize=16)
-def _train_chunk(model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int) -> loop.Chunk:
-    return loop.make_chunk(make_update(model, batch_size, steps, micro_batch), length, "stack")
+def _train_chunk(
+    model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int, companion_step: Callable | None
+) -> loop.Chunk:
+    if companion_step is None:
+        return loop.make_chunk(make_update(model, batch_size, steps, micro_batch), length, "stack")
+    update = make_companion_update(model, batch_size, steps, micro_batch, companion_step)
+    return loop.make_chunk(update, length, "stack")
 
 
 @functools.lru_cache(maxsize=16)
@@ -289,6 +393,7 @@ def train_reward_model(
     reward_cfg: RewardConfig,
     progress: bool = True,
     micro_batch: int = 64,
+    companion: Companion | None = None,
 ) -> tuple[Params, dict[str, Any]]:
     """Train a reward model (``MR(cfg)`` or ``PT(cfg)``) on preference pairs for exactly
     :func:`training_steps` steps (``reward.steps``, or ``reward.epochs`` counted as the PT repo does).
@@ -302,13 +407,17 @@ def train_reward_model(
       progress: show a tqdm bar over steps.
       micro_batch: gradient-accumulation slice size in pairs (see :func:`make_update`); only
         speed and memory depend on it.
+      companion: a learner that takes one step per update on its forward pass (module
+        docstring); the reward model trains exactly as without it.
 
     Returns:
       ``(params, history)``: the parameters with the lowest held-out loss, and a dict with per-chunk
       lists ``step`` (steps done), ``train_loss``, ``train_acc`` (chunk means), ``eval_loss``,
       ``eval_acc``, and ``best_step``, ``best_eval_loss``, ``best_eval_acc``, ``batch_size``,
       ``eval_on``, ``compile_s`` (next to nothing when this process compiled the same programs
-      before), ``train_s``, ``steps_per_s``, ``steps`` (steps taken).
+      before), ``train_s``, ``steps_per_s``, ``steps`` (steps taken). With a companion also
+      ``companion_state`` (its state after the last update) and ``companion`` (its metrics: one
+      list of chunk means per name).
 
     Raises:
       NonFiniteError: a train or eval loss is NaN/inf.
@@ -326,10 +435,14 @@ def train_reward_model(
     )
     train = jax.device_put(train)
 
-    train_chunk = make_train_chunk(model, batch_size, length, steps, micro_batch)
+    step_fn = companion.step if companion is not None else None
+    train_chunk = make_train_chunk(model, batch_size, length, steps, micro_batch, step_fn)
     evaluate = make_evaluate(model)
+    params_of = (lambda st: st[0].params) if companion is not None else (lambda st: st.params)
+    if companion is not None:
+        state = (state, companion.state)
     compile_s = loop.compile_seconds(train_chunk, state, length, train, train_key) + loop.compile_seconds(
-        evaluate, state.params, eval_data, eval_weight
+        evaluate, params_of(state), eval_data, eval_weight
     )
     out = loop.run(
         train_chunk,
@@ -337,16 +450,21 @@ def train_reward_model(
         (train, train_key),
         steps=steps,
         length=length,
-        losses={"loss": "reward/train_loss"},
+        losses={"loss": "reward/train_loss", **(companion.losses if companion is not None else {})},
         evaluate=lambda st: dict(
-            zip(("eval_loss", "eval_acc"), evaluate(st.params, eval_data, eval_weight), strict=True)
+            zip(("eval_loss", "eval_acc"), evaluate(params_of(st), eval_data, eval_weight), strict=True)
         ),
         eval_loss=("eval_loss", "reward/eval_loss"),
         best_by="eval_loss",
+        params_of=params_of,
         progress=progress,
         desc=f"reward ({model.kind})",
     )
     history = _history(out, batch_size, eval_on, compile_s, steps)
+    if companion is not None:
+        names = [k for k in out.rows[0] if k not in ("step", "loss", "acc", "eval_loss", "eval_acc")]
+        history["companion"] = {k: loop.column(out.rows, k) for k in names}
+        history["companion_state"] = jax.device_get(out.state[1])
     return jax.device_put(out.best_params), history
 
 

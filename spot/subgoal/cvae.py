@@ -76,16 +76,18 @@ class GaussianMLP(nn.Module):
 
 
 class CVAE(nn.Module):
-    """Encoder, prior and decoder on normalised states ``s_n``, ``g_n`` and raw actions ``a``."""
+    """Encoder, prior and decoder on normalised states ``s_n``, ``g_n`` and raw actions ``a``; the
+    subgoal ``g`` is a state, or a state and an action (``goal_act_dim > 0``: ``[g_s_n, g_a]``)."""
 
     obs_dim: int
     latent_dim: int
     hidden: Sequence[int]
+    goal_act_dim: int = 0
 
     def setup(self) -> None:
         self.encoder = GaussianMLP(self.hidden, self.latent_dim)
         self.prior_net = GaussianMLP(self.hidden, self.latent_dim)
-        self.decoder = MLP(self.hidden, self.obs_dim)
+        self.decoder = MLP(self.hidden, self.obs_dim + self.goal_act_dim)
 
     def posterior(self, g_n: jax.Array, s_n: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
         return self.encoder(jnp.concatenate([g_n, s_n, a], axis=-1))
@@ -104,23 +106,44 @@ class CVAE(nn.Module):
 
 
 class CVAEParams(struct.PyTreeNode):
-    """Network weights, the observation statistics, and the (static) architecture."""
+    """Network weights, the observation statistics, and the (static) architecture.
+
+    ``goal_act_dim``: 0 when the subgoal is a state; the action size when it is a state and an
+    action (``shaping.state_action``), the decoded goal then being ``[ĝ_s, ĝ_a]``."""
 
     net: Params
     obs_mean: jax.Array  # [obs_dim]
     obs_std: jax.Array  # [obs_dim], floored at STD_FLOOR
     hidden: tuple[int, ...] = struct.field(pytree_node=False)
     latent_dim: int = struct.field(pytree_node=False)
+    goal_act_dim: int = struct.field(pytree_node=False, default=0)
+
+    @property
+    def obs_dim(self) -> int:
+        return int(self.obs_mean.shape[-1])
 
     @property
     def module(self) -> CVAE:
-        return CVAE(obs_dim=self.obs_mean.shape[-1], latent_dim=self.latent_dim, hidden=self.hidden)
+        return CVAE(
+            obs_dim=self.obs_dim, latent_dim=self.latent_dim, hidden=self.hidden, goal_act_dim=self.goal_act_dim
+        )
 
     def normalize(self, x: jax.Array) -> jax.Array:
         return (x - self.obs_mean) / self.obs_std
 
     def denormalize(self, x_n: jax.Array) -> jax.Array:
         return x_n * self.obs_std + self.obs_mean
+
+    def normalize_goal(self, g: jax.Array) -> jax.Array:
+        """A goal ``[g_s]`` or ``[g_s, g_a]`` with its state part z-scored (actions stay raw)."""
+        if not self.goal_act_dim:
+            return self.normalize(g)
+        return jnp.concatenate([self.normalize(g[..., : self.obs_dim]), g[..., self.obs_dim :]], axis=-1)
+
+    def denormalize_goal(self, g_n: jax.Array) -> jax.Array:
+        if not self.goal_act_dim:
+            return self.denormalize(g_n)
+        return jnp.concatenate([self.denormalize(g_n[..., : self.obs_dim]), g_n[..., self.obs_dim :]], axis=-1)
 
 
 class CVAEState(NamedTuple):
@@ -160,46 +183,84 @@ def obs_stats(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --------------------------------------------------------------------------- loss
+def _avg(x: jax.Array, weight: jax.Array | None) -> jax.Array:
+    """Mean of ``x`` over the batch (every axis without ``weight``; with ``weight [B]`` the weighted
+    mean over rows of the per-row means: the online CVAE's masked triplets)."""
+    if weight is None:
+        return x.mean()
+    rows = jnp.where(weight > 0, x.reshape(x.shape[0], -1).mean(axis=-1), 0.0)
+    return (weight * rows).sum() / jnp.maximum(weight.sum(), 1.0)
+
+
+def _var(x: jax.Array, weight: jax.Array | None) -> jax.Array:
+    """Variance of ``x [B]`` over the batch (weighted by ``weight [B]`` when given)."""
+    if weight is None:
+        return x.var()
+    return _avg((x - _avg(x, weight)) ** 2, weight)
+
+
+def _authors_loss(
+    g_hat_n: jax.Array, g_n: jax.Array, sim: jax.Array, kl: jax.Array, o: int, cfg: CVAEConfig, weight
+) -> jax.Array:
+    """SGPbrl ``vae_train_step``: per-dimension MSE (state part, plus the action part's when the goal
+    has one) - [mean((cos_s + 1)/2) + 0.1 var(cos_s)] + beta * KL / latent_dim (module docstring)."""
+    if g_hat_n.shape[-1] == o:
+        mse = _avg((g_hat_n - g_n) ** 2, weight)
+    else:
+        mse = _avg((g_hat_n[:, :o] - g_n[:, :o]) ** 2, weight) + _avg((g_hat_n[:, o:] - g_n[:, o:]) ** 2, weight)
+    return mse - _avg(0.5 * (sim + 1.0), weight) - 0.1 * _var(sim, weight) + cfg.beta * kl
+
+
 def loss_fn(
-    params: CVAEParams, batch: Triplets, key: jax.Array, cfg: CVAEConfig
+    params: CVAEParams, batch: Triplets, key: jax.Array, cfg: CVAEConfig, weight: jax.Array | None = None
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Eq. 9 on a batch of raw triplets ``s [B, o]``, ``a [B, a]``, ``g [B, o]``.
+    """Eq. 9 on a batch of raw triplets ``s [B, o]``, ``a [B, a]``, ``g [B, o]`` (or ``[B, o + a]``:
+    a state and an action, when ``params.goal_act_dim``).
+
+    ``weight [B]`` (optional, 0 or 1): the loss and metrics average over the rows of weight 1 only
+    (the online CVAE's fixed-size batches of a variable number of triplets).
 
     Returns:
       ``(loss, info)`` with ``cvae/recon``, ``cvae/kl``, ``cvae/cos``, ``cvae/loss`` and
       ``cvae/mse`` (per-dimension MSE in normalised units). ``cvae/cos`` is logged for
-      ``cfg.loss = "mse"`` too, but only added to the loss for ``"mse_cos"``.
+      ``cfg.loss = "mse"`` too, but only added to the loss for ``"mse_cos"``. With a state and
+      action goal, ``cvae/cos`` is the state part's and the ``mse_cos`` loss adds the action part's
+      ``½ (1 - cos(ĝ_a, g_a))`` too (the shaping term reads both, eq. 11 per part).
     """
     s, a, g = batch
-    assert s.ndim == 2 and s.shape == g.shape and a.shape[0] == s.shape[0], (s.shape, a.shape, g.shape)
+    o = params.obs_dim
+    assert s.ndim == 2 and g.shape == (s.shape[0], o + params.goal_act_dim) and a.shape[0] == s.shape[0], (
+        s.shape,
+        a.shape,
+        g.shape,
+    )
     model = params.module
-    s_n, g_n = params.normalize(s), params.normalize(g)
+    s_n, g_n = params.normalize(s), params.normalize_goal(g)
     q_mean, q_log_std = model.apply({"params": params.net}, g_n, s_n, a, method=CVAE.posterior)
     p_mean, p_log_std = model.apply({"params": params.net}, s_n, a, method=CVAE.prior)
     z = q_mean + jnp.exp(q_log_std) * jax.random.normal(key, q_mean.shape)
     g_hat_n = model.apply({"params": params.net}, z, s_n, a, method=CVAE.decode)
 
     sq_err = ((g_hat_n - g_n) ** 2).sum(axis=-1)  # [B]
-    recon = 0.5 * sq_err.mean()
-    kl = gaussian_kl(q_mean, q_log_std, p_mean, p_log_std).mean()
-    cos = cosine_loss(params.denormalize(g_hat_n), g).mean()
+    recon = 0.5 * _avg(sq_err, weight)
+    kl_rows = gaussian_kl(q_mean, q_log_std, p_mean, p_log_std)
+    kl = _avg(kl_rows, weight)
+    g_hat = params.denormalize_goal(g_hat_n)
+    sim = cosine_similarity(g_hat[:, :o], g[:, :o])
+    cos = _avg(0.5 * (1.0 - sim), weight)
     loss = recon + cfg.beta * kl
     if cfg.loss == "mse_cos":
         loss = loss + cos
+        if params.goal_act_dim:
+            loss = loss + _avg(cosine_loss(g_hat[:, o:], g[:, o:]), weight)
     elif cfg.loss == "authors":  # SGPbrl PrefTransformer.vae_train_step (see the module docstring)
-        sim = cosine_similarity(params.denormalize(g_hat_n), g)
-        loss = (
-            ((g_hat_n - g_n) ** 2).mean()
-            - (0.5 * (sim + 1.0)).mean()
-            - 0.1 * sim.var()
-            + cfg.beta * kl / q_mean.shape[-1]
-        )
+        loss = _authors_loss(g_hat_n, g_n, sim, kl / q_mean.shape[-1], o, cfg, weight)
     info = {
         "cvae/loss": loss,
         "cvae/recon": recon,
         "cvae/kl": kl,
         "cvae/cos": cos,
-        "cvae/mse": sq_err.mean() / s.shape[-1],
+        "cvae/mse": _avg(sq_err, weight) / g.shape[-1],
     }
     return loss, info
 
@@ -211,18 +272,26 @@ def _optimizer(cfg: CVAEConfig) -> optax.GradientTransformation:
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _init_net(model: CVAE, act_dim: int, key: jax.Array) -> Params:
+    zeros_g = jnp.zeros((1, model.obs_dim + model.goal_act_dim))
     zeros_o, zeros_a = jnp.zeros((1, model.obs_dim)), jnp.zeros((1, act_dim))
-    return model.init(key, zeros_o, zeros_o, zeros_a)["params"]
+    return model.init(key, zeros_g, zeros_o, zeros_a)["params"]
 
 
 def init(
-    key: jax.Array, obs_dim: int, act_dim: int, cfg: CVAEConfig, stats: tuple[np.ndarray, np.ndarray]
+    key: jax.Array,
+    obs_dim: int,
+    act_dim: int,
+    cfg: CVAEConfig,
+    stats: tuple[np.ndarray, np.ndarray],
+    goal_actions: bool = False,
 ) -> CVAEState:
-    """Fresh CVAE weights and Adam state; ``stats = (obs_mean, obs_std)`` of the dataset."""
+    """Fresh CVAE weights and Adam state; ``stats = (obs_mean, obs_std)`` of the dataset;
+    ``goal_actions``: the subgoal is a state and an action (``shaping.state_action``)."""
     mean, std = (np.asarray(x, dtype=np.float32) for x in stats)
     if mean.shape != (obs_dim,) or std.shape != (obs_dim,):
         raise SpotError(f"obs_stats have shapes {mean.shape}, {std.shape}; expected ({obs_dim},)")
-    model = CVAE(obs_dim=obs_dim, latent_dim=cfg.latent_dim, hidden=tuple(cfg.hidden))
+    goal_act_dim = act_dim if goal_actions else 0
+    model = CVAE(obs_dim=obs_dim, latent_dim=cfg.latent_dim, hidden=tuple(cfg.hidden), goal_act_dim=goal_act_dim)
     net = _init_net(model, act_dim, key)
     params = CVAEParams(
         net=net,
@@ -230,6 +299,7 @@ def init(
         obs_std=jnp.maximum(jnp.asarray(std), STD_FLOOR),
         hidden=tuple(cfg.hidden),
         latent_dim=cfg.latent_dim,
+        goal_act_dim=goal_act_dim,
     )
     return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
 
@@ -296,12 +366,14 @@ def train_cvae(
     log_every: int = 500,
     holdout: float = 0.1,
     groups: np.ndarray | None = None,
+    goal_actions: bool = False,
 ) -> tuple[CVAEParams, list[dict[str, float]]]:
     """Train the CVAE for exactly ``cfg.steps`` steps on raw triplets.
 
     Args:
       key: root key of this stage; split into init / split / train / eval keys.
-      s, a, g: ``[M, obs_dim]``, ``[M, act_dim]``, ``[M, obs_dim]`` triplets (:mod:`extract`).
+      s, a, g: ``[M, obs_dim]``, ``[M, act_dim]``, ``[M, obs_dim]`` triplets (:mod:`extract`);
+        ``g [M, obs_dim + act_dim]`` (a state and an action) with ``goal_actions``.
       cfg: CVAE config.
       obs_stats: ``(mean, std)`` of the dataset's observations (:func:`obs_stats`); replaced by
         ``(0, 1)`` when ``cfg.inputs = "raw"``.
@@ -313,6 +385,7 @@ def train_cvae(
         metrics; no held-out split when it rounds to zero groups.
       groups: optional ``[M]`` segment id per triplet, so a segment's triplets are not split
         across train and held-out sets.
+      goal_actions: the subgoal is a state and an action (``shaping.state_action``).
 
     Returns:
       ``(params, history)``; ``history`` is one dict per chunk with ``step``, the chunk means
@@ -325,10 +398,11 @@ def train_cvae(
     if cfg.inputs == "raw":  # identity standardisation
         obs_stats = (np.zeros(s.shape[-1], np.float32), np.ones(s.shape[-1], np.float32))
     m = s.shape[0]
-    if m == 0 or a.shape[0] != m or g.shape != s.shape:
+    goal_dim = s.shape[-1] + (a.shape[-1] if goal_actions else 0)
+    if m == 0 or a.shape[0] != m or g.shape != (m, goal_dim):
         raise SpotError(
             f"triplets have shapes s {s.shape}, a {a.shape}, g {g.shape}; expected "
-            "[M, obs_dim], [M, act_dim], [M, obs_dim] with M > 0"
+            f"[M, obs_dim], [M, act_dim], [M, {'obs_dim + act_dim' if goal_actions else 'obs_dim'}] with M > 0"
         )
     init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
     del key
@@ -342,7 +416,7 @@ def train_cvae(
     def evaluate(state: CVAEState) -> dict[str, jax.Array]:
         return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, eval_key).items()}
 
-    state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats)
+    state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats, goal_actions)
     out = loop.run(
         make_train_chunk(cfg, length),
         state,
@@ -360,7 +434,8 @@ def train_cvae(
 
 # --------------------------------------------------------------------------- generation
 def sample_subgoal(params: CVAEParams, s: jax.Array, a: jax.Array, key: jax.Array | None = None) -> jax.Array:
-    """Raw subgoals ``ĝ [B, obs_dim]`` from raw ``s [B, o]``, ``a [B, a]`` (eq. 10); pure, jittable.
+    """Raw subgoals ``ĝ [B, obs_dim]`` (``[B, obs_dim + act_dim]``, state then action, when the CVAE
+    decodes actions too) from raw ``s [B, o]``, ``a [B, a]`` (eq. 10); pure, jittable.
 
     ``key=None`` decodes the prior mean; a key decodes one prior sample per row.
     """
@@ -368,7 +443,7 @@ def sample_subgoal(params: CVAEParams, s: jax.Array, a: jax.Array, key: jax.Arra
     s_n = params.normalize(s)
     p_mean, p_log_std = model.apply({"params": params.net}, s_n, a, method=CVAE.prior)
     z = p_mean if key is None else p_mean + jnp.exp(p_log_std) * jax.random.normal(key, p_mean.shape)
-    return params.denormalize(model.apply({"params": params.net}, z, s_n, a, method=CVAE.decode))
+    return params.denormalize_goal(model.apply({"params": params.net}, z, s_n, a, method=CVAE.decode))
 
 
 @jax.jit
@@ -399,7 +474,8 @@ def generate(
       batch_size: rows per jitted call.
 
     Returns:
-      ``ĝ [N, obs_dim]`` float32 numpy, in raw state units.
+      ``ĝ [N, obs_dim]`` float32 numpy, in raw state units (``[N, obs_dim + act_dim]``, the state
+      then the action, for a CVAE that decodes actions too: :func:`split_goal`).
     """
     if mode not in ("mean", "sample"):
         raise SpotError(f"subgoal mode {mode!r}; expected 'mean' or 'sample'")
@@ -407,7 +483,7 @@ def generate(
         raise SpotError("mode='sample' needs a key")
     s, a = np.asarray(s, dtype=np.float32), np.asarray(a, dtype=np.float32)
     n, bs = s.shape[0], batch_size
-    out = np.empty(s.shape, np.float32)
+    out = np.empty((n, params.obs_dim + params.goal_act_dim), np.float32)
     for i, start in enumerate(range(0, n, bs)):
         s_b, a_b = s[start : start + bs], a[start : start + bs]
         pad = bs - s_b.shape[0]
@@ -420,3 +496,9 @@ def generate(
             g_b = _generate_sample(params, s_b, a_b, jax.random.fold_in(key, i))
         out[start : start + bs] = np.asarray(g_b)[: bs - pad]
     return out
+
+
+def split_goal(params: CVAEParams, g: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """``(ĝ_s [N, obs_dim], ĝ_a [N, act_dim] or None)`` of generated goals ``g`` (:func:`generate`)."""
+    o = params.obs_dim
+    return g[:, :o], (g[:, o:] if params.goal_act_dim else None)

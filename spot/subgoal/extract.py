@@ -96,7 +96,8 @@ class Segments(NamedTuple):
 
 
 class Triplets(NamedTuple):
-    """CVAE training data ``(s_t, a_t, g_t)``: ``s [M, obs_dim]``, ``a [M, act_dim]``, ``g [M, obs_dim]``."""
+    """CVAE training data ``(s_t, a_t, g_t)``: ``s [M, obs_dim]``, ``a [M, act_dim]``, ``g [M, obs_dim]``
+    (``g [M, obs_dim + act_dim]``, the subgoal's state then its action, for ``shaping.state_action``)."""
 
     s: np.ndarray
     a: np.ndarray
@@ -242,6 +243,7 @@ def make_triplets(
     mode: str = "next_subgoal",
     draws: int = 1,
     rng: np.random.Generator | None = None,
+    goal_actions: bool = False,
 ) -> tuple[Triplets, dict[str, float]]:
     """CVAE triplets ``(s_t, a_t, g_t)`` from the subgoal steps of each segment (§4.1.3).
 
@@ -254,12 +256,13 @@ def make_triplets(
         paired with ``g_i`` (module docstring).
       draws: draws per interval (``interval`` only).
       rng: random generator of the draws (``interval`` only; default seed 0).
+      goal_actions: ``g`` is the subgoal step's state and action (``[M, obs_dim + act_dim]``).
 
     Returns:
       ``(Triplets, info)``; ``info`` holds ``subgoal/num_segments``, ``subgoal/num_subgoals``,
       ``subgoal/num_triplets`` and ``subgoal/segments_without_subgoal``.
     """
-    triplets, _, info = make_triplets_with_segments(obs, act, mask, mode, draws, rng)
+    triplets, _, info = make_triplets_with_segments(obs, act, mask, mode, draws, rng, goal_actions)
     return triplets, info
 
 
@@ -270,6 +273,7 @@ def make_triplets_with_segments(
     mode: str = "next_subgoal",
     draws: int = 1,
     rng: np.random.Generator | None = None,
+    goal_actions: bool = False,
 ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
     """:func:`make_triplets` plus the segment (row of ``obs``) of every triplet, ``[M]`` int, so
     that a train/held-out split can keep each segment's triplets on one side."""
@@ -301,7 +305,8 @@ def make_triplets_with_segments(
                 start = g
         empty = np.zeros(0, np.int64)
         row, step, goal = (np.concatenate(x) if x else empty for x in (rows_l, steps_l, goals_l))
-    triplets = Triplets(s=obs[row, step], a=act[row, step], g=obs[row, goal])
+    g = np.concatenate([obs[row, goal], act[row, goal]], axis=-1) if goal_actions else obs[row, goal]
+    triplets = Triplets(s=obs[row, step], a=act[row, step], g=g)
     info = {
         "subgoal/num_segments": float(p),
         "subgoal/num_subgoals": float(mask.sum()),
@@ -318,9 +323,10 @@ def extract(
     cfg: SubgoalConfig,
     ties: str = "skip",
     rng: np.random.Generator | None = None,
+    goal_actions: bool = False,
 ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
     """:func:`extract_with_segments` without the segment ids."""
-    triplets, _, states, info = extract_with_segments(seg_1, seg_2, y, cfg, ties, rng)
+    triplets, _, states, info = extract_with_segments(seg_1, seg_2, y, cfg, ties, rng, goal_actions)
     return triplets, states, info
 
 
@@ -331,10 +337,12 @@ def extract_with_segments(
     cfg: SubgoalConfig,
     ties: str = "skip",
     rng: np.random.Generator | None = None,
+    goal_actions: bool = False,
 ) -> tuple[Triplets, np.ndarray, np.ndarray, dict[str, float]]:
     """Preferred segments -> subgoal mask -> CVAE triplets, with counts for logging.
 
     ``rng`` draws the ``interval`` triplets (``subgoal.triplets``); unused otherwise.
+    ``goal_actions``: the triplets' subgoals are states and actions (``shaping.state_action``).
 
     Returns:
       ``(triplets, segments [M], subgoals [N_g, obs_dim], info)``; ``segments`` is the preferred
@@ -349,7 +357,7 @@ def extract_with_segments(
         pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups, cfg.last_step
     )
     triplets, segments, info = make_triplets_with_segments(
-        pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng
+        pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng, goal_actions
     )
     if triplets.s.shape[0] == 0:
         raise SpotError(
@@ -360,8 +368,12 @@ def extract_with_segments(
     return triplets, segments, pref.obs[mask], info
 
 
-def random_subgoals(triplets: Triplets, observations: np.ndarray, rng: np.random.Generator) -> Triplets:
+def random_subgoals(
+    triplets: Triplets, observations: np.ndarray, rng: np.random.Generator, actions: np.ndarray | None = None
+) -> Triplets:
     """The control ``subgoal.source=random``: each triplet's subgoal replaced by a dataset state
-    drawn uniformly at random (with replacement); ``s`` and ``a`` are kept."""
+    drawn uniformly at random (with replacement); ``s`` and ``a`` are kept. With ``actions`` the
+    subgoal is that row's state and action (subgoals of ``shaping.state_action``)."""
     pick = rng.integers(0, observations.shape[0], size=triplets.g.shape[0])
-    return Triplets(triplets.s, triplets.a, np.asarray(observations[pick], dtype=triplets.g.dtype))
+    g = observations[pick] if actions is None else np.concatenate([observations[pick], actions[pick]], axis=-1)
+    return Triplets(triplets.s, triplets.a, np.asarray(g, dtype=triplets.g.dtype))

@@ -18,6 +18,12 @@ term measures how ``s'`` relates to it:
   (``shaping.potential_sign=pos``, ``shaping.potential_terminal=false``), so the λ axis of their
   Table 3 is the negative of the ``neg`` sign's; ``sweeps/table3_shaping.yaml`` uses theirs.
 
+* ``shaping.state_action`` (the authors' ``state_action`` option, SGPbrl ``critic.py``
+  ``update_q``): the CVAE decodes a subgoal state *and* action, ``(ĝ_s, ĝ_a) = G(s, a)``, and the
+  cosine term reads the *current* state and action,
+  ``r_shape = (cos(s, ĝ_s) + 1) / 2 + (cos(a, ĝ_a) + 1) / 2 ∈ [0, 2]``
+  (:func:`state_action_cosine`; ``constant`` is then the dataset mean of this term).
+
 All distances and cosines are taken on raw states, as eq. 11 writes them.
 
 The final reward (eq. 13) is ``r_final = r_model + λ · r_shape``.
@@ -40,7 +46,7 @@ import numpy as np
 
 from spot import SpotError
 from spot.config import ShapingConfig
-from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate
+from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate, split_goal
 
 KINDS = ("none", "cosine", "neg_distance", "potential", "constant")
 POTENTIAL_SIGNS = ("neg", "pos")
@@ -105,6 +111,16 @@ def shape_reward(
     return gamma * phi_next - phi
 
 
+def state_action_cosine(obs: jax.Array, act: jax.Array, g_state: jax.Array, g_action: jax.Array) -> jax.Array:
+    """``(cos(s, ĝ_s) + 1) / 2 + (cos(a, ĝ_a) + 1) / 2`` per row, ``[N]`` in ``[0, 2]``: the
+    state+action cosine term of the authors' code, on the current ``s [N, o]`` and ``a [N, a]``."""
+    if obs.shape != g_state.shape or act.shape != g_action.shape:
+        raise SpotError(
+            f"obs {obs.shape} / g_state {g_state.shape} and act {act.shape} / g_action {g_action.shape} must match"
+        )
+    return 0.5 * (cosine_similarity(obs, g_state) + 1.0) + 0.5 * (cosine_similarity(act, g_action) + 1.0)
+
+
 def final_reward(r_model: jax.Array, r_shape: jax.Array, weight: float) -> jax.Array:
     """Eq. 13: ``r_model + λ · r_shape``."""
     return r_model + weight * r_shape
@@ -144,10 +160,23 @@ def shaped_rewards(
             f"dataset arrays disagree: obs {ds_obs.shape}, act {ds_act.shape}, next_obs "
             f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}"
         )
-    g_hat = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
+    goals = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
+    g_hat, g_act = split_goal(cvae_params, goals)
     obs, next_obs = np.asarray(ds_obs, np.float32), np.asarray(ds_next_obs, np.float32)
-    masked = terminals if cfg.potential_terminal else None
-    r_shape = np.asarray(shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, masked, cfg.potential_sign), np.float32)
+    if cfg.state_action != (g_act is not None):
+        raise SpotError(
+            f"shaping.state_action={cfg.state_action} needs a CVAE that decodes "
+            f"{'a state and an action' if cfg.state_action else 'a state'}; this one decodes "
+            f"{'both' if g_act is not None else 'a state'}"
+        )
+    if cfg.state_action and cfg.kind in ("cosine", "constant"):
+        r_shape = np.asarray(state_action_cosine(obs, np.asarray(ds_act, np.float32), g_hat, g_act), np.float32)
+        r_shape = r_shape if cfg.kind == "cosine" else np.full_like(r_shape, r_shape.mean())
+    else:
+        masked = terminals if cfg.potential_terminal else None
+        r_shape = np.asarray(
+            shape_reward(cfg.kind, next_obs, g_hat, obs, gamma, masked, cfg.potential_sign), np.float32
+        )
     r_model = np.asarray(r_model_normalised, np.float32)
     reward = np.asarray(final_reward(r_model, r_shape, cfg.weight), np.float32)
     cos_s = np.asarray(cosine_similarity(obs, g_hat), np.float32)
