@@ -213,6 +213,12 @@ CASES = [
         "tracking URI 'ftp://host/x': scheme 'ftp' is not one MLflow stores runs in",
     ),
     (
+        "run-file-store-tracking-uri",
+        [*RUN_FILE, "tracking.uri=file:///tmp/spot-file-store"],
+        {HOPPER: _d4rl()},
+        "tracking URI 'file:///tmp/spot-file-store': a folder (MLflow's file store) is refused by this MLflow",
+    ),
+    (
         "tables-sqlite-two-slashes",
         ["tables", "--table", "1", "--tracking-uri", "sqlite://x.db"],
         {},

@@ -104,8 +104,9 @@ SCHEMES = ("", "file", "sqlite", "http", "https", "postgresql", "mysql", "mssql"
 
 def check_uri(uri: str) -> None:
     """:class:`SpotError` for a tracking URI MLflow cannot use (which it reports with a traceback,
-    after a run's data has loaded): an unknown scheme, or a ``sqlite:`` URI not of the form
-    ``sqlite:///relative.db`` / ``sqlite:////absolute.db``."""
+    after a run's data has loaded): an unknown scheme, a folder or ``file:`` URI (MLflow's file store,
+    which MLflow refuses unless ``MLFLOW_ALLOW_FILE_STORE=true``), or a ``sqlite:`` URI not of the
+    form ``sqlite:///relative.db`` / ``sqlite:////absolute.db``."""
     import re
 
     scheme = m[1].lower() if (m := re.match(r"([A-Za-z][A-Za-z0-9+.-]*):", uri)) and len(m[1]) > 1 else ""
@@ -113,6 +114,12 @@ def check_uri(uri: str) -> None:
         raise SpotError(
             f"tracking URI '{uri}': scheme '{scheme}' is not one MLflow stores runs in; expected "
             "sqlite:///path.db, http(s)://host:port, a folder, or postgresql/mysql/mssql://..."
+        )
+    allow = os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").strip().lower() in ("1", "true", "yes")
+    if scheme in ("", "file") and not allow:
+        raise SpotError(
+            f"tracking URI '{uri}': a folder (MLflow's file store) is refused by this MLflow unless "
+            "MLFLOW_ALLOW_FILE_STORE=true; use sqlite:///path.db (or a tracking server)"
         )
     if scheme == "sqlite" and (sqlite_path(uri) is None or not str(sqlite_path(uri)).strip("/")):
         raise SpotError(f"tracking URI '{uri}': expected sqlite:///relative/path.db or sqlite:////absolute/path.db")
