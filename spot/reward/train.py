@@ -460,16 +460,15 @@ def train_reward_model(
         progress=progress,
         desc=f"reward ({model.kind})",
     )
-    history = _history(out, batch_size, eval_on, compile_s, steps)
-    if companion is not None:
-        names = [k for k in out.rows[0] if k not in ("step", "loss", "acc", "eval_loss", "eval_acc")]
-        history["companion"] = {k: loop.column(out.rows, k) for k in names}
-        history["companion_state"] = jax.device_get(out.state[1])
+    history = _history(out, batch_size, eval_on, compile_s, steps, companion=companion is not None)
     return jax.device_put(out.best_params), history
 
 
-def _history(out: Any, batch_size: int, eval_on: str, compile_s: float, steps: int) -> dict[str, Any]:
-    """The training history :func:`train_reward_model` returns, from the loop's rows and best row."""
+def _history(
+    out: Any, batch_size: int, eval_on: str, compile_s: float, steps: int, companion: bool = False
+) -> dict[str, Any]:
+    """The training history :func:`train_reward_model` returns, from the loop's rows and best row
+    (with a companion: its metric columns and final state)."""
     history: dict[str, Any] = {"step": loop.column(out.rows, "step")}
     for name, col in (
         ("train_loss", "loss"),
@@ -489,6 +488,10 @@ def _history(out: Any, batch_size: int, eval_on: str, compile_s: float, steps: i
         steps_per_s=steps / out.loop_s,
         steps=steps,
     )
+    if companion:
+        names = [k for k in out.rows[0] if k not in ("step", "loss", "acc", "eval_loss", "eval_acc")]
+        history["companion"] = {k: loop.column(out.rows, k) for k in names}
+        history["companion_state"] = jax.device_get(out.state[1])
     return history
 
 
