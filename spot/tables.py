@@ -172,10 +172,12 @@ def paper_cells(table: int) -> pd.DataFrame:
 
 # --------------------------------------------------------------------------- runs
 def default_experiments(table: int, tracking_uri: str | None = None) -> list[str] | None:
-    """The experiment of ``table``'s sweep if the store has it (else its ``-smoke`` launch); None = all."""
+    """The experiment of ``table``'s sweep if the store has it, else its budget-lab sweep's
+    (``sweeps/lab_table<N>.yaml``), else its ``-smoke`` launch; None = all."""
     client = tracking.reader(tracking_uri)
-    name = SWEEP_EXPERIMENTS[_spec(table).number]
-    for candidate in (name, f"{name}-smoke"):
+    number = _spec(table).number
+    name = SWEEP_EXPERIMENTS[number]
+    for candidate in (name, f"lab_table{1 if number == 8 else number}", f"{name}-smoke"):
         if tracking.has_experiment(client, candidate):
             return [candidate]
     return None

@@ -379,6 +379,10 @@ def test_default_experiments(store):
     assert tables.default_experiments(1, store) is None  # no sweep experiment: all experiments
     tracking.experiment_id("table4_queries-smoke", store)
     assert tables.default_experiments(4, store) == ["table4_queries-smoke"]
+    tracking.experiment_id("lab_table4", store)  # the lab sweep's runs come before the smoke launch's
+    assert tables.default_experiments(4, store) == ["lab_table4"]
+    tracking.experiment_id("table4_queries", store)  # and the paper-budget sweep's before the lab's
+    assert tables.default_experiments(4, store) == ["table4_queries"]
 
 
 def test_errors(store, t1_runs):
