@@ -40,10 +40,19 @@ ROWS = {
     23: {"subgoal.filter_groups": ("top", "all", "top")},
     25: {"subgoal.last_step": (False, False, True)},
     26: {"subgoal.triplets": ("next_subgoal", "next_subgoal", "interval"), "subgoal.interval_draws": (10, 10, 10)},
+    # SGPbrl a5b03df PrefTransformer.train: one CVAE step per PT step on that minibatch's triplets
+    28: {"cvae.schedule": ("offline", "offline", "online")},
+    # hyperparameter.sh --latent_dim 16 --hidden_dim 32 ([32, 64, 32]); the step count follows from row 28
+    29: {
+        "cvae.latent_dim": (16, 16, 16),
+        "cvae.hidden": ((32, 64, 32),) * 3,
+        "cvae.schedule": ("offline", "offline", "online"),
+    },
     30: {"cvae.loss": ("mse_cos", "mse_cos", "authors")},  # eq. 7 + 8 / SGPbrl vae_train_step
     31: {"cvae.inputs": ("zscore", "zscore", "raw")},
     32: {"shaping.subgoal": ("mean", "mean", "sample")},  # SGPbrl: a prior sample (fixed-key noise)
-    33: {"shaping.kind": ("cosine", "cosine", "cosine")},  # state-only cosine on s'
+    # state-only cosine on s' (eq. 11-12; critic.py state_action=False, the Table 3 sweep's setting)
+    33: {"shaping.kind": ("cosine", "cosine", "cosine"), "shaping.state_action": (False, False, False)},
     34: {"shaping.weight": (1.0, 1.0, 1.0)},
     35: {"shaping.potential_sign": ("neg", "neg", "pos"), "shaping.potential_terminal": (True, True, False)},
     # PT repo n_epochs 10000 (paper budget); steps = epochs * (N // batch + 1)
@@ -150,7 +159,9 @@ def test_fidelity_sweep_file_resolves():
 
 def test_authors_variant_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monkeypatch):
     """The authors' subgoal path (diagonal weights, z filter, last step, interval triplets,
-    warmup-cosine PT, sliding relabelling) trains through to a policy at the tiny budget."""
+    warmup-cosine PT, sliding relabelling, the CVAE trained online: one step per reward-model step)
+    trains through to a policy at the tiny budget; a second run that changes only shaping.weight
+    reuses the reward stage's entry and the CVAE in it."""
     import mlflow
 
     from spot import pipeline
@@ -175,6 +186,11 @@ def test_authors_variant_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monke
     run = mlflow.get_run(out["run_id"])
     assert run.info.status == "FINISHED" and run.data.params["variant"] == "authors"
     m = run.data.metrics
+    assert cfg.cvae.schedule == "online" and m["cvae/steps"] == m["reward/steps"] > 0
+    assert "cache.cvae" not in run.data.tags and run.data.tags["cache.reward"] == "miss"  # no CVAE entry of its own
+    again = mlflow.get_run(pipeline.run(config.replace(cfg, **{"shaping.weight": 0.5}), progress=False)["run_id"])
+    assert again.data.tags["cache.reward"] == "hit" and again.data.metrics["cvae/loss"] == m["cvae/loss"]
+    assert again.data.metrics["shaping/r_shape_mean"] == m["shaping/r_shape_mean"]  # the same CVAE
     # interval triplets: interval_draws (10) per interval, so a multiple of 10
     assert m["subgoal/num_triplets"] > 0 and m["subgoal/num_triplets"] % 10 == 0
     # the last step of every preferred segment is a subgoal
