@@ -517,7 +517,10 @@ def _online_companion(ctx: Context) -> Any:
 
 
 def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
-    """Eq. 5-6: attention subgoals on the preferred training segments -> (s, a, g) triplets."""
+    """Eq. 5-6: attention subgoals on the preferred training segments of the best checkpoint ->
+    (s, a, g) triplets (g a state and an action with ``shaping.state_action``); the offline CVAE
+    trains on them, the online one (``cvae.schedule=online``) trained in the reward stage and these
+    feed only the diagnostics."""
     import jax
 
     from spot.reward import pt
@@ -670,7 +673,7 @@ def diagnostics_stage(ctx: Context, labelled: Labelled, subgoals: Subgoals, shap
     ctx.tracker.log_series("diag/extrap_bin_in", bins, table.mean_error[0])
     ctx.tracker.log_series("diag/extrap_bin_ood", bins, table.mean_error[1])
     ctx.tracker.log_artifact(diagnostics.plot_extrapolation({ctx.cfg.method: table}, art / "extrapolation_error.png"))
-    generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)[:, : ds.obs_dim]
+    generated = cvae.generate(subgoals.cvae_params, subgoals.triplets.s, subgoals.triplets.a)
     ctx.log(diagnostics.precision_recall(subgoals.states, generated))
     ctx.tracker.log_artifact(diagnostics.plot_projection(ds.observations, generated, art / "subgoal_projection.png"))
     ctx.tracker.log_dict(

@@ -42,7 +42,8 @@ def test_shaped_rewards_state_action_reads_current_state_and_action():
     next_obs = rng.normal(size=(n, o)).astype(np.float32)
     r_model = rng.normal(size=n).astype(np.float32)
     params = _cvae_params(o, k, True)
-    goals = cvae.generate(params, obs, act)
+    goals = cvae.generate(params, obs, act, with_actions=True)
+    assert cvae.generate(params, obs, act).shape == (n, o)  # the state part by default
     assert goals.shape == (n, o + k)
     g_s, g_a = goals[:, :o], goals[:, o:]
     cos = lambda x, y: (x * y).sum(-1) / (np.linalg.norm(x, axis=-1) * np.linalg.norm(y, axis=-1))  # noqa: E731
@@ -258,7 +259,9 @@ def test_online_cvae_skips_a_minibatch_without_triplets_and_decodes_actions():
     fp = fp._replace(label=jnp.array([0.0, 1.0, 0.0]))
     after, metrics = jax.jit(step)(state, fp, jax.random.key(1))
     assert int(after.step) == 1 and float(metrics["cvae/triplets"]) >= 3 and np.isfinite(float(metrics["cvae/loss"]))
-    assert after.params.goal_act_dim == a and cvae.generate(after.params, b["obs_1"][0], b["act_1"][0]).shape == (
+    assert after.params.goal_act_dim == a and cvae.generate(
+        after.params, b["obs_1"][0], b["act_1"][0], with_actions=True
+    ).shape == (
         t,
         o + a,
     )

@@ -30,13 +30,22 @@ floored at 1e-3), which live in :class:`CVAEParams` next to the network weights.
 raw (they are bounded in ``[-1, 1]`` in every dataset we use). The decoder outputs a normalised
 subgoal and :func:`generate` maps it back, so callers pass and receive raw states.
 
+State and action subgoals (``shaping.state_action``, the authors' ``state_action`` option):
+``g = [g_s, g_a]``, the subgoal step's state and action; the decoder outputs both (its state part
+normalised, its action part raw), the encoder reads both. ``recon`` and ``mse`` run over both
+parts, ``cos`` is the state part's; ``mse_cos`` adds ``½ (1 - cos(ĝ_a, g_a))`` for the action part;
+``authors`` is their state-action branch as intended: ``mean (ĝ_s - g_s)² + mean (ĝ_a - g_a)²`` minus
+the state part's cosine terms (as stored it cannot run: docs/fidelity.md row 33).
+
 Generation (eq. 10): ``ĝ = μ_θ(z, s, a)`` with ``z`` the prior mean (``mode="mean"``) or a prior
 sample (``mode="sample"``).
 
-Training (:func:`train_cvae`): Adam (``cfg.lr``), minibatches of ``cfg.batch_size`` triplets
-drawn with replacement on device, exactly ``cfg.steps`` steps in :mod:`spot.loop` chunks (state
-donated, per-step keys ``fold_in(key, step)``), a held-out loss after every chunk, and
-:class:`spot.NonFiniteError` on a NaN/inf loss. The final parameters are returned.
+Training (:func:`train_cvae`, ``cvae.schedule=offline``): Adam (``cfg.lr``), minibatches of
+``cfg.batch_size`` triplets drawn with replacement on device, exactly ``cfg.steps`` steps in
+:mod:`spot.loop` chunks (state donated, per-step keys ``fold_in(key, step)``), a held-out loss after
+every chunk, and :class:`spot.NonFiniteError` on a NaN/inf loss. The final parameters are
+returned. ``cvae.schedule=online`` trains it one step per reward-model step instead
+(:mod:`spot.subgoal.online`), through :func:`loss_fn` with a per-row weight.
 """
 
 from __future__ import annotations
@@ -463,6 +472,7 @@ def generate(
     key: jax.Array | None = None,
     mode: str = "mean",
     batch_size: int = 4096,
+    with_actions: bool = False,
 ) -> np.ndarray:
     """Subgoals for a whole dataset, in fixed-size batches (the last one padded; one compile).
 
@@ -472,10 +482,11 @@ def generate(
       key: required for ``mode="sample"``; batch ``i`` uses ``fold_in(key, i)``.
       mode: ``"mean"`` decodes the prior mean, ``"sample"`` a prior sample.
       batch_size: rows per jitted call.
+      with_actions: for a CVAE that decodes a state and an action (``goal_act_dim > 0``), return
+        both, ``[N, obs_dim + act_dim]`` (:func:`split_goal`); otherwise the state part only.
 
     Returns:
-      ``ĝ [N, obs_dim]`` float32 numpy, in raw state units (``[N, obs_dim + act_dim]``, the state
-      then the action, for a CVAE that decodes actions too: :func:`split_goal`).
+      ``ĝ [N, obs_dim]`` float32 numpy, in raw state units.
     """
     if mode not in ("mean", "sample"):
         raise SpotError(f"subgoal mode {mode!r}; expected 'mean' or 'sample'")
@@ -495,7 +506,7 @@ def generate(
         else:
             g_b = _generate_sample(params, s_b, a_b, jax.random.fold_in(key, i))
         out[start : start + bs] = np.asarray(g_b)[: bs - pad]
-    return out
+    return out if with_actions else out[:, : params.obs_dim]
 
 
 def split_goal(params: CVAEParams, g: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:

@@ -49,11 +49,12 @@ Subgoals are taken from *preferred* segments only:
     segment start), each non-empty interval ``[g_(i-1), g_i)`` contributes ``draws`` steps drawn
     uniformly (with replacement), each paired with ``s_(g_i)``; so a subgoal step maps to the
     *next* subgoal, and every interval weighs the same whatever its length. The authors draw one
-    step per interval at every reward-model step (the CVAE trains online); spot's CVAE trains on
-    a fixed set, hence ``draws``. Their subgoal index list is padded with index 0 by
-    ``jnp.where(..., size=K%·T)`` whenever fewer steps pass the filters (nearly always with the
-    reward filter), which is why their first interval starts at step 0; the padding also yields
-    empty intervals that their code turns into spurious triplets, which are not reproduced.
+    step per interval at every reward-model step (the CVAE trains online: ``cvae.schedule=online``,
+    :mod:`spot.subgoal.online`); the offline CVAE trains on a fixed set, hence ``draws``. Their
+    subgoal index list is padded with index 0 by ``jnp.where(..., size=K%·T)`` whenever fewer steps
+    pass the filters (nearly always with the reward filter), which is why their first interval
+    starts at step 0; the padding also yields empty intervals that their code turns into spurious
+    triplets, which are not reproduced.
 
   In both modes steps after the last subgoal of a segment have no target and are dropped.
 

@@ -160,7 +160,7 @@ def shaped_rewards(
             f"dataset arrays disagree: obs {ds_obs.shape}, act {ds_act.shape}, next_obs "
             f"{ds_next_obs.shape}, r_model {np.shape(r_model_normalised)}"
         )
-    goals = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size)
+    goals = generate(cvae_params, ds_obs, ds_act, key=key, mode=cfg.subgoal, batch_size=batch_size, with_actions=True)
     g_hat, g_act = split_goal(cvae_params, goals)
     obs, next_obs = np.asarray(ds_obs, np.float32), np.asarray(ds_next_obs, np.float32)
     if cfg.state_action != (g_act is not None):
