@@ -24,7 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -156,13 +156,16 @@ class Context:
                 cache._store().delete(f"{k}.npz")  # the entry's store (local folder or spot.store URI)
             return fn(self, *inputs)
 
-    def cached(self, name: str, deps: dict[str, Any], compute: Callable[[], Any]) -> tuple[Any, str]:
+    def cached(
+        self, name: str, deps: dict[str, Any], compute: Callable[[], Any], code: str | None = None
+    ) -> tuple[Any, str]:
         """``(value, key)`` of stage ``name`` from the stage cache (computed and stored on a miss);
         tags the run ``cache.<name>`` = ``hit`` or ``miss`` (a tag, not a metric: it is a fact
         about the run, not a measurement) and ``stage.<name>.source`` = ``computed`` or ``reused`` and
         ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
-        with the same key and ``computed``)."""
-        value, hit, key = cache.cached(name, deps, compute)
+        with the same key and ``computed``). ``code``: the stage's code version (default: that of
+        ``compute``'s stage function, :func:`spot.cache.code_version`)."""
+        value, hit, key = cache.cached(name, deps, compute, code)
         if hit:
             self.cache_hits.append(key)
         self.tracker.set_tags(
@@ -341,12 +344,25 @@ def true_reward(ctx: Context, labelled: Labelled | None) -> None:
 
 def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     """MR or PT trained on the preferences (eq. 1-2), best held-out checkpoint; cached."""
+    return _learned_reward(ctx, labelled, None, cache.code_version(learned_reward))
+
+
+def learned_reward_online(ctx: Context, labelled: Labelled) -> RewardModel:
+    """PT as :func:`learned_reward`, with the CVAE trained alongside it (``cvae.schedule=online``:
+    one CVAE step per reward-model step, :mod:`spot.subgoal.online`), both in one cache entry whose
+    code version covers the CVAE's code too (:func:`stages_of` picks this stage)."""
+    return _learned_reward(ctx, labelled, lambda: _online_companion(ctx), cache.code_version(learned_reward_online))
+
+
+def _learned_reward(ctx: Context, labelled: Labelled, companion: Callable[[], Any] | None, code: str) -> RewardModel:
+    """The reward stage of MR/PT; ``companion()`` builds the online CVAE (None: no CVAE here);
+    ``code``: the stage's code version in its cache key."""
     from spot.reward import models
     from spot.reward import train as reward_train
 
     cfg = ctx.cfg
     model = models.from_config(cfg)
-    online = online_cvae(cfg)
+    online = companion is not None
     deps = _reward_deps(ctx, labelled, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
     if online:  # the CVAE trained with the reward model is part of its entry
         deps["cvae_online"] = {"subgoal": cfg.subgoal, "cvae": cfg.cvae, "state_action": cfg.shaping.state_action}
@@ -360,7 +376,7 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
             reward_train.clip_actions(labelled.eval_batch, clip),
             cfg.reward,
             progress=ctx.progress,
-            companion=_online_companion(ctx) if online else None,
+            companion=companion() if online else None,
         )
         if not online:
             return {"params": params, "history": history}
@@ -373,7 +389,7 @@ def learned_reward(ctx: Context, labelled: Labelled) -> RewardModel:
         history.pop("companion")
         return {"params": params, "history": history, "cvae": cvae}
 
-    out, key = ctx.cached("reward", deps, compute)
+    out, key = ctx.cached("reward", deps, compute, code=code)
     h = out["history"]
     names = ("train_loss", "train_acc", "eval_loss", "eval_acc")
     for name in names:
@@ -603,6 +619,8 @@ def cvae_stage(ctx: Context, extracted: Any, rewards: Rewards) -> Subgoals:
     steps); the triplets here only feed the diagnostics."""
     triplets, states, segments = extracted
     if online_cvae(ctx.cfg):
+        if rewards.source.cvae is None:
+            raise SpotError("cvae.schedule=online, but the reward stage trained no CVAE (stages_of picks its stage)")
         out, key = rewards.source.cvae, rewards.source.cache_key
         ctx.log({"cvae/steps": out["steps"]})
     else:
@@ -842,12 +860,15 @@ _LOADED_PLUGINS: set[str] = set()
 
 
 def stages_of(cfg: ExperimentConfig) -> RewardKind:
+    """The stages of ``cfg``'s ``reward.kind``; with ``cvae.schedule=online`` (PT runs that need a
+    CVAE) the reward slot is :func:`learned_reward_online`."""
     try:
-        return REWARD_KINDS[cfg.reward.kind]
+        kind = REWARD_KINDS[cfg.reward.kind]
     except KeyError:
         raise SpotError(
             f"reward.kind={cfg.reward.kind!r} has no stages; registered: {', '.join(REWARD_KINDS)}"
         ) from None
+    return replace(kind, reward=learned_reward_online) if online_cvae(cfg) else kind
 
 
 def plot_curve(steps: list[int], scores: list[float], path: Path, title: str) -> Path:

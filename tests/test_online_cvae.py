@@ -88,6 +88,36 @@ def test_state_action_goals_in_triplets_and_cvae_loss():
                         goal_actions=True)  # fmt: skip
 
 
+@pytest.mark.parametrize("loss", ["mse", "mse_cos", "authors"])
+@pytest.mark.parametrize("goal_actions", [False, True])
+def test_weighted_cvae_loss_is_the_loss_of_the_weighted_rows(loss, goal_actions, monkeypatch):
+    """The online CVAE's fixed batch with 0/1 weights has the loss (and gradient) of a batch of just
+    the rows of weight 1: the authors' batch of exactly that minibatch's triplets."""
+    rng = np.random.default_rng(4)
+    m, o, k = 9, 3, 2
+    s, a = rng.normal(size=(m, o)).astype(np.float32), rng.uniform(-1, 1, (m, k)).astype(np.float32)
+    g = rng.normal(size=(m, o + (k if goal_actions else 0))).astype(np.float32)
+    keep = np.array([1, 0, 1, 1, 0, 0, 1, 1, 0], np.float32)
+    idx = np.flatnonzero(keep)
+    params = _cvae_params(o, k, goal_actions)
+    cfg = config.CVAEConfig(loss=loss)
+    key = jax.random.key(0)
+    noise = jax.random.normal(key, (m, params.latent_dim))  # the full batch's reparameterisation noise
+
+    def full_loss(net):
+        return cvae.loss_fn(params.replace(net=net), extract.Triplets(s, a, g), key, cfg, jnp.asarray(keep))[0]
+
+    def subset_loss(net):  # the kept rows alone, with the noise their rows get in the full batch
+        with monkeypatch.context() as mp:
+            mp.setattr(cvae.jax.random, "normal", lambda _key, _shape: noise[idx])
+            return cvae.loss_fn(params.replace(net=net), extract.Triplets(s[idx], a[idx], g[idx]), key, cfg)[0]
+
+    np.testing.assert_allclose(float(full_loss(params.net)), float(subset_loss(params.net)), rtol=1e-5, atol=1e-6)
+    g_full, g_sub = jax.grad(full_loss)(params.net), jax.grad(subset_loss)(params.net)
+    for x, y in zip(jax.tree.leaves(g_full), jax.tree.leaves(g_sub), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- rows 28/29: extraction in jit
 def _scores(seed: int, q: int = 6, t: int = 20):
     rng = np.random.default_rng(seed)
@@ -282,6 +312,19 @@ def test_online_schedule_only_where_the_variant_or_key_says():
     pt = config.load(None, ["method=pt", "variant=authors", "subgoal.diagnostics=false"])
     assert not stages.online_cvae(pt)
     assert not stages.online_cvae(config.load(None, ["method=mr", "variant=authors"]))
+
+
+def test_online_cvae_code_is_in_the_reward_entry_only_when_online():
+    """The online reward stage's cache key covers the CVAE's code; the offline one's does not (an
+    edit of the CVAE retires no offline reward model)."""
+    from spot import cache, stages
+
+    off, on = cache.code_parts(stages.learned_reward), cache.code_parts(stages.learned_reward_online)
+    assert "spot.subgoal.online" not in off and "spot.subgoal.cvae" not in off and "spot.reward.train" in off
+    assert {"spot.subgoal.online", "spot.subgoal.cvae", "spot.reward.train"} <= set(on)
+    authors = config.load(None, ["method=spot", "variant=authors"])
+    assert stages.stages_of(authors).reward is stages.learned_reward_online
+    assert stages.stages_of(config.load(None, ["method=spot"])).reward is stages.learned_reward
 
 
 # --------------------------------------------------------------------------- tiny runs
