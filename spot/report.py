@@ -104,6 +104,7 @@ class Row:
     poi: stats.Estimate | None = None
     n_x: int = 0
     n_y: int = 0
+    means: tuple[float, float] | None = None  # each arm's mean over datasets of its per-dataset means
     datasets: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
@@ -163,6 +164,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
     row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement)
     row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
+    row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     return row
 
 
@@ -328,14 +330,17 @@ def format_rows(rows: Sequence[Row]) -> str:
         parts += [
             f"### {title}",
             "",
-            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | n | verdict |",
-            "|---|---|---|---|---|---|---|---|",
+            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | means x / y | n | verdict |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for r in sel:
             eff = r.effect.text(3 if stat == "ood" else 1) if r.effect else "–"
             poi = r.poi.text(2) if r.poi else "–"
+            digits = 3 if stat == "ood" else 1
+            means = f"{r.means[0]:.{digits}f} / {r.means[1]:.{digits}f}" if r.means else "–"
             parts.append(
-                f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {_n(r)} | {r.verdict} |"
+                f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {means} | {_n(r)} "
+                f"| {r.verdict} |"
             )
         parts.append("")
     notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})

@@ -34,6 +34,7 @@ def test_claim1_effect_and_ci_against_an_independent_bootstrap(runs):
     # hopper: mean(61, 64, 66) - mean(50, 52, 57) = 63.667 - 53 = 10.667
     # walker: mean(65, 69, 64) - mean(58, 61, 60) = 66 - 59.667 = 6.333   -> mean 8.5
     assert r.effect.value == pytest.approx(8.5)
+    assert r.means == pytest.approx(((191 / 3 + 66) / 2, (53 + 179 / 3) / 2))  # each arm's mean of dataset means
     x = [np.array([61.0, 64, 66]), np.array([65.0, 69, 64])]
     y = [np.array([50.0, 52, 57]), np.array([58.0, 61, 60])]
     rng = np.random.default_rng(7)
