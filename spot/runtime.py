@@ -116,3 +116,16 @@ def configure() -> dict[str, str]:
         for var, (option, kind) in _CACHE_VARS.items():
             jax.config.update(option, kind(cache_vars[var]))
     return {"XLA_FLAGS": os.environ["XLA_FLAGS"], "MUJOCO_GL": os.environ.get("MUJOCO_GL", ""), **cache_vars}
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` may still run on this host: False only when no such process exists.
+    Another user's process (``PermissionError``) and a number that is not a pid here (too large)
+    count as alive, so that whoever asks leaves their files and runs alone."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True
+    return True

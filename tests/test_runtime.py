@@ -134,3 +134,17 @@ def test_the_compilation_cache_switch(tmp_path):
     assert "JAX_COMPILATION_CACHE_DIR" not in off and set(off) == {"XLA_FLAGS", "MUJOCO_GL"}
     bad = _python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="maybe"))
     assert bad.returncode != 0 and "SPOT_JAX_CACHE='maybe': expected 1 or 0" in bad.stderr
+
+
+def test_pid_alive_is_false_only_for_a_process_that_is_gone():
+    import os
+    import subprocess
+    import sys
+
+    from spot.runtime import pid_alive
+
+    done = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    gone = int(done.stdout)  # reaped: no such process (unless the pid was reused meanwhile)
+    assert pid_alive(os.getpid()) and pid_alive(1)  # this process; init (another user's or ours)
+    assert not pid_alive(gone) or os.path.exists(f"/proc/{gone}")
+    assert pid_alive(2**70)  # not a pid here: left alone, never "gone"

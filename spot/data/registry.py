@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from spot import SpotError, store
+from spot import SpotError, runtime, store
 from spot.data.dataset import Dataset, RawDataset
 
 
@@ -127,12 +127,7 @@ def clean_stale_temp(folder: Path, min_age_s: float = STALE_TEMP_S) -> list[Path
         m = re.search(r"\.tmp-(\d+)$", tmp.name)
         if m is None or not tmp.is_file() or int(m[1]) == os.getpid():
             continue
-        try:
-            os.kill(int(m[1]), 0)
-            continue  # alive
-        except ProcessLookupError:
-            pass
-        except (PermissionError, OverflowError):  # alive (another user's), or not a pid
+        if runtime.pid_alive(int(m[1])):
             continue
         try:
             if time.time() - tmp.stat().st_mtime >= min_age_s:

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from spot import runtime
+
 HOST_TAG = "spot.host"
 PID_TAG = "spot.pid"
 STARTED_TAG = "spot.pid_started"
@@ -54,12 +56,8 @@ def process_tags() -> dict[str, str]:
 def alive(pid: int, started: str = "") -> bool:
     """Whether process ``pid`` of this host still runs (and, if ``started`` is given, is the same
     process, not a later one that got the pid)."""
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
+    if not runtime.pid_alive(pid):
         return False
-    except PermissionError:  # another user's process: it exists
-        pass
     now = _start_ticks(pid)
     return not (started and now and now != started)
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
-from spot import phases
+from spot import phases, runtime
 from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
@@ -491,12 +491,7 @@ def clean_run_temp(root: Path | None = None) -> list[Path]:
         m = re.fullmatch(rf"{RUN_TEMP_PREFIX}(\d+)-.*", folder.name)
         if m is None or not folder.is_dir() or int(m[1]) == os.getpid():
             continue
-        try:
-            os.kill(int(m[1]), 0)
-            continue  # alive
-        except ProcessLookupError:
-            pass
-        except (PermissionError, OverflowError):
+        if runtime.pid_alive(int(m[1])):
             continue
         try:
             if time.time() - folder.stat().st_mtime < 86400 and not _local_pid_folder(folder):
