@@ -265,7 +265,8 @@ def make_update(
 
 COMPANION_STREAM = 0x5EED5
 """``fold_in(step_key, COMPANION_STREAM)`` is a companion's key at a step: no key of the reward
-model's (``split(step_key)`` gives the threefry counter pairs (0, 2) and (1, 3); this is (0, 0x5EED5))."""
+model's (with ``jax_threefry_partitionable``, on by default, ``split(step_key)`` is
+``fold_in(step_key, 0)`` and ``fold_in(step_key, 1)``; this is ``fold_in(step_key, 0x5EED5)``)."""
 
 
 def make_companion_update(
