@@ -113,7 +113,8 @@ def check_uri(uri: str) -> None:
     if scheme.split("+")[0] not in SCHEMES:
         raise SpotError(
             f"tracking URI '{uri}': scheme '{scheme}' is not one MLflow stores runs in; expected "
-            "sqlite:///path.db, http(s)://host:port, a folder, or postgresql/mysql/mssql://..."
+            "sqlite:///path.db, http(s)://host:port or postgresql/mysql/mssql://... (a folder only with "
+            "MLFLOW_ALLOW_FILE_STORE=true)"
         )
     allow = os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").strip().lower() in ("1", "true", "yes")
     if scheme in ("", "file") and not allow:
