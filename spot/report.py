@@ -9,7 +9,8 @@ seed replaces the earlier run; FAILED, KILLED and unfinished runs never count an
 Effects (``x`` is the arm the paper says is better):
 
 * a **mean difference**: over datasets, ``mean(x) - mean(y)`` (each dataset weighs the same);
-  verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*;
+  verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*, and
+  *too few seeds* while an arm has fewer than :data:`MIN_SEEDS` finished runs on a dataset;
 * the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it.
 
 CIs are 95 % stratified-bootstrap percentile intervals (:mod:`spot.stats`). Both the last
@@ -44,6 +45,7 @@ import pandas as pd
 
 from spot import SpotError, stats
 
+MIN_SEEDS = 3  # a verdict needs at least this many finished runs per arm and dataset (effect and CI shown below it)
 METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"}
 OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
@@ -105,12 +107,15 @@ class Row:
     n_x: int = 0
     n_y: int = 0
     means: tuple[float, float] | None = None  # each arm's mean over datasets of its per-dataset means
+    min_n: int = 0  # the fewest finished runs of an arm on one dataset
     datasets: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
     @property
     def verdict(self) -> str:
-        return "no runs" if self.effect is None else stats.verdict(self.effect)
+        if self.effect is None:
+            return "no runs"
+        return stats.TOO_FEW if self.min_n < MIN_SEEDS else stats.verdict(self.effect)
 
 
 # --------------------------------------------------------------------------- selecting runs
@@ -165,6 +170,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement)
     row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
+    row.min_n = min(len(a) for a in [*sx, *sy])
     return row
 
 
@@ -214,6 +220,7 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
         return np.mean([(mean[i] - mean[m + i]) - (mean[2 * m + i] - mean[3 * m + i]) for i in range(m)], axis=0)
 
     flat = [a for s in strata for a in s]
+    row.min_n = min(len(a) for a in flat)
     row.effect = stats.estimate(flat, diff_in_diff)
     row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
     return row

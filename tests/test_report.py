@@ -183,3 +183,12 @@ def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
     # claim 1 with the controls in the same frame: SPOT's arm is still the six Table 1 runs
     moved = pd.concat([mixed, random_sg.assign(experiment="lab_table1")], ignore_index=True)
     assert _row(report.build(moved), "1", "spot vs pt").effect.value == pytest.approx(8.5)
+
+
+def test_a_verdict_needs_three_runs_per_arm_and_dataset(runs):
+    # two seeds of each arm still get an effect and an interval, but no verdict
+    two = runs[~((runs["method"] == "spot") & (runs["seed"] == 2)) & ~((runs["method"] == "pt") & (runs["seed"] == 2))]
+    r = _row(report.build(two), "1", "spot vs pt")
+    assert r.min_n == 2 and r.effect is not None and not np.isnan(r.effect.low)
+    assert r.verdict == stats.TOO_FEW
+    assert _row(report.build(runs), "1", "spot vs pt").min_n == 3
