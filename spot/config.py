@@ -518,6 +518,19 @@ METHOD_PRESETS: dict[str, dict[str, Any]] = {
     "spot": {"reward.kind": "pt", "shaping.kind": "cosine", "shaping.weight": 1.0},
 }
 
+# IPL's and HPL's sizes shared by the CPU budgets (lab and small), smaller than the paper's.
+_CPU_BASELINE_SIZES: dict[str, Any] = {
+    "ipl.subsample": 32,
+    "hpl.embd_dim": 64,
+    "hpl.n_layer": 1,
+    "hpl.decoder_hidden": (128, 128),
+    "hpl.prior_hidden": (128, 128),
+    "hpl.reward_hidden": (64, 64),
+    "hpl.vae_batch": 16,
+    "hpl.extra_batch": 128,
+    "hpl.prior_samples": 10,
+}
+
 BUDGET_PRESETS: dict[str, dict[str, Any]] = {
     # The paper's sizes (Table 5, Table 6, IQL reference): GPU / cluster work.
     "paper": {"data.size": "paper"},
@@ -548,17 +561,9 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "eval.every": 10_000,
         "eval.episodes": 10,
         "eval.final_episodes": 30,
-        "ipl.subsample": 32,
-        "hpl.embd_dim": 64,
-        "hpl.n_layer": 1,
-        "hpl.decoder_hidden": (128, 128),
-        "hpl.prior_hidden": (128, 128),
-        "hpl.reward_hidden": (64, 64),
+        **_CPU_BASELINE_SIZES,
         "hpl.vae_steps": 5000,
-        "hpl.vae_batch": 16,
         "hpl.reward_steps": 2000,
-        "hpl.extra_batch": 128,
-        "hpl.prior_samples": 10,
     },
     # Finishes on 2 CPU cores in minutes per run.
     "small": {
@@ -581,18 +586,10 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "iql.chunk": 1000,
         "eval.every": 5000,
         "eval.episodes": 5,
-        "ipl.subsample": 32,
+        **_CPU_BASELINE_SIZES,
         "hpl.seq_len": 50,
-        "hpl.embd_dim": 64,
-        "hpl.n_layer": 1,
-        "hpl.decoder_hidden": (128, 128),
-        "hpl.prior_hidden": (128, 128),
-        "hpl.reward_hidden": (64, 64),
         "hpl.vae_steps": 2000,
-        "hpl.vae_batch": 16,
         "hpl.reward_steps": 1000,
-        "hpl.extra_batch": 128,
-        "hpl.prior_samples": 10,
     },
     # Seconds: tests and smoke checks.
     "tiny": {

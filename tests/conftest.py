@@ -35,6 +35,18 @@ def spot_dirs(tmp_path_factory):
             os.environ[k] = v
 
 
+# A whole run in seconds: the tiny budget on the tiny drawer-open dataset (fixture tiny_drawer).
+TINY_RUN = [
+    "budget=tiny",
+    "data.name=drawer-open",
+    "iql.steps=200",
+    "eval.every=100",
+    "eval.episodes=1",
+    "labels.num_queries=30",
+    "labels.segment_length=25",
+]
+
+
 @pytest.fixture(scope="session")
 def tiny_drawer(spot_dirs):
     """drawer-open, tiny size, built once per session (Meta-World, ~5 s)."""

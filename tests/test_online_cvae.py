@@ -12,6 +12,7 @@ import pytest
 from spot import SpotError, config
 from spot.reward import models, train
 from spot.subgoal import cvae, extract, online, shaping
+from tests.conftest import TINY_RUN
 
 
 # --------------------------------------------------------------------------- row 33: the term
@@ -328,16 +329,7 @@ def test_online_cvae_code_is_in_the_reward_entry_only_when_online():
 
 
 # --------------------------------------------------------------------------- tiny runs
-TINY = [
-    "budget=tiny",
-    "data.name=drawer-open",
-    "iql.steps=200",
-    "eval.every=100",
-    "eval.episodes=1",
-    "labels.num_queries=30",
-    "labels.segment_length=25",
-    "pt.n_layer=1",
-]
+TINY = [*TINY_RUN, "pt.n_layer=1"]
 
 
 def test_state_action_shaping_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monkeypatch):

@@ -7,21 +7,12 @@ import numpy as np
 import pytest
 
 from spot import NonFiniteError, SpotError, config, pipeline, tracking
-
-TINY = [
-    "budget=tiny",
-    "data.name=drawer-open",
-    "iql.steps=200",
-    "eval.every=100",
-    "eval.episodes=1",
-    "labels.num_queries=30",
-    "labels.segment_length=25",
-]
+from tests.conftest import TINY_RUN
 
 
 def _cfg(tmp_path: Path, *overrides: str):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    return config.load(None, [*TINY, f"tracking.uri={uri}", "tracking.experiment=test", *overrides])
+    return config.load(None, [*TINY_RUN, f"tracking.uri={uri}", "tracking.experiment=test", *overrides])
 
 
 def _run(cfg):

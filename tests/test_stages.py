@@ -9,17 +9,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError, config, pipeline, stages, sweep, tracking
-from tests.conftest import run_cli
-
-TINY = [
-    "budget=tiny",
-    "data.name=drawer-open",
-    "iql.steps=200",
-    "eval.every=100",
-    "eval.episodes=1",
-    "labels.num_queries=30",
-    "labels.segment_length=25",
-]
+from tests.conftest import TINY_RUN, run_cli
 
 
 @pytest.fixture()
@@ -63,7 +53,7 @@ def test_in_segments_mask_marks_both_segments_and_clips_at_the_end():
 def test_run_with_a_memory_tracker_writes_no_store(tmp_path, spot_dirs, tiny_drawer, fresh_cache, monkeypatch):
     monkeypatch.chdir(tmp_path)
     tr = tracking.MemoryTracker()
-    out = pipeline.run(config.load(None, [*TINY, "method=oracle"]), progress=False, tracker=tr)
+    out = pipeline.run(config.load(None, [*TINY_RUN, "method=oracle"]), progress=False, tracker=tr)
     assert [s for s, _ in tr.metrics["eval/score"]] == [0, 100, 200]
     assert {"models/policy.npz", "models/policy.json"} <= set(tr.artifacts)  # the Oracle saves only its policy
     assert not any(k.startswith(("models/reward_model", "models/cvae")) for k in tr.artifacts)
@@ -132,7 +122,7 @@ def test_a_registered_method_runs_end_to_end_through_spot_run(
 
     register_toy()
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    assert cli.main(["run", "--quiet", "method=toy", *TINY, f"tracking.uri={uri}", "tracking.experiment=toy"]) == 0
+    assert cli.main(["run", "--quiet", "method=toy", *TINY_RUN, f"tracking.uri={uri}", "tracking.experiment=toy"]) == 0
     mlflow.set_tracking_uri(uri)
     runs = mlflow.search_runs(experiment_names=["toy"])
     assert len(runs) == 1 and runs["status"].iloc[0] == "FINISHED" and runs["tags.method"].iloc[0] == "toy"

@@ -185,19 +185,23 @@ def pref_loss(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple
 
 
 # --------------------------------------------------------------------------- model
-def _pair_logits(
-    model: RewardModel, params: Params, pairs: PrefPairs, dropout_key: jax.Array | None
-) -> tuple[jax.Array, jax.Array]:
-    """Both segments in one forward pass of ``2B`` segments."""
+def both_segments(pairs: PrefPairs) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+    """``(obs, act, timesteps, mask)`` of the ``2B`` segments of one forward pass: first segments,
+    then second segments."""
     cat = functools.partial(jnp.concatenate, axis=0)
-    _, _, logit = model.apply(
-        params,
+    return (
         cat([pairs.obs_1, pairs.obs_2]),
         cat([pairs.act_1, pairs.act_2]),
         cat([pairs.timesteps_1, pairs.timesteps_2]),
         cat([pairs.mask_1, pairs.mask_2]),
-        dropout_key,
     )
+
+
+def _pair_logits(
+    model: RewardModel, params: Params, pairs: PrefPairs, dropout_key: jax.Array | None
+) -> tuple[jax.Array, jax.Array]:
+    """Both segments in one forward pass of ``2B`` segments."""
+    _, _, logit = model.apply(params, *both_segments(pairs), dropout_key)
     b = pairs.label.shape[0]
     return logit[:b], logit[b:]
 
@@ -278,17 +282,9 @@ def make_companion_update(
     pass (:class:`ForwardPass`) with the key ``fold_in(step_key, COMPANION_STREAM)``."""
     tx = model.optimizer(steps)
     n_micro = micro_batches(batch_size, micro_batch)
-    cat = functools.partial(jnp.concatenate, axis=0)
 
     def micro_loss(params: Params, mb: PrefPairs, dropout_key: jax.Array) -> tuple[jax.Array, tuple]:
-        r_hat, attn, logit = model.apply_attention(
-            params,
-            cat([mb.obs_1, mb.obs_2]),
-            cat([mb.act_1, mb.act_2]),
-            cat([mb.timesteps_1, mb.timesteps_2]),
-            cat([mb.mask_1, mb.mask_2]),
-            dropout_key,
-        )
+        r_hat, attn, logit = model.apply_attention(params, *both_segments(mb), dropout_key)
         b = mb.label.shape[0]
         ce, correct, non_tie = _pair_terms(logit[:b], logit[b:], mb.label)
         counts = jnp.stack([jnp.sum(correct & non_tie), jnp.sum(non_tie)]).astype(jnp.float32)
