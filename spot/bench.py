@@ -245,7 +245,7 @@ def bench_cvae(small: bool = False) -> dict[str, Any]:
         jnp.asarray(s), jnp.asarray(rng.uniform(-1, 1, (m, act_dim)).astype(np.float32)), jnp.asarray(s + 0.1)
     )
     state = cvae.init(jax.random.key(0), obs_dim, act_dim, cfg, cvae.obs_stats(s))
-    t = _time_chunks(cvae.make_train_chunk(cfg, steps), state, steps, (data, jax.random.key(1)), 1)
+    t = _time_chunks(cvae.make_train_chunk(cfg, steps), state, steps, (data, jnp.int32(m), jax.random.key(1)), 1)
     return {
         "what": f"CVAE steps (batch {cfg.batch_size}, hidden {cfg.hidden}, latent {cfg.latent_dim})",
         "steps_per_s": steps / t["elapsed_s"],

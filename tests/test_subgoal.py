@@ -248,9 +248,46 @@ def test_train_chunk_compiles_once():
     data = extract.Triplets(*(jnp.asarray(x) for x in (s, a, g)))
     before = chunk._cache_size()  # 1 if test_non_finite_loss_raises already compiled it
     for i in range(3):
-        state, metrics = chunk(state, 5, data, jax.random.key(i))
+        state, metrics = chunk(state, 5, data, jnp.int32(64), jax.random.key(i))
     assert chunk._cache_size() == max(before, 1)
     assert int(state.step) == 15 and set(metrics) >= {"cvae/loss", "cvae/recon", "cvae/kl", "cvae/cos"}
+
+
+def test_padded_triplets_train_as_the_unpadded_ones():
+    """The CVAE's training data are padded to a bucket (shared compiled programs); the padding rows
+    must never be drawn: training on the padded set gives bit-identical parameters to training
+    on the 50 real rows, here against an unpadded loop written out step by step."""
+    s, a, g = _toy_triplets(50)
+    assert cvae.bucket(50) == 64 and cvae.bucket(64) == 64 and cvae.bucket(65) == 128 and cvae.bucket(1) == 64
+    state0 = cvae.init(jax.random.key(0), 3, 2, SMALL, cvae.obs_stats(s))
+    real = extract.Triplets(*(jnp.asarray(x) for x in (s, a, g)))
+    padded = extract.Triplets(*(jnp.asarray(cvae.pad_rows(x, 64)) for x in (s, a, g)))
+    assert padded.s.shape == (64, 3) and float(jnp.abs(padded.s[50:]).sum()) == 0.0
+    update = jax.jit(cvae.make_update(SMALL))
+    key = jax.random.key(7)
+    ref, pad = state0, state0
+    for _ in range(6):
+        ref, _ = update(ref, real, 50, key)  # a static bound: draws among exactly the 50 rows
+        pad, _ = update(pad, padded, jnp.int32(50), key)
+    for x, y in zip(jax.tree.leaves(ref.params.net), jax.tree.leaves(pad.params.net), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # a padding row drawn would show: rows 50-63 set to NaN leave the padded run finite
+    poisoned = extract.Triplets(*(x.at[50:].set(jnp.nan) for x in padded))
+    bad, _ = update(state0, poisoned, jnp.int32(50), key)
+    assert all(bool(jnp.isfinite(x).all()) for x in jax.tree.leaves(bad.params.net))
+
+
+def test_triplet_counts_in_one_bucket_share_the_compiled_chunk():
+    cfg = dataclasses.replace(SMALL, steps=5, lr=2.9e-3)  # a config no other test compiles
+    chunk = cvae.make_train_chunk(cfg, 5)  # the chunk train_cvae uses (kept per config and length)
+    sizes = []
+    for m in (40, 57):  # 32 and 46 training rows: both pad to 64
+        s, a, g = _toy_triplets(m, seed=m)
+        params, _ = cvae.train_cvae(
+            jax.random.key(m), s, a, g, cfg, cvae.obs_stats(s), progress=False, log_every=5, holdout=0.2
+        )
+        sizes.append(chunk._cache_size())
+    assert sizes == [1, 1] and all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params.net))
 
 
 def test_non_finite_loss_raises():

@@ -313,15 +313,34 @@ def init(
     return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
 
 
+def bucket(m: int) -> int:
+    """Rows a set of ``m`` triplets is padded to on device: the next power of two (at least 64).
+
+    The number of triplets depends on the seed and the reward model, so unpadded every run would
+    compile its own CVAE programs; padded, runs whose counts fall in one bucket share them (the
+    in-process jit cache and the persistent compilation cache) at most doubling the rows held.
+    """
+    return max(64, 1 << max(0, int(m) - 1).bit_length())
+
+
+def pad_rows(x: np.ndarray, rows: int) -> np.ndarray:
+    """``x`` with zero rows appended up to ``rows`` rows."""
+    return np.concatenate([x, np.zeros((rows - x.shape[0], *x.shape[1:]), x.dtype)]) if rows > x.shape[0] else x
+
+
 def make_update(cfg: CVAEConfig) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
-    """``update(state, data, key) -> (state, info)``: one Adam step on ``cfg.batch_size`` rows of
-    the training triplets ``data`` drawn with replacement from ``fold_in(key, state.step)``."""
+    """``update(state, data, count, key) -> (state, info)``: one Adam step on ``cfg.batch_size``
+    rows drawn with replacement from the first ``count`` rows of the training triplets ``data``
+    (the rest is padding, :func:`bucket`), with ``fold_in(key, state.step)``. The rows drawn are
+    those of unpadded data (``randint`` with a traced bound draws what it draws with a static one)."""
     opt = _optimizer(cfg)
 
-    def update(state: CVAEState, data: Triplets, key: jax.Array) -> tuple[CVAEState, dict[str, jax.Array]]:
+    def update(
+        state: CVAEState, data: Triplets, count: jax.Array, key: jax.Array
+    ) -> tuple[CVAEState, dict[str, jax.Array]]:
         step_key = jax.random.fold_in(key, state.step)
         idx_key, loss_key = jax.random.split(step_key)
-        idx = jax.random.randint(idx_key, (cfg.batch_size,), 0, data.s.shape[0])
+        idx = jax.random.randint(idx_key, (cfg.batch_size,), 0, count)
         batch = Triplets(*(x[idx] for x in data))
 
         def net_loss(net: Params) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -337,7 +356,7 @@ def make_update(cfg: CVAEConfig) -> Callable[..., tuple[CVAEState, dict[str, jax
 
 @functools.lru_cache(maxsize=16)
 def make_train_chunk(cfg: CVAEConfig, length: int) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
-    """Jitted ``train_chunk(state, n, data, key) -> (state, metrics)``: ``n <= length`` steps of
+    """Jitted ``train_chunk(state, n, data, count, key) -> (state, metrics)``: ``n <= length`` steps of
     :func:`make_update` in one scan (:func:`spot.loop.make_chunk`); ``metrics`` are means over
     the ``n`` steps. The state is donated. Kept per ``(cfg, length)``, so repeated trainings in
     one process (a sweep trial, the tests) reuse the compiled chunk for data of the same shape.
@@ -346,8 +365,10 @@ def make_train_chunk(cfg: CVAEConfig, length: int) -> Callable[..., tuple[CVAESt
 
 
 @functools.lru_cache(maxsize=16)
-def _heldout_fn(cfg: CVAEConfig) -> Callable[[CVAEParams, Triplets, jax.Array], dict[str, jax.Array]]:
-    return jax.jit(lambda p, b, k: loss_fn(p, b, k, cfg)[1])
+def _heldout_fn(cfg: CVAEConfig) -> Callable[[CVAEParams, Triplets, jax.Array, jax.Array], dict[str, jax.Array]]:
+    """Jitted ``(params, held, weight, key) -> metrics``: :func:`loss_fn`'s metrics over the rows of
+    weight 1 (the held-out triplets, padded to a :func:`bucket` with weight-0 rows)."""
+    return jax.jit(lambda p, b, w, k: loss_fn(p, b, k, cfg, w)[1])
 
 
 def _split(key: jax.Array, n: int, holdout: float, groups: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -416,20 +437,27 @@ def train_cvae(
     init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
     del key
     train_idx, held_idx = _split(split_key, m, holdout, groups)
-    data = Triplets(*(jnp.asarray(x[train_idx]) for x in (s, a, g)))
-    held = Triplets(*(jnp.asarray(x[held_idx]) for x in (s, a, g))) if held_idx.size else None
+    # Padded to a bucket (compiled programs shared across runs); only the first rows are drawn or
+    # weighted, so training is that of the unpadded triplets.
+    rows = bucket(train_idx.size)
+    data = Triplets(*(jnp.asarray(pad_rows(x[train_idx], rows)) for x in (s, a, g)))
+    count = jnp.asarray(train_idx.size, jnp.int32)
+    held, held_weight = None, None
+    if held_idx.size:
+        held = Triplets(*(jnp.asarray(pad_rows(x[held_idx], bucket(held_idx.size))) for x in (s, a, g)))
+        held_weight = jnp.asarray(pad_rows(np.ones(held_idx.size, np.float32), bucket(held_idx.size)))
 
     length = loop.chunk_length(cfg.steps, log_every)
     heldout = _heldout_fn(cfg)
 
     def evaluate(state: CVAEState) -> dict[str, jax.Array]:
-        return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, eval_key).items()}
+        return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, held_weight, eval_key).items()}
 
     state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats, goal_actions)
     out = loop.run(
         make_train_chunk(cfg, length),
         state,
-        lambda c: (data, jax.random.fold_in(train_key, c)),
+        lambda c: (data, count, jax.random.fold_in(train_key, c)),
         steps=cfg.steps,
         length=length,
         losses={"cvae/loss": "cvae/loss"},
