@@ -451,7 +451,8 @@ def train_cvae(
     heldout = _heldout_fn(cfg)
 
     def evaluate(state: CVAEState) -> dict[str, jax.Array]:
-        return {k.replace("cvae/", "cvae/heldout_"): v for k, v in heldout(state.params, held, held_weight, eval_key).items()}
+        metrics = heldout(state.params, held, held_weight, eval_key)
+        return {k.replace("cvae/", "cvae/heldout_"): v for k, v in metrics.items()}
 
     state = init(init_key, s.shape[1], a.shape[1], cfg, obs_stats, goal_actions)
     out = loop.run(
