@@ -16,7 +16,7 @@ def _python(code: str, env: dict[str, str]) -> subprocess.CompletedProcess:
 
 
 def _clean_env() -> dict[str, str]:
-    return {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MUJOCO_GL")}
+    return {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "MUJOCO_GL", runtime.FAST_COMPILE_SWITCH)}
 
 
 def test_importing_every_spot_module_leaves_the_environment_alone():
@@ -134,6 +134,31 @@ def test_the_compilation_cache_switch(tmp_path):
     assert "JAX_COMPILATION_CACHE_DIR" not in off and set(off) == {"XLA_FLAGS", "MUJOCO_GL"}
     bad = _python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="maybe"))
     assert bad.returncode != 0 and "SPOT_JAX_CACHE='maybe': expected 1 or 0" in bad.stderr
+
+
+def test_fast_compile_appends_its_flags_and_a_sweep_trial_sets_the_switch(tmp_path):
+    code = "import json, os\nfrom spot import runtime\nprint(json.dumps(runtime.configure()))"
+    fast = json.loads(_python(code, _cache_env(tmp_path, SPOT_FAST_COMPILE="1")).stdout.strip().splitlines()[-1])
+    assert fast["XLA_FLAGS"].split() == [
+        runtime.YNN_FLAG,
+        "--xla_backend_optimization_level=0",
+        "--xla_llvm_disable_expensive_passes=true",
+    ]
+    plain = json.loads(_python(code, _cache_env(tmp_path)).stdout.strip().splitlines()[-1])
+    assert plain["XLA_FLAGS"].split() == [runtime.YNN_FLAG]
+    bad = _python(code, _cache_env(tmp_path, SPOT_FAST_COMPILE="fast"))
+    assert bad.returncode != 0 and "SPOT_FAST_COMPILE='fast': expected 1 or 0" in bad.stderr
+    # a trial of a sweep with fast_compile: true makes the setting before jax starts, and XLA accepts
+    # the flags (it aborts on a flag it does not know)
+    trial = (
+        "import json, os\nfrom spot.sweep import trial\ntrial._configure_once(1, 0.0, True)\n"
+        "import jax.numpy as jnp\nx = float(jnp.arange(4.0).sum())\n"
+        "print(json.dumps([os.environ['XLA_FLAGS'], x]))"
+    )
+    out = _python(trial, _cache_env(tmp_path))
+    assert out.returncode == 0, out.stderr[-3000:]
+    flags, x = json.loads(out.stdout.strip().splitlines()[-1])
+    assert "--xla_backend_optimization_level=0" in flags.split() and x == 6.0
 
 
 def test_pid_alive_is_false_only_for_a_process_that_is_gone():

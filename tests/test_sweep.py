@@ -333,3 +333,13 @@ def test_smoke_asks_for_no_gpu_unless_its_block_does(tmp_path):
     assert sweep.load(_write(tmp_path, text), smoke=True).resources == {"cpu": 1.0, "gpu": 0.0}
     text2 = text.replace("smoke: {base: {budget: tiny}}", "smoke: {base: {budget: tiny}, resources: {gpu: 1}}")
     assert sweep.load(_write(tmp_path, text2), smoke=True).resources == {"cpu": 1.0, "gpu": 1.0}
+
+
+def test_fast_compile_is_a_sweep_key_a_smoke_block_can_set(tmp_path):
+    text = "grid: {method: [pt]}\nsmoke: {base: {budget: tiny}, fast_compile: true}\n"
+    assert sweep.load(_write(tmp_path, text)).fast_compile is False
+    assert sweep.load(_write(tmp_path, text), smoke=True).fast_compile is True
+    top = "grid: {method: [pt]}\nfast_compile: true\nsmoke: {base: {budget: tiny}}\n"
+    assert sweep.load(_write(tmp_path, top), smoke=True).fast_compile is True  # the smoke block inherits it
+    with pytest.raises(SpotError, match=r"'smoke.fast_compile': expected true or false, got 'yes'"):
+        sweep.load(_write(tmp_path, text.replace("fast_compile: true", "fast_compile: 'yes'")), smoke=True)

@@ -647,7 +647,16 @@ def _open_launch(
     exp_id = tracking.experiment_id(sweep.experiment, store.uri)
     close_dead_runs(client, [exp_id])
     parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
-    ctx = SweepContext(sweep_id, sweep.name, sweep.experiment, exp_id, parent_id, store.uri, sweep.axis_keys)
+    ctx = SweepContext(
+        sweep_id,
+        sweep.name,
+        sweep.experiment,
+        exp_id,
+        parent_id,
+        store.uri,
+        sweep.axis_keys,
+        fast_compile=sweep.fast_compile,
+    )
     if not resume:
         tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
         tmp.write_text(json.dumps(state, indent=2))

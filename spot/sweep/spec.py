@@ -33,9 +33,10 @@ SWEEP_KEYS = (
     "max_concurrent",
     "table",
     "store",
+    "fast_compile",
     "smoke",
 )
-SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources")
+SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources", "fast_compile")
 SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
@@ -104,6 +105,9 @@ class Sweep:
     ``$SPOT_STORE``, else nothing shared."""
     store_options: tuple[tuple[str, str], ...] = ()
     """Store options (``endpoint_url``), as pairs."""
+    fast_compile: bool = False
+    """Trials compile with XLA's optimisations off (``SPOT_FAST_COMPILE``, :mod:`spot.runtime`):
+    for smoke launches, whose programs compile for longer than they run."""
 
     @property
     def experiment(self) -> str:
@@ -222,6 +226,12 @@ def _resources(value: Any, where: str) -> dict[str, float]:
     return out
 
 
+def _bool(value: Any, where: str, key: str) -> bool:
+    if not isinstance(value, bool):
+        raise _err(where, key, f"expected true or false, got {value!r}")
+    return value
+
+
 def _table(value: Any, where: str) -> int | None:
     from spot.tables import TABLES
 
@@ -271,6 +281,7 @@ def _fields(data: dict[str, Any], where: str) -> dict[str, Any]:
         "resources": _resources(data.get("resources", {}), where),
         "max_concurrent": _max_concurrent(data.get("max_concurrent"), where, "max_concurrent"),
         "table": _table(data.get("table"), where),
+        "fast_compile": _bool(data.get("fast_compile", False), where, "fast_compile"),
         **dict(zip(("store", "store_options"), _store(data.get("store"), where), strict=True)),
     }
 
@@ -311,6 +322,7 @@ def _smoke_fields(data: dict[str, Any], full: dict[str, Any], where: str) -> dic
             block.get("max_concurrent", full["max_concurrent"]), where, "smoke.max_concurrent"
         ),
         "resources": resources,
+        "fast_compile": _bool(block.get("fast_compile", full["fast_compile"]), where, "smoke.fast_compile"),
     }
 
 

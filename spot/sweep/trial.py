@@ -55,6 +55,7 @@ class SweepContext:
     parent_run_id: str
     tracking_uri: str
     axis_keys: tuple[str, ...]
+    fast_compile: bool = False  # the sweep file's fast_compile: SPOT_FAST_COMPILE=1 in the trial processes
     created_at: float = field(default_factory=time.time)  # when the driver set the launch up (start-up's origin)
 
 
@@ -330,17 +331,19 @@ def run_trial(
 _PROCESS: dict[str, Any] = {"settings": None, "last_end": None}  # this process's trial settings, last trial's end
 
 
-def _configure_once(cpus: int, gpus: float) -> None:
+def _configure_once(cpus: int, gpus: float, fast_compile: bool = False) -> None:
     """spot's and the trial's process settings (:func:`spot.runtime.configure`,
     :func:`configure_process`), once per process: a reused actor already made them for the same
-    resources (a sweep's trials all ask for the same), and XLA has read them."""
+    resources and sweep (a sweep's trials all ask for the same), and XLA has read them."""
     from spot import runtime
 
-    if _PROCESS["settings"] == (cpus, gpus):
+    if _PROCESS["settings"] == (cpus, gpus, fast_compile):
         return
-    runtime.configure()  # spot's XLA flag, MUJOCO_GL and the compilation cache
+    if fast_compile:
+        os.environ[runtime.FAST_COMPILE_SWITCH] = "1"
+    runtime.configure()  # spot's XLA flags, MUJOCO_GL and the compilation cache
     configure_process(cpus, gpus)
-    _PROCESS["settings"] = (cpus, gpus)
+    _PROCESS["settings"] = (cpus, gpus, fast_compile)
 
 
 def _process_started() -> float:
@@ -404,7 +407,7 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
     try:
         with phases.measure("other") as clock, cpu_slots(cpus) as pinned:
             with phases.phase("startup"):
-                _configure_once(cpus, gpus)
+                _configure_once(cpus, gpus, ctx.fast_compile)
                 if run_fn is None:  # the pipeline's imports, timed as start-up
                     import jax  # noqa: F401
                     import mlflow  # noqa: F401
