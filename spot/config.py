@@ -444,6 +444,14 @@ class EvalConfig:
         "little cost: the episodes run in lockstep, one batched policy call per step",
         range=(0, None),
     )
+    max_steps: int = F(
+        0,
+        "cut every evaluation episode after this many steps; 0 = the env's own horizon (the paper's "
+        "protocol: 1000 locomotion, 500 Meta-World and robosuite). Budget tiny sets 100 so that smoke "
+        "checks do not spend most of their time in robosuite's 15-20 ms steps; a cut episode's score is "
+        "not comparable with a full one's",
+        range=(0, None),
+    )
 
 
 @dataclass(frozen=True)
@@ -616,6 +624,7 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
         "iql.batch_size": 64,
         "eval.every": 100,
         "eval.episodes": 1,
+        "eval.max_steps": 100,
         "ipl.subsample": 10,
         "ipl.feedback_batch": 4,
         "hpl.seq_len": 25,

@@ -154,7 +154,13 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
     cfg = tracking.run_config(run_id, tracking_uri)
     n = episodes or cfg.eval.final_episodes or cfg.eval.episodes
     actor = params["actor"]
-    res = envs.evaluate(lambda o: np.asarray(iql.act(actor, o, cfg.iql)), head["env"], n, seed=int(head["eval_seed"]))
+    res = envs.evaluate(
+        lambda o: np.asarray(iql.act(actor, o, cfg.iql)),
+        head["env"],
+        n,
+        seed=int(head["eval_seed"]),
+        max_steps=cfg.eval.max_steps,  # as the run evaluated it
+    )
     logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")
     return {
         "run_id": run_id,

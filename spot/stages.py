@@ -727,6 +727,7 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
                 ctx.env_name,
                 eval_episodes(cfg, step),
                 seed=eval_seed(cfg),
+                max_steps=cfg.eval.max_steps,
             )
         ctx.log(
             {"eval/score": res["score_mean"], "eval/score_std": res["score_std"], "eval/return": res["return_mean"]},

@@ -183,3 +183,63 @@ def test_walker2d_is_evaluated_in_the_model_d4rl_recorded_in():
     assert _foot_frictions(walker, ["foot_geom", "foot_left_geom"]) == pytest.approx([0.9, 1.9])
     hopper = make_env("hopper-medium-replay", 0)
     assert _foot_frictions(hopper, ["foot_geom"]) == pytest.approx([2.0])
+
+
+def _noisy_policy(act_dim, seed):
+    """A deterministic function of the observation that moves the system (not constant)."""
+    w = np.random.default_rng(seed).normal(size=(act_dim, 1000))
+
+    def policy(obs):
+        flat = np.zeros((obs.shape[0], 1000))
+        flat[:, : obs.shape[1]] = obs
+        return np.tanh(flat @ w.T)
+
+    return policy
+
+
+@pytest.mark.parametrize(
+    ("name", "act_dim", "max_steps"),
+    [("hopper-medium-replay", 3, 0), ("drawer-open", 4, 60), ("lift-ph", 7, 30)],
+)
+def test_a_kept_env_gives_the_episode_of_a_new_env(name, act_dim, max_steps):
+    """evaluate keeps its envs for the next evaluation (spot.envs.pooled_env): an episode in a kept
+    env, after other episodes have run in it, equals the episode in a newly built env."""
+    from spot import envs
+
+    if envs.env_spec(name).family == "robosuite":
+        pytest.importorskip("robosuite")
+    policy = _noisy_policy(act_dim, 0)
+    envs.clear_env_pool()
+    fresh = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
+    assert len(envs._POOL) == 2
+    evaluate(_noisy_policy(act_dim, 1), name, 3, seed=2, max_steps=max_steps)  # the envs of seeds 3, 4 move on
+    assert len(envs._POOL) == 3  # seeds 2, 3, 4
+    kept = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
+    for k in ("returns", "lengths", "scores"):
+        np.testing.assert_array_equal(kept[k], fresh[k])
+    if max_steps:
+        assert kept["lengths"].max() <= max_steps
+    envs.clear_env_pool()
+    assert not envs._POOL
+
+
+def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
+    from spot import envs
+
+    envs.clear_env_pool()
+    policy = _noisy_policy(3, 0)
+    together = evaluate(policy, "hopper-medium-expert", 5, seed=0)
+    monkeypatch.setitem(envs.MAX_LIVE, "locomotion", 2)
+    envs.clear_env_pool()
+    built = []
+    make = envs.make_env
+    monkeypatch.setattr(envs, "make_env", lambda n, s: built.append(s) or make(n, s))
+    waves = evaluate(policy, "hopper-medium-expert", 5, seed=0)
+    assert built == [0, 1, 2, 3, 4] and len(envs._POOL) == 2  # waves of 2, 2, 1; at most 2 alive or kept
+    # single-row policy calls in a wave of one episode round like the batched ones here (numpy)
+    np.testing.assert_array_equal(waves["returns"], together["returns"])
+    again = evaluate(policy, "hopper-medium-expert", 1, seed=4)
+    assert built == [0, 1, 2, 3, 4] and again["returns"][0] == together["returns"][4]  # seed 4's env was kept
+    with pytest.raises(SpotError, match="max_steps must be >= 0"):
+        evaluate(policy, "hopper-medium-expert", 1, seed=0, max_steps=-1)
+    envs.clear_env_pool()
