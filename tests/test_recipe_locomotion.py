@@ -84,6 +84,7 @@ def builds(tmp_path_factory):
         "medium-replay": locomotion.build("hopper-medium-replay", "tiny", 0, first, progress=False),
         "medium-expert": locomotion.build("hopper-medium-expert", "tiny", 0, first, progress=False),
         "medium-expert-rebuilt": locomotion.build("hopper-medium-expert", "tiny", 0, second, progress=False),
+        "full-replay": locomotion.build("hopper-full-replay", "tiny", 0, first, progress=False),
         "cache_dir": first,
     }
 
@@ -155,6 +156,21 @@ def test_medium_replay_is_the_buffer_up_to_the_medium_snapshot(builds):
     _check_layout(raw, card)
     assert card["name"] == "hopper-medium-replay" and card["sac_cache_hit"] is False
     assert 0 < len(raw) <= card["behaviour"]["medium_snapshot_step"]
+    assert set(raw.metadata["episode_kind"]) == {"replay"}
+
+
+@pytest.mark.slow
+def test_full_replay_is_the_whole_buffer_and_medium_replay_its_first_part(builds):
+    raw, card = builds["full-replay"]
+    _check_layout(raw, card)
+    assert card["name"] == "hopper-full-replay" and card["sac_cache_hit"] is True  # the same SAC run
+    short, short_card = builds["medium-replay"]
+    b = card["behaviour"]
+    assert len(short) < len(raw) <= b["expert_snapshot_step"] == locomotion.SIZES["tiny"].sac.total_steps
+    # SAC's buffer in order: every complete episode up to the expert step, medium-replay's rows first
+    np.testing.assert_array_equal(raw.observations[: len(short)], short.observations)
+    np.testing.assert_array_equal(raw.rewards[: len(short)], short.rewards)
+    assert len(raw) > b["expert_snapshot_step"] - 1000  # at most the one unfinished 1000-step episode dropped
     assert set(raw.metadata["episode_kind"]) == {"replay"}
 
 

@@ -41,6 +41,7 @@ _LOCO = {
     "medium-replay": "SAC replay buffer up to the medium snapshot",
     "expert": "rollouts of the final SAC policy",
     "medium-expert": "medium + expert",
+    "full-replay": "SAC replay buffer up to the expert snapshot (D4RL's full-replay)",
 }
 _MW = {
     "drawer-open": "Meta-World drawer-open-v3, IPL recipe (scripted expert + noise, random, other tasks)",

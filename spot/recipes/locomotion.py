@@ -16,6 +16,10 @@ D4RL's recipe, which this module follows:
    ``medium-replay``: the replay buffer, in order, up to the medium snapshot (random start-up
    actions included; an episode still running at that step is dropped). ``medium-expert``: the
    medium rows followed by the expert rows (exactly the two datasets of that seed).
+   ``full-replay`` (D4RL's ``*-full-replay-v2``): the whole replay buffer, in order, up to the
+   final (expert) snapshot; ``medium-replay`` is its first part. Where SAC reaches the medium
+   level early (local Hopper at size paper: 150k of 420k steps), medium-replay is short and
+   mostly early failures, and full-replay is the replay data with room above it.
 3. Rollouts sample from the stochastic policy, as D4RL did, and fill exactly ``transitions`` rows:
    the last episode is cut there and that cut counts as a timeout.
 
@@ -60,7 +64,7 @@ from spot.policy import sac
 RECIPE = "d4rl-sac-locomotion"
 RECIPE_VERSION = 2  # bump when a change here alters the SAC cache or the datasets
 ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5"}
-KINDS = ("medium", "medium-replay", "expert", "medium-expert")
+KINDS = ("medium", "medium-replay", "expert", "medium-expert", "full-replay")
 _ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; tag 1 is SAC's evaluation env
 
 
@@ -365,7 +369,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     """Build a D4RL-style locomotion dataset in the real simulator.
 
     Args:
-      name: ``{hopper,walker2d}-{medium,medium-replay,expert,medium-expert}``.
+      name: ``{hopper,walker2d}-{medium,medium-replay,expert,medium-expert,full-replay}``.
       size: ``"tiny"``, ``"small"`` or ``"paper"`` (see :data:`SIZES`).
       seed: seeds SAC and the rollouts; the four datasets of one seed share one SAC run.
       cache_dir: where the SAC run is cached (``cache_dir/sac/``).
@@ -392,8 +396,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
 
     episodes: list[dict[str, np.ndarray]] = []
     episode_kind: list[str] = []
-    if kind == "medium-replay":
-        episodes = _replay_episodes(result.replay, medium.step)
+    if kind in ("medium-replay", "full-replay"):
+        end = medium.step if kind == "medium-replay" else expert.step
+        episodes = _replay_episodes(result.replay, end)
         episode_kind = ["replay"] * len(episodes)
     for part, snap in (("medium", medium), ("expert", expert)):
         if kind in (part, "medium-expert"):
