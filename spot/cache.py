@@ -339,10 +339,17 @@ def _canonical(obj: Any) -> Any:
 
 
 def key(stage: str, deps: Mapping[str, Any], code: str) -> str:
-    """Hash of the stage name, its code version (:func:`code_version`) and its dependencies."""
-    payload = json.dumps(
-        {"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)}, sort_keys=True, default=str
-    )
+    """Hash of the stage name, its code version (:func:`code_version`) and its dependencies.
+
+    Under ``SPOT_FAST_COMPILE`` (:mod:`spot.runtime`: XLA's optimisations off, which rounds
+    differently) the key also says so: a smoke run's entries never stand in for a normal run's.
+    """
+    from spot import runtime
+
+    fields = {"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)}
+    if runtime.fast_compile():
+        fields["xla"] = "fast_compile"  # only then: every other key stays what it was
+    payload = json.dumps(fields, sort_keys=True, default=str)
     return f"{stage}-{hashlib.sha256(payload.encode()).hexdigest()[:20]}"
 
 

@@ -852,7 +852,11 @@ def _add_figures(sub: Any) -> None:
 def main(argv: list[str] | None = None) -> int:
     from spot import runtime
 
-    runtime.configure()  # XLA flag and MUJOCO_GL, before anything imports jax or mujoco
+    try:
+        runtime.configure()  # XLA flags and MUJOCO_GL, before anything imports jax or mujoco
+    except SpotError as e:  # SPOT_JAX_CACHE / SPOT_FAST_COMPILE neither on nor off
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     from spot.tracking.record import COMMAND_ENV
 
     # the command line, recorded as each run's mlflow.source.name (sweep trials inherit it)

@@ -138,6 +138,17 @@ def _tracking(
         yield tr
 
 
+def _logged_max_steps(run_id: str, tracking_uri: str | None, resolved: int) -> int:
+    """``eval.max_steps`` as the run used it: runs logged before the key existed played whole
+    episodes (0), where resolving their config would give today's budget default."""
+    import yaml
+
+    from spot import tracking
+
+    logged = yaml.safe_load(tracking.load_artifact_text(run_id, "config.yaml", tracking_uri)) or {}
+    return resolved if "max_steps" in (logged.get("eval") or {}) else 0
+
+
 def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | None = None) -> dict[str, Any]:
     """Evaluate the policy a run saved (``models/policy``) again, in the env and with the episode
     seeds the run evaluated it with (``episodes`` defaults to the episodes of the run's last
@@ -159,7 +170,7 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
         head["env"],
         n,
         seed=int(head["eval_seed"]),
-        max_steps=cfg.eval.max_steps,  # as the run evaluated it
+        max_steps=_logged_max_steps(run_id, tracking_uri, cfg.eval.max_steps),  # as the run evaluated it
     )
     logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")
     return {

@@ -340,3 +340,16 @@ def test_process_state_in_module_globals_is_not_code(monkeypatch):
     cache._STATE_CACHE.clear()
     assert cache.code_version(stages.learned_reward) == before
     assert {"_ANSWERED", "_VERIFIED"} <= cache._state_names(vars(tracking_store)) | cache._state_names(vars(registry))
+
+
+def test_fast_compiled_entries_have_their_own_keys(monkeypatch):
+    """Under SPOT_FAST_COMPILE the programs round differently: their entries must never be a normal
+    run's (and the normal keys stay what they were)."""
+    deps = {"a": 1, "b": np.arange(3)}
+    monkeypatch.delenv("SPOT_FAST_COMPILE", raising=False)
+    plain = cache.key("reward", deps, "c0")
+    monkeypatch.setenv("SPOT_FAST_COMPILE", "0")
+    assert cache.key("reward", deps, "c0") == plain
+    monkeypatch.setenv("SPOT_FAST_COMPILE", "1")
+    fast = cache.key("reward", deps, "c0")
+    assert fast != plain and fast.startswith("reward-")

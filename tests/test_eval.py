@@ -212,3 +212,12 @@ def test_fig3_uses_the_runs_cvae_on_the_runs_dataset(tmp_path):
     )
     assert got.returncode == 0, got.stderr[-2000:]
     assert out.read_bytes()[:4] == b"\x89PNG" and f"wrote {out}" in got.stdout
+
+
+def test_spot_eval_plays_whole_episodes_for_runs_logged_before_eval_max_steps(monkeypatch):
+    from spot import pipeline, tracking
+
+    monkeypatch.setattr(tracking, "load_artifact_text", lambda *a: "eval:\n  episodes: 1\n  every: 100\n")
+    assert pipeline._logged_max_steps("r", None, 100) == 0  # resolved from the tiny preset, not logged
+    monkeypatch.setattr(tracking, "load_artifact_text", lambda *a: "eval:\n  episodes: 1\n  max_steps: 100\n")
+    assert pipeline._logged_max_steps("r", None, 100) == 100

@@ -173,3 +173,22 @@ def test_pid_alive_is_false_only_for_a_process_that_is_gone():
     assert pid_alive(os.getpid()) and pid_alive(1)  # this process; init (another user's or ours)
     assert not pid_alive(gone) or os.path.exists(f"/proc/{gone}")
     assert pid_alive(2**70)  # not a pid here: left alone, never "gone"
+
+
+def test_bad_switch_values_are_one_error_line_and_exit_2(monkeypatch, capsys):
+    from spot import cli
+
+    monkeypatch.setenv("SPOT_FAST_COMPILE", "maybe")
+    assert cli.main(["config", "keys"]) == 2
+    assert capsys.readouterr().err.strip() == "error: SPOT_FAST_COMPILE='maybe': expected 1 or 0 (on or off)"
+
+
+def test_a_process_cannot_switch_fast_compile_once_jax_started(monkeypatch):
+    import pytest
+
+    from spot import SpotError
+    from spot.sweep import trial
+
+    monkeypatch.setitem(trial._PROCESS, "settings", (1, 0.0, False))
+    with pytest.raises(SpotError, match="fast_compile: this process compiled with fast_compile=False"):
+        trial._configure_once(1, 0.0, True)

@@ -7,7 +7,7 @@ D4RL's recipe, which this module follows:
    ``paper`` it trains until the deterministic evaluation return (mean of 10 episodes) reaches
    D4RL's expert level (:data:`PAPER_STOP`: Hopper 3000, Walker2d 4000; D4RL's expert references
    are 3234.3 and 4592.3), with a step cap. One training per ``(env, size, seed)`` serves all
-   four datasets: its snapshots and replay buffer are cached under ``cache_dir/sac/`` (msgpack,
+   five datasets: its snapshots and replay buffer are cached under ``cache_dir/sac/`` (msgpack,
    written atomically, under a file lock). While it trains, a checkpoint (learner, optimisers,
    replay buffer, snapshots, generators, simulator state) is written every ``checkpoint_every``
    steps beside the cache file, and a killed build resumes from it bit for bit.
@@ -371,7 +371,7 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     Args:
       name: ``{hopper,walker2d}-{medium,medium-replay,expert,medium-expert,full-replay}``.
       size: ``"tiny"``, ``"small"`` or ``"paper"`` (see :data:`SIZES`).
-      seed: seeds SAC and the rollouts; the four datasets of one seed share one SAC run.
+      seed: seeds SAC and the rollouts; the five datasets of one seed share one SAC run.
       cache_dir: where the SAC run is cached (``cache_dir/sac/``).
       progress: show tqdm bars for SAC training and rollouts, and each evaluation's return.
     Returns:

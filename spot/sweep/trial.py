@@ -339,8 +339,15 @@ def _configure_once(cpus: int, gpus: float, fast_compile: bool = False) -> None:
 
     if _PROCESS["settings"] == (cpus, gpus, fast_compile):
         return
-    if fast_compile:
-        os.environ[runtime.FAST_COMPILE_SWITCH] = "1"
+    if _PROCESS["settings"] is not None and _PROCESS["settings"][2] != fast_compile and "jax" in sys.modules:
+        from spot import SpotError
+
+        raise SpotError(
+            f"fast_compile: this process compiled with fast_compile={_PROCESS['settings'][2]}; XLA's flags "
+            f"cannot change once jax started (a trial of another launch in a reused process?)"
+        )
+    # explicit either way: the sweep file decides, not a SPOT_FAST_COMPILE the driver's shell had
+    os.environ[runtime.FAST_COMPILE_SWITCH] = "1" if fast_compile else "0"
     runtime.configure()  # spot's XLA flags, MUJOCO_GL and the compilation cache
     configure_process(cpus, gpus)
     _PROCESS["settings"] = (cpus, gpus, fast_compile)
