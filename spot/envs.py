@@ -36,8 +36,8 @@ episodes still running, so a jitted policy is called ``max_episode_steps`` times
 ``seed + i``. The envs are kept for the next evaluation (:func:`pooled_env`): a run evaluates
 with the same seeds every time, and building a robosuite env takes 1.5-3.5 s and about 140 MB that
 closing it does not all give back, a Meta-World env about 0.5 s. A kept env is reset with the
-episode's seed, which makes its episode that of a new env (tested per family). At most
-:data:`POOL_SIZE` envs are kept per process (least recently used go), and at most
+episode's seed, which makes its episode that of a new env (tested per family). Only the envs of
+the env last evaluated are kept, at most :data:`POOL_SIZE` (least recently used go), and at most
 :data:`MAX_LIVE` of one family are alive at once: more episodes than that (robosuite's 30-episode
 final evaluations) run in waves of that many.
 """
@@ -349,6 +349,8 @@ def evaluate(
     lengths = np.zeros(episodes, dtype=np.int64)
     successes = np.zeros(episodes, dtype=bool)
     wave = MAX_LIVE[spec.family]
+    this_env = _pool_key(name, seed)[:3]
+    _evict(lambda k: k[:3] != this_env, 0)  # a reused process moving on to another env frees the last one's
     try:
         for start in range(0, episodes, wave):
             ids = list(range(start, min(start + wave, episodes)))

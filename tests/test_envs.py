@@ -242,4 +242,6 @@ def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
     assert built == [0, 1, 2, 3, 4] and again["returns"][0] == together["returns"][4]  # seed 4's env was kept
     with pytest.raises(SpotError, match="max_steps must be >= 0"):
         evaluate(policy, "hopper-medium-expert", 1, seed=0, max_steps=-1)
+    evaluate(_noisy_policy(6, 0), "walker2d-medium-replay", 1, seed=0, max_steps=5)  # another env
+    assert [k[1] for k in envs._POOL] == ["Walker2d-v5"]  # the Hopper envs were closed
     envs.clear_env_pool()
