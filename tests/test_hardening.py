@@ -33,6 +33,7 @@ grid:
 seeds: [0, 1]
 resources: {cpu: 1, gpu: 0}
 max_concurrent: 2
+fast_compile: true
 """
 
 

@@ -47,6 +47,7 @@ table: 3
 store: s3://spot-test/sweep
 smoke:
   base: {budget: tiny, data.size: tiny, iql.steps: 100, eval.every: 100, eval.episodes: 2}
+  fast_compile: true
 """
 
 
@@ -291,6 +292,7 @@ resources: {cpu: 1, gpu: 0}
 max_concurrent: 2
 smoke:
   base: {budget: tiny, data.size: tiny, iql.steps: 100, eval.every: 100, eval.episodes: 1}
+  fast_compile: true
 """
 
 

@@ -168,6 +168,7 @@ resources: {cpu: 1, gpu: 0}
 max_concurrent: 2
 smoke:
   base: {budget: tiny, data.size: tiny, iql.steps: 100, eval.every: 100}
+  fast_compile: true
 """
 
 

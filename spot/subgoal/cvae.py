@@ -384,6 +384,14 @@ def _split(key: jax.Array, n: int, holdout: float, groups: np.ndarray | None) ->
     return np.flatnonzero(~held), np.flatnonzero(held)
 
 
+def _on_device(s: np.ndarray, a: np.ndarray, g: np.ndarray, idx: np.ndarray) -> tuple[Triplets, jax.Array]:
+    """Rows ``idx`` of the triplets on device, padded to a :func:`bucket` (compiled programs shared
+    across runs), and their count; only the first ``count`` rows are drawn or weighted, so training
+    is that of the unpadded triplets."""
+    rows = bucket(idx.size)
+    return Triplets(*(jnp.asarray(pad_rows(x[idx], rows)) for x in (s, a, g))), jnp.asarray(idx.size, jnp.int32)
+
+
 def train_cvae(
     key: jax.Array,
     s: np.ndarray,
@@ -437,14 +445,9 @@ def train_cvae(
     init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
     del key
     train_idx, held_idx = _split(split_key, m, holdout, groups)
-    # Padded to a bucket (compiled programs shared across runs); only the first rows are drawn or
-    # weighted, so training is that of the unpadded triplets.
-    rows = bucket(train_idx.size)
-    data = Triplets(*(jnp.asarray(pad_rows(x[train_idx], rows)) for x in (s, a, g)))
-    count = jnp.asarray(train_idx.size, jnp.int32)
-    held, held_weight = None, None
-    if held_idx.size:
-        held = Triplets(*(jnp.asarray(pad_rows(x[held_idx], bucket(held_idx.size))) for x in (s, a, g)))
+    data, count = _on_device(s, a, g, train_idx)
+    held, held_weight = _on_device(s, a, g, held_idx) if held_idx.size else (None, None)
+    if held is not None:
         held_weight = jnp.asarray(pad_rows(np.ones(held_idx.size, np.float32), bucket(held_idx.size)))
 
     length = loop.chunk_length(cfg.steps, log_every)
