@@ -50,13 +50,14 @@ METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"
 OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
+# Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
 EXPERIMENTS = {
-    "1": ("lab_table1", "table1"),
+    "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
     "3": ("lab_table3", "table3_shaping"),
     "4": ("lab_table4", "table4_queries"),
     "5": ("lab_table7", "table7_cvae_loss"),
-    "6": ("lab_table1", "table1"),
+    "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
 }
 

@@ -55,7 +55,7 @@ def test_claim_verdicts_mr_inconclusive_ood_supported_missing_tables_say_no_runs
     assert ood.effect.value == pytest.approx(0.25) and ood.verdict == stats.SUPPORTED
     assert _row(rows, "2", "group").verdict == "no runs"
     text = report.format_rows(rows)
-    assert "| 1 | SPOT ≥ PT on average (Table 1) | spot vs pt | lab_table1 | 8.5 [" in text
+    assert "| 1 | SPOT ≥ PT on average (Table 1) | spot vs pt | lab_table1+lab_table1_fr | 8.5 [" in text
 
 
 def test_aggregate_iqm_by_hand(runs):
