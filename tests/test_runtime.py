@@ -101,8 +101,8 @@ def _cache_env(tmp_path: Path, **extra: str) -> dict[str, str]:
 def test_a_second_process_loads_the_programs_the_first_compiled(tmp_path):
     """The persistent compilation cache under $SPOT_CACHE_DIR/jax/jax-<version>: the first process
     writes its programs there, the second finds them (jax's cache-hit events) and computes the same
-    numbers. The min compile time is the user's 0 here (kept over spot's default), so that every
-    program of this tiny run is cached."""
+    numbers. The min compile time is 0 (spot's default, also set here), so that every program of
+    this tiny run is cached."""
     env = _cache_env(tmp_path, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     first = _python(_TRAIN_AND_COUNT, env)
     assert first.returncode == 0, first.stderr[-3000:]
