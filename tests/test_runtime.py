@@ -130,6 +130,8 @@ def test_the_compilation_cache_switch(tmp_path):
         _python(code, _cache_env(tmp_path, JAX_COMPILATION_CACHE_DIR="/tmp/mine")).stdout.strip().splitlines()[-1]
     )
     assert mine["JAX_COMPILATION_CACHE_DIR"] == "/tmp/mine"  # the user's folder is kept
+    slow_only = _python(code, _cache_env(tmp_path, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="2"))
+    assert json.loads(slow_only.stdout.strip().splitlines()[-1])["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] == "2"
     off = json.loads(_python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="0")).stdout.strip().splitlines()[-1])
     assert "JAX_COMPILATION_CACHE_DIR" not in off and set(off) == {"XLA_FLAGS", "MUJOCO_GL"}
     bad = _python(code, _cache_env(tmp_path, SPOT_JAX_CACHE="maybe"))
