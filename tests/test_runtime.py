@@ -188,9 +188,14 @@ def test_bad_switch_values_are_one_error_line_and_exit_2(monkeypatch, capsys):
 def test_a_process_cannot_switch_fast_compile_once_jax_started(monkeypatch):
     import pytest
 
+    import jax  # noqa: F401  (started: the flags can no longer change)
+
     from spot import SpotError
     from spot.sweep import trial
 
+    # whatever happens, this process's environment is restored
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+    monkeypatch.setenv("SPOT_FAST_COMPILE", os.environ.get("SPOT_FAST_COMPILE", "0"))
     monkeypatch.setitem(trial._PROCESS, "settings", (1, 0.0, False))
     with pytest.raises(SpotError, match="fast_compile: this process compiled with fast_compile=False"):
         trial._configure_once(1, 0.0, True)
