@@ -186,9 +186,8 @@ def test_bad_switch_values_are_one_error_line_and_exit_2(monkeypatch, capsys):
 
 
 def test_a_process_cannot_switch_fast_compile_once_jax_started(monkeypatch):
-    import pytest
-
     import jax  # noqa: F401  (started: the flags can no longer change)
+    import pytest
 
     from spot import SpotError
     from spot.sweep import trial
