@@ -37,9 +37,9 @@ episodes still running, so a jitted policy is called ``max_episode_steps`` times
 with the same seeds every time, and building a robosuite env takes 1.5-3.5 s and about 140 MB that
 closing it does not all give back, a Meta-World env about 0.5 s. A kept env is reset with the
 episode's seed, which makes its episode that of a new env (tested per family). Only the envs of
-the env last evaluated are kept, at most :data:`POOL_SIZE` (least recently used go), and at most
-:data:`MAX_LIVE` of one family are alive at once: more episodes than that (robosuite's 30-episode
-final evaluations) run in waves of that many.
+the env last evaluated are kept, at most :data:`MAX_LIVE` of its family (least recently used go),
+and at most that many are alive at once: more episodes than that (robosuite's 30-episode final
+evaluations) run in waves of that many.
 """
 
 from __future__ import annotations
@@ -284,8 +284,6 @@ def normalized_score(name: str, returns_or_successes: Any) -> np.ndarray:
     return 100.0 * values
 
 
-POOL_SIZE = 32
-"""Evaluation envs kept per process (module docstring)."""
 MAX_LIVE = {"robosuite": 10, "metaworld": 32, "locomotion": 32}
 """Most envs of a family alive at once: an evaluation with more episodes runs them in waves."""
 _PoolKey = tuple[str, str, tuple, int]  # family, env id, make kwargs, seed
@@ -355,9 +353,7 @@ def evaluate(
         for start in range(0, episodes, wave):
             ids = list(range(start, min(start + wave, episodes)))
             needed = {_pool_key(name, seed + i) for i in ids}
-            # room for this wave: at most MAX_LIVE envs of the family alive, POOL_SIZE in all
-            _evict(lambda k, n=needed: k[0] == spec.family and k not in n, wave - len(needed))
-            _evict(lambda k, n=needed: k not in n, POOL_SIZE - len(needed))
+            _evict(lambda k, n=needed: k not in n, wave - len(needed))  # room for this wave: MAX_LIVE alive
             envs = [pooled_env(name, seed + i) for i in ids]
             first = [env.reset(seed=seed + i)[0] for i, env in zip(ids, envs, strict=True)]
             obs = np.stack(first).astype(np.float32)
