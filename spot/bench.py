@@ -153,37 +153,46 @@ def reward_steps(
     act_dim: int = 3,
     seed: int = 0,
     micro_batch: int = 64,
+    seeds: int = 1,
 ) -> dict[str, float]:
     """Time ``steps`` training steps of ``batch`` pairs of length ``length`` (the real train chunk,
-    one call): ``steps_per_s`` (compile excluded), ``cpu_s_per_step``, ``compile_s``, ``peak_rss_mb``."""
+    one call): ``steps_per_s`` (compile excluded), ``cpu_s_per_step``, ``compile_s``, ``peak_rss_mb``.
+    ``seeds > 1``: that many seeds (own keys and pairs) as one vmapped chunk
+    (:mod:`spot.reward.vmapped`); ``steps_per_s`` then counts seed-steps."""
     import jax
+    import jax.numpy as jnp
 
-    from spot.reward import train
+    from spot.reward import train, vmapped
 
-    init_key, train_key = jax.random.split(jax.random.key(seed))
-    data = jax.device_put(train.pref_pairs(synthetic_pairs(batch, length, obs_dim, act_dim, seed)))
-    state = train.init_state(model, init_key, obs_dim, act_dim, steps)
-    chunk = train.make_train_chunk(model, batch, steps, steps, micro_batch)
-    t = _time_chunks(chunk, state, steps, (data, train_key), 1)
+    init_keys, train_keys = zip(*(jax.random.split(jax.random.key(seed + s)) for s in range(seeds)), strict=True)
+    pairs = [train.pref_pairs(synthetic_pairs(batch, length, obs_dim, act_dim, seed + s)) for s in range(seeds)]
+    states = [train.init_state(model, k, obs_dim, act_dim, steps) for k in init_keys]
+    if seeds == 1:
+        state, data, key = states[0], jax.device_put(pairs[0]), train_keys[0]
+        chunk = train.make_train_chunk(model, batch, steps, steps, micro_batch)
+    else:
+        state, data = jax.device_put((vmapped._stack(states), vmapped._stack(pairs)))
+        key, chunk = jnp.stack(train_keys), vmapped._vmapped_train_chunk(model, batch, steps, steps, micro_batch)
+    t = _time_chunks(chunk, state, steps, (data, key), 1)
     return {
-        "steps_per_s": steps / t["elapsed_s"],
-        "cpu_s_per_step": t["cpu_s"] / steps,
+        "steps_per_s": steps * seeds / t["elapsed_s"],
+        "cpu_s_per_step": t["cpu_s"] / (steps * seeds),
         "compile_s": t["compile_s"],
         "peak_rss_mb": peak_rss_mb(),
     }
 
 
-def bench_pt(small: bool = False, dtype: str = "float32") -> dict[str, Any]:
+def bench_pt(small: bool = False, dtype: str = "float32", seeds: int = 1) -> dict[str, Any]:
     from spot.reward.pt import PT
 
     if small:
         cfg, batch, length, steps = PTConfig(embd_dim=64, pref_attn_dim=64, dtype=dtype), 32, 50, 3
     else:
         cfg, batch, length, steps = PTConfig(dtype=dtype), 256, 100, 3
-    out = reward_steps(PT(cfg), batch=batch, length=length, steps=steps)
+    out = reward_steps(PT(cfg), batch=batch, length=length, steps=steps, seeds=seeds)
     return {
         "what": f"PT train steps ({cfg.n_layer} layer, {cfg.n_head} heads, {cfg.embd_dim} dims, segment {length}, "
-        f"batch {batch} pairs, {dtype})",
+        f"batch {batch} pairs, {dtype}, {seeds} seed(s){' vmapped: seed-steps' if seeds > 1 else ''})",
         **out,
     }
 

@@ -258,7 +258,9 @@ def _bench(args: argparse.Namespace) -> int | None:
     if args.what == "iql":
         kwargs["seeds"], kwargs["order"] = args.seeds, args.order
     if args.what == "pt":
-        kwargs["dtype"] = args.dtype
+        kwargs["dtype"], kwargs["seeds"] = args.dtype, args.seeds
+    if args.seeds != 1 and args.what not in ("iql", "pt"):
+        raise SpotError(f"spot bench {args.what}: --seeds (seeds as a vmap axis) goes with iql and pt")
     if args.what == "relabel":
         kwargs["mode"] = args.mode
     print(bench.format_result(args.what, bench.BENCHES[args.what](**kwargs)))
@@ -680,13 +682,14 @@ def _add_run(sub: Any) -> None:
         sub,
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
-        "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench sweep sweeps/quickstart.yaml",
+        "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
+        "spot bench sweep sweeps/quickstart.yaml",
     )
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sweep"), help="the stage, or a whole sweep")
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
     d.add_argument("--smoke", action="store_true", help="sweep: the file's smoke block")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
-    d.add_argument("--seeds", type=_positive_int, default=1, help="iql: seeds as a vmap axis")
+    d.add_argument("--seeds", type=_positive_int, default=1, help="iql, pt: seeds as a vmap axis")
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")

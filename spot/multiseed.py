@@ -3,8 +3,11 @@
 :func:`run` is :func:`spot.pipeline.run` for seeds ``s_1 .. s_S`` of a config (``seed_mode: vmap``
 in a sweep file). Each seed gets its own run (its own MLflow run, or the tracker given), and
 the stages before the policy (labels, reward model, relabelling, subgoals, CVAE, shaping,
-diagnostics) run per seed, one seed after another, through the stage cache as in a one-seed run.
-IQL then trains all seeds as **one** ``jit(vmap(chunk))`` over a leading seed axis
+diagnostics) run per seed, one seed after another, through the stage cache as in a one-seed run,
+with one exception: the MR/PT reward models of the seeds that miss the stage cache are trained
+as one vmapped program first (:func:`vmapped_rewards`, :mod:`spot.reward.vmapped`) and stored
+by each seed's reward stage under its one-seed key. IQL then trains all seeds as **one**
+``jit(vmap(chunk))`` over a leading seed axis
 (:func:`spot.policy.iql.make_vmapped_train_chunk`): the observations, actions and masks are
 shared, each seed has its own reward (its reward model's, shaped by its CVAE), initial networks
 and minibatch keys, derived from its seed exactly as in a one-seed run. After each stretch of
@@ -33,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from spot import SpotError, pipeline, stages
+from spot import SpotError, cache, pipeline, stages
 from spot.config import ExperimentConfig
 from spot.stages import Context, Policy, Shaped
 from spot.tracking import Tracker
@@ -83,7 +86,7 @@ def run(
     ds, card, env_name, data_s = pipeline._load(cfgs[0], progress)
     mode_tags = {"seed_mode": "vmap", "vmap.seeds": ",".join(str(c.seed) for c in cfgs)}
     with contextlib.ExitStack() as stack:
-        ctxs, shaped = [], []
+        ctxs, labelled = [], []
         for cfg, tags, callback, tracker in zip(cfgs, extra_tags, on_eval, trackers, strict=True):
             tr = stack.enter_context(
                 pipeline._tracking(cfg, card, tracker, parent_run_id, {**(tags or {}), **mode_tags}, ds)
@@ -92,10 +95,56 @@ def run(
                 tr.set_tags(mode_tags)
             ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
             ctx.times["time/data_s"] = data_s
-            shaped.append(pipeline.before_policy(ctx, kind)[1])
+            labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
+        vmapped_rewards(ctxs, labelled, kind)
+        shaped = [pipeline.before_policy(ctx, kind, lab)[1] for ctx, lab in zip(ctxs, labelled, strict=True)]
         policies = train_iql(ctxs, shaped)
         return [stages.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
+
+
+def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stages.RewardKind) -> list[int]:
+    """Train the reward models (MR or PT, :func:`spot.stages.learned_reward`) of the seeds that miss
+    the stage cache as one vmapped program (:func:`spot.reward.vmapped.train_reward_models`), when
+    at least two miss and their preference pairs have one shape. Each model waits in its run's
+    ``ctx.precomputed``; the seed's reward stage then stores it under its own key and logs it as
+    computed, exactly as if it had trained it. Each seed's ``time/reward_s`` gets the shared
+    training's wall time. Returns the indices of the seeds trained here."""
+    if kind.reward is not stages.learned_reward or len(ctxs) < 2:
+        return []
+    from spot.reward import models, vmapped
+    from spot.reward import train as reward_train
+
+    cfg = ctxs[0].cfg
+    model = models.from_config(cfg)
+    code = cache.code_version(stages.learned_reward)
+    todo = []
+    for i, (ctx, lab) in enumerate(zip(ctxs, labelled, strict=True)):
+        deps = stages._reward_deps(ctx, lab, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
+        k = cache.key("reward", deps, code)
+        if not cache.load(k)[0]:
+            todo.append((i, k))
+    clip = cfg.reward.clip_action
+    batches = [
+        [reward_train.clip_actions(getattr(labelled[i], name), clip) for i, _ in todo]
+        for name in ("train_batch", "eval_batch")
+    ]
+    if len(todo) < 2 or len({str(_shapes(t, e)) for t, e in zip(*batches, strict=True)}) > 1:
+        return []  # one seed at a time, in its reward stage
+    t0 = time.perf_counter()
+    keys = [ctxs[i].keys["reward"] for i, _ in todo]
+    trained = vmapped.train_reward_models(model, keys, *batches, cfg.reward, progress=ctxs[0].progress)
+    elapsed = time.perf_counter() - t0
+    for (i, k), (params, history) in zip(todo, trained, strict=True):
+        ctxs[i].precomputed["reward"] = (k, {"params": params, "history": history})
+        ctxs[i].times["time/reward_s"] = ctxs[i].times.get("time/reward_s", 0.0) + elapsed
+        ctxs[i].tracker.set_tags({"vmap.reward": ",".join(str(ctxs[j].cfg.seed) for j, _ in todo)})
+    return [i for i, _ in todo]
+
+
+def _shapes(*batches: Any) -> list[Any]:
+    """The shapes of each array of each ``batches`` dict (None stays None)."""
+    return [None if b is None else {k: np.shape(v) for k, v in sorted(b.items())} for b in batches]
 
 
 def _seed(tree: Any, s: int) -> Any:

@@ -54,10 +54,14 @@ def run(
             record.remove_run_temp(ctx.artifacts)  # its files were logged to the run
 
 
-def before_policy(ctx: Context, kind: stages.RewardKind) -> tuple[stages.Labelled | None, stages.Shaped]:
-    """The stages before the policy: labels, reward model, relabelling, subgoals, CVAE, shaping and
-    the diagnostics; returns the labelled queries (None without labels) and the policy's reward."""
-    labelled = ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None
+def before_policy(
+    ctx: Context, kind: stages.RewardKind, labelled: stages.Labelled | None = None
+) -> tuple[stages.Labelled | None, stages.Shaped]:
+    """The stages before the policy: labels (unless ``labelled`` is given: the labels stage's output
+    for this run), reward model, relabelling, subgoals, CVAE, shaping and the diagnostics; returns
+    the labelled queries (None without labels) and the policy's reward."""
+    if labelled is None and kind.uses_labels:
+        labelled = ctx.stage("labels", stages.labels_stage)
     model = ctx.stage("reward", kind.reward, labelled)
     rewards = ctx.stage("relabel", kind.relabel, model)
     subgoals = None

@@ -111,6 +111,9 @@ class Context:
     artifacts: Path = field(default_factory=lambda: record.run_temp_dir())  # $SPOT_CACHE_DIR/tmp
     times: dict[str, float] = field(default_factory=dict)
     cache_hits: list[str] = field(default_factory=list)  # stage-cache keys read (hits), in order
+    # stage -> (key, value) computed for this run outside its stage (seed_mode vmap: the seeds'
+    # reward models as one program); the stage stores and logs it as computed (:meth:`cached`)
+    precomputed: dict[str, tuple[str, Any]] = field(default_factory=dict)
 
     def log(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
         self.tracker.log_metrics(metrics, step=step)
@@ -156,6 +159,21 @@ class Context:
                 cache._store().delete(f"{k}.npz")  # the entry's store (local folder or spot.store URI)
             return fn(self, *inputs)
 
+    def _precomputed(self, name: str, key: str, compute: Callable[[], Any]) -> Callable[[], Any]:
+        """What computes stage ``name``'s entry ``key`` on a miss: the value computed for it outside
+        the stage when its key is this one, else ``compute`` (with a warning: the two computed the
+        key differently, so the value was not used)."""
+        pre_key, value = self.precomputed.pop(name)
+        if pre_key == key:
+            return lambda: value
+        import warnings
+
+        warnings.warn(
+            f"stage '{name}': a value computed for key {pre_key} does not fit key {key}; computing it here",
+            stacklevel=3,
+        )
+        return compute
+
     def cached(
         self, name: str, deps: dict[str, Any], compute: Callable[[], Any], code: str | None = None
     ) -> tuple[Any, str]:
@@ -165,6 +183,9 @@ class Context:
         ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
         with the same key and ``computed``). ``code``: the stage's code version (default: that of
         ``compute``'s stage function, :func:`spot.cache.code_version`)."""
+        if name in self.precomputed:
+            code = code if code is not None else cache.code_version(compute)
+            compute = self._precomputed(name, cache.key(name, deps, code), compute)
         value, hit, key = cache.cached(name, deps, compute, code)
         if hit:
             self.cache_hits.append(key)

@@ -161,6 +161,22 @@ def test_bench_sweep_needs_a_file():
     assert out.returncode == 2 and out.stderr.strip().startswith("error: spot bench sweep needs the sweep file")
 
 
+def test_bench_seeds_go_with_iql_and_pt_only():
+    out = run_cli("bench", "cvae", "--small", "--seeds", "2")
+    assert out.returncode == 2 and out.stderr.strip() == (
+        "error: spot bench cvae: --seeds (seeds as a vmap axis) goes with iql and pt"
+    )
+
+
+def test_reward_steps_of_vmapped_seeds_count_seed_steps():
+    from spot import bench
+    from spot.config import MRConfig
+    from spot.reward.mr import MR
+
+    out = bench.reward_steps(MR(MRConfig(hidden=(16, 16))), batch=8, length=5, steps=2, seeds=3)
+    assert out["steps_per_s"] > 0 and out["cpu_s_per_step"] > 0 and out["compile_s"] > 0
+
+
 # --------------------------------------------------------------------------- a real sweep
 TINY_SWEEP = """
 name: benchtiny

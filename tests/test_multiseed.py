@@ -37,14 +37,17 @@ def _series(tracker: MemoryTracker, name: str) -> list[tuple[int, float]]:
 
 
 @pytest.mark.slow  # about 50 s of CPU (two tiny MR runs and their vmapped pair)
-@pytest.mark.parametrize("method", ["mr"])
-def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_drawer, monkeypatch):
-    """MR: each seed trains its own reward model (per-seed rewards on the vmap axis), then IQL for
+@pytest.mark.parametrize("method,fresh", [("mr", False), ("mr", True)])
+def test_vmapped_seeds_equal_one_run_per_seed(method, fresh, tmp_path, spot_dirs, tiny_drawer, monkeypatch):
+    """MR: each seed has its own reward model (per-seed rewards on the vmap axis), then IQL for
     both seeds in one program. Every seed's curve, chunk metrics, final metrics and saved policy
-    equal its one-seed run's to float tolerance, and the two seeds differ from each other."""
+    equal its one-seed run's to float tolerance, and the two seeds differ from each other. With a
+    ``fresh`` stage cache the two reward models are trained as one vmapped program as well."""
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     single = {s: MemoryTracker(f"single-{s}") for s in SEEDS}
     single_out = {s: pipeline.run(_cfg(s, f"method={method}"), progress=False, tracker=single[s]) for s in SEEDS}
+    if fresh:  # the reward models too are trained as one vmapped program (spot.reward.vmapped)
+        monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "fresh-cache"))
     vmapped = {s: MemoryTracker(f"vmap-{s}") for s in SEEDS}
     evals: dict[int, list[float]] = {s: [] for s in SEEDS}
     outs = multiseed.run(
@@ -57,22 +60,38 @@ def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_
     for s, out in zip(SEEDS, outs, strict=True):
         a, b = single[s], vmapped[s]
         assert b.tags["seed_mode"] == "vmap" and b.tags["vmap.seeds"] == "0,3"
-        assert b.tags["cache.reward"] == "hit"  # the per-seed stages went through the stage cache
+        if fresh:  # trained here for both seeds, stored under each seed's one-seed key
+            assert b.tags["cache.reward"] == "miss" and b.tags["stage.reward.source"] == "computed"
+            assert b.tags["vmap.reward"] == "0,3" and b.tags["stage.reward.key"] == a.tags["stage.reward.key"]
+            for name in ("reward/train_loss", "reward/eval_loss", "reward/eval_acc"):
+                np.testing.assert_allclose(
+                    [v for _, v in _series(b, name)], [v for _, v in _series(a, name)], rtol=1e-4, atol=1e-5
+                )
+        else:
+            assert b.tags["cache.reward"] == "hit"  # the per-seed stages went through the stage cache
+            assert "vmap.reward" not in b.tags
         curve_a, curve_b = _series(a, "eval/score"), _series(b, "eval/score")
         assert [st for st, _ in curve_b] == [st for st, _ in curve_a] == [0, 100, 150]
         np.testing.assert_allclose([v for _, v in curve_b], [v for _, v in curve_a], atol=1e-4)
         assert evals[s] == [v for _, v in curve_b]
+        # A vmapped reward model differs from its one-seed twin in the last bits, and in the
+        # directions the preference loss cannot see (a constant added to r_hat) Adam makes that
+        # ~1e-3 (tests/test_reward.py): IQL then sees rewards that differ at that level.
+        tol = {"rtol": 5e-3, "atol": 5e-4} if fresh else {"rtol": 1e-4, "atol": 1e-5}
         for name in ("iql/critic_loss", "iql/actor_loss", "iql/value_loss", "iql/q_mean"):
             assert [st for st, _ in _series(b, name)] == [st for st, _ in _series(a, name)] == [100, 150]
             np.testing.assert_allclose(
-                [v for _, v in _series(b, name)], [v for _, v in _series(a, name)], rtol=1e-4, atol=1e-5, err_msg=name
+                [v for _, v in _series(b, name)], [v for _, v in _series(a, name)], **tol, err_msg=name
             )
         np.testing.assert_allclose(out["eval/score_final"], single_out[s]["eval/score_final"], atol=1e-4)
         pa, pb = _params(a, tmp_path, f"a{s}"), _params(b, tmp_path, f"b{s}")
         leaves_a, leaves_b = jax.tree.leaves(pa), jax.tree.leaves(pb)
         assert len(leaves_a) == len(leaves_b) > 0
         for x, y in zip(leaves_a, leaves_b, strict=True):
-            np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
+            if fresh:  # Adam lets a few weights move ~1e-3 apart: compare each layer as a whole
+                assert np.linalg.norm(y - x) <= 5e-3 * np.linalg.norm(x) + 1e-4
+            else:
+                np.testing.assert_allclose(y, x, **tol)
         assert "learning_curve.png" in b.artifacts and "models/policy.json" in b.artifacts
     # the seeds are not copies of one another
     q = [[v for _, v in _series(vmapped[s], "iql/q_mean")] for s in SEEDS]

@@ -20,7 +20,7 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import SpotError
 from spot.config import MRConfig, PTConfig, RelabelConfig, RewardConfig
 from spot.nets import MLP, Dropout, param_count
-from spot.reward import mr, pt, relabel, train
+from spot.reward import mr, pt, relabel, train, vmapped
 from spot.reward.mr import MR
 from spot.reward.pt import PT
 from tests.conftest import make_dataset
@@ -207,6 +207,49 @@ def test_train_chunk_compiles_once_with_partial_last_chunk():
     # Same config and shapes again (another seed): the compiled programs are reused.
     _, again = train.train_reward_model(*args[:1], jax.random.key(1), *args[2:], progress=False)
     assert chunk._cache_size() == 1 and train.make_evaluate(MR(MR_TINY))._cache_size() == 1
+
+
+@pytest.mark.parametrize("kind", ["mr", "pt"])
+def test_seeds_vmapped_equal_one_training_per_seed(kind):
+    """train_reward_models: each seed (its own key and its own pairs) gets the parameters and the
+    history that train_reward_model gives it alone, to float tolerance; the seeds differ."""
+    model = MR(MR_TINY) if kind == "mr" else PT(PT_TINY)
+    cfg = RewardConfig(steps=25, batch_size=8, eval_every=10)
+    keys = [jax.random.key(3), jax.random.key(11)]
+    trains = [synthetic_pairs(32, 5, 0), synthetic_pairs(32, 5, 7)]
+    evals = [synthetic_pairs(12, 5, 1), synthetic_pairs(12, 5, 8)]
+    together = vmapped.train_reward_models(model, keys, trains, evals, cfg, progress=False)
+    assert len(together) == 2
+    for s in range(2):
+        params, history = train.train_reward_model(model, keys[s], trains[s], evals[s], cfg, progress=False)
+        got_params, got = together[s]
+        assert got["step"] == history["step"] == [10, 20, 25]
+        assert got["best_step"] == history["best_step"] and got["steps"] == history["steps"] == 25
+        for name in ("train_loss", "train_acc", "eval_loss", "eval_acc"):
+            np.testing.assert_allclose(got[name], history[name], rtol=1e-4, atol=1e-5, err_msg=name)
+        # The preference loss cannot see a constant added to every r_hat (the output bias, a dead
+        # unit's bias): Adam turns their rounding-level gradients into full-size steps, so compare
+        # what the loss sees, the rewards minus one constant (their mean), not the raw parameters.
+        seg = (evals[s]["obs_1"], evals[s]["act_1"], evals[s]["timesteps_1"], np.ones((12, 5), np.float32))
+        want = np.asarray(train.model_fn(model, params)(*seg)[0])
+        have = np.asarray(train.model_fn(model, got_params)(*seg)[0])
+        centred = [r - r.mean() for r in (want, have)]
+        np.testing.assert_allclose(centred[1], centred[0], rtol=1e-3, atol=1e-4)
+        assert np.ptp(centred[0]) > 0.01  # the rewards are not flat
+    assert together[0][1]["eval_loss"] != together[1][1]["eval_loss"]
+
+
+def test_seeds_vmapped_need_pairs_of_one_shape():
+    cfg = RewardConfig(steps=5, batch_size=8, eval_every=5)
+    with pytest.raises(SpotError, match="seed 1's preference pairs differ in shape from seed 0's"):
+        vmapped.train_reward_models(
+            MR(MR_TINY),
+            [jax.random.key(0), jax.random.key(1)],
+            [synthetic_pairs(32, 5, 0), synthetic_pairs(24, 5, 1)],
+            [None, None],
+            cfg,
+            progress=False,
+        )
 
 
 def test_bad_batches_raise_spot_error():
