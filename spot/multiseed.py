@@ -4,9 +4,10 @@
 in a sweep file). Each seed gets its own run (its own MLflow run, or the tracker given), and
 the stages before the policy (labels, reward model, relabelling, subgoals, CVAE, shaping,
 diagnostics) run per seed, one seed after another, through the stage cache as in a one-seed run,
-with one exception: the MR/PT reward models of the seeds that miss the stage cache are trained
-as one vmapped program first (:func:`vmapped_rewards`, :mod:`spot.reward.vmapped`) and stored
-by each seed's reward stage under its one-seed key. IQL then trains all seeds as **one**
+with two exceptions: the MR/PT reward models of the seeds that miss the stage cache are trained
+as one vmapped program first (:func:`vmapped_rewards`, :mod:`spot.reward.vmapped`), and so are
+their offline CVAEs once every seed's subgoals are extracted (:func:`vmapped_cvaes`,
+:mod:`spot.subgoal.vmapped`); each is stored by its seed's stage under its one-seed key. IQL then trains all seeds as **one**
 ``jit(vmap(chunk))`` over a leading seed axis
 (:func:`spot.policy.iql.make_vmapped_train_chunk`): the observations, actions and masks are
 shared, each seed has its own reward (its reward model's, shaped by its CVAE), initial networks
@@ -98,7 +99,9 @@ def run(
             labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
         vmapped_rewards(ctxs, labelled, kind)
-        shaped = [pipeline.before_policy(ctx, kind, lab)[1] for ctx, lab in zip(ctxs, labelled, strict=True)]
+        parts = [pipeline.up_to_subgoals(ctx, kind, lab) for ctx, lab in zip(ctxs, labelled, strict=True)]
+        vmapped_cvaes(ctxs, [p[1] for p in parts], [p[2] for p in parts])
+        shaped = [pipeline.from_cvae(ctx, *p) for ctx, p in zip(ctxs, parts, strict=True)]
         policies = train_iql(ctxs, shaped)
         return [stages.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
 
@@ -139,6 +142,46 @@ def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stag
         ctxs[i].precomputed["reward"] = (k, {"params": params, "history": history})
         ctxs[i].times["time/reward_s"] = ctxs[i].times.get("time/reward_s", 0.0) + elapsed
         ctxs[i].tracker.set_tags({"vmap.reward": ",".join(str(ctxs[j].cfg.seed) for j, _ in todo)})
+    return [i for i, _ in todo]
+
+
+def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Sequence[Any]) -> list[int]:
+    """Train the offline CVAEs (``cvae.schedule=offline``) of the seeds that miss the stage cache as
+    one vmapped program (:func:`spot.subgoal.vmapped.train_cvaes`), when at least two miss and their
+    triplets fit one program; as :func:`vmapped_rewards`, each waits in ``ctx.precomputed`` for
+    its seed's CVAE stage, and each seed's ``time/cvae_s`` gets the shared wall time. Returns the
+    indices of the seeds trained here."""
+    if len(ctxs) < 2 or extracted[0] is None or stages.online_cvae(ctxs[0].cfg):
+        return []
+    from spot.subgoal import cvae, vmapped
+
+    cfg = ctxs[0].cfg
+    code = cache.code_version(stages._offline_cvae)
+    todo = []
+    for i, (ctx, rw) in enumerate(zip(ctxs, rewards, strict=True)):
+        k = cache.key("cvae", stages.cvae_deps(ctx, rw), code)
+        if not cache.load(k)[0]:
+            todo.append((i, k))
+    if len(todo) < 2:
+        return []
+    t0 = time.perf_counter()
+    try:
+        trained = vmapped.train_cvaes(
+            [ctxs[i].keys["cvae"] for i, _ in todo],
+            [(extracted[i][0].s, extracted[i][0].a, extracted[i][0].g) for i, _ in todo],
+            cfg.cvae,
+            cvae.obs_stats(ctxs[0].ds.observations),
+            progress=ctxs[0].progress,
+            groups=[extracted[i][2] for i, _ in todo],
+            goal_actions=cfg.shaping.state_action,
+        )
+    except SpotError:  # the triplets do not fit one program: one seed at a time, in the CVAE stage
+        return []
+    elapsed = time.perf_counter() - t0
+    for (i, k), (params, history) in zip(todo, trained, strict=True):
+        ctxs[i].precomputed["cvae"] = (k, {"params": params, "history": history})
+        ctxs[i].times["time/cvae_s"] = ctxs[i].times.get("time/cvae_s", 0.0) + elapsed
+        ctxs[i].tracker.set_tags({"vmap.cvae": ",".join(str(ctxs[j].cfg.seed) for j, _ in todo)})
     return [i for i, _ in todo]
 
 

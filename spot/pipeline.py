@@ -60,18 +60,32 @@ def before_policy(
     """The stages before the policy: labels (unless ``labelled`` is given: the labels stage's output
     for this run), reward model, relabelling, subgoals, CVAE, shaping and the diagnostics; returns
     the labelled queries (None without labels) and the policy's reward."""
+    labelled, rewards, extracted = up_to_subgoals(ctx, kind, labelled)
+    return labelled, from_cvae(ctx, labelled, rewards, extracted)
+
+
+def up_to_subgoals(
+    ctx: Context, kind: stages.RewardKind, labelled: stages.Labelled | None = None
+) -> tuple[stages.Labelled | None, stages.Rewards, Any]:
+    """:func:`before_policy`'s first part: labels (unless given), reward model, relabelling and the
+    subgoals (None when the method shapes nothing); returns ``(labelled, rewards, extracted)``."""
     if labelled is None and kind.uses_labels:
         labelled = ctx.stage("labels", stages.labels_stage)
     model = ctx.stage("reward", kind.reward, labelled)
     rewards = ctx.stage("relabel", kind.relabel, model)
-    subgoals = None
+    extracted = None
     if stages.needs_subgoals(ctx.cfg):
         extracted = ctx.stage("subgoals", stages.subgoals_stage, labelled, rewards)
-        subgoals = ctx.stage("cvae", stages.cvae_stage, extracted, rewards)
+    return labelled, rewards, extracted
+
+
+def from_cvae(ctx: Context, labelled: stages.Labelled | None, rewards: stages.Rewards, extracted: Any) -> stages.Shaped:
+    """:func:`before_policy`'s second part: the CVAE (with subgoals), shaping and the diagnostics."""
+    subgoals = ctx.stage("cvae", stages.cvae_stage, extracted, rewards) if extracted is not None else None
     shaped = ctx.stage("shaping", stages.shaping_stage, rewards, subgoals)
     if subgoals is not None:
         ctx.stage("diagnostics", stages.diagnostics_stage, labelled, subgoals, shaped)
-    return labelled, shaped
+    return shaped
 
 
 def _load(cfg: ExperimentConfig, progress: bool) -> tuple[Any, dict[str, Any], str, float]:

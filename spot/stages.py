@@ -594,12 +594,10 @@ def subgoals_stage(ctx: Context, labelled: Labelled, rewards: Rewards) -> Any:
     return triplets, states, segments
 
 
-def _offline_cvae(ctx: Context, triplets: Any, segments: np.ndarray, rewards: Rewards) -> tuple[dict[str, Any], str]:
-    """``cvae.schedule=offline``: the CVAE trained on the extracted triplets, cached under its own key."""
-    from spot.subgoal import cvae
-
+def cvae_deps(ctx: Context, rewards: Rewards) -> dict[str, Any]:
+    """What the offline CVAE's stage-cache entry depends on (its reward entry, configs, seed)."""
     cfg = ctx.cfg
-    deps = {
+    return {
         "reward": rewards.source.cache_key,
         "subgoal": cfg.subgoal,
         "cvae": cfg.cvae,
@@ -607,9 +605,16 @@ def _offline_cvae(ctx: Context, triplets: Any, segments: np.ndarray, rewards: Re
         "split": "segment",
         **({"goal": "state_action"} if cfg.shaping.state_action else {}),
     }
+
+
+def _offline_cvae(ctx: Context, triplets: Any, segments: np.ndarray, rewards: Rewards) -> tuple[dict[str, Any], str]:
+    """``cvae.schedule=offline``: the CVAE trained on the extracted triplets, cached under its own key."""
+    from spot.subgoal import cvae
+
+    cfg = ctx.cfg
     out, key = ctx.cached(
         "cvae",
-        deps,
+        cvae_deps(ctx, rewards),
         lambda: dict(
             zip(
                 ("params", "history"),

@@ -291,6 +291,40 @@ def test_triplet_counts_in_one_bucket_share_the_compiled_chunk():
     assert sizes == [1, 1] and all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(params.net))
 
 
+def test_cvaes_of_seeds_vmapped_equal_one_training_per_seed():
+    """spot.subgoal.vmapped.train_cvaes: two seeds with different triplet counts (buckets 64 and
+    128) and segment groups give each seed the parameters and history train_cvae gives it alone."""
+    from spot.subgoal import vmapped
+
+    cfg = dataclasses.replace(SMALL, steps=12)
+    seeds = [(jax.random.key(5), _toy_triplets(50, seed=1)), (jax.random.key(9), _toy_triplets(100, seed=2))]
+    groups = [np.arange(50) // 5, np.arange(100) // 5]
+    stats = cvae.obs_stats(seeds[1][1][0])
+    together = vmapped.train_cvaes(
+        [k for k, _ in seeds], [t for _, t in seeds], cfg, stats, progress=False, log_every=5, groups=groups
+    )
+    for (key, (s, a, g)), grp, (got_params, got_rows) in zip(seeds, groups, together, strict=True):
+        params, rows = cvae.train_cvae(key, s, a, g, cfg, stats, progress=False, log_every=5, groups=grp)
+        assert [r["step"] for r in got_rows] == [r["step"] for r in rows] == [5, 10, 12]
+        assert set(got_rows[0]) == set(rows[0]) and "cvae/heldout_loss" in rows[0]
+        for want, got in zip(rows, got_rows, strict=True):
+            for k in want:
+                assert got[k] == pytest.approx(want[k], rel=1e-4, abs=1e-5), k
+        for x, y in zip(jax.tree.leaves(params), jax.tree.leaves(got_params), strict=True):
+            np.testing.assert_allclose(y, x, rtol=1e-4, atol=1e-5)
+    assert together[0][1][-1]["cvae/loss"] != together[1][1][-1]["cvae/loss"]
+    with pytest.raises(SpotError, match="differ in their sizes, or only some seeds have held-out"):
+        vmapped.train_cvaes(
+            [seeds[0][0]] * 2,
+            [seeds[0][1], seeds[0][1]],
+            cfg,
+            stats,
+            progress=False,
+            groups=[groups[0], None],
+            holdout=0.04,  # seed 0: round(0.4) of 10 segments held out, none; seed 1: 2 of 50 triplets
+        )
+
+
 def test_non_finite_loss_raises():
     s, a, g = _toy_triplets(64)
     g[:] = np.nan
