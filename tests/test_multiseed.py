@@ -1,5 +1,6 @@
 """Seeds as a vmap axis: spot.multiseed.run against one spot.pipeline.run per seed."""
 
+import warnings
 from pathlib import Path
 
 import jax
@@ -50,12 +51,14 @@ def test_vmapped_seeds_equal_one_run_per_seed(method, fresh, tmp_path, spot_dirs
         monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "fresh-cache"))
     vmapped = {s: MemoryTracker(f"vmap-{s}") for s in SEEDS}
     evals: dict[int, list[float]] = {s: [] for s in SEEDS}
-    outs = multiseed.run(
-        [_cfg(s, f"method={method}") for s in SEEDS],
-        progress=False,
-        trackers=[vmapped[s] for s in SEEDS],
-        on_eval=[lambda m, s=s: evals[s].append(m["score"]) for s in SEEDS],
-    )
+    with warnings.catch_warnings():  # a vmapped model whose key differs from its stage's is not used: fail
+        warnings.filterwarnings("error", message=r"stage '\w+': a value computed for key")
+        outs = multiseed.run(
+            [_cfg(s, f"method={method}") for s in SEEDS],
+            progress=False,
+            trackers=[vmapped[s] for s in SEEDS],
+            on_eval=[lambda m, s=s: evals[s].append(m["score"]) for s in SEEDS],
+        )
     assert [o["run_id"] for o in outs] == [f"vmap-{s}" for s in SEEDS]  # one run per seed, in order
     for s, out in zip(SEEDS, outs, strict=True):
         a, b = single[s], vmapped[s]
