@@ -201,7 +201,9 @@ class _Code:
         state = _state_names(glb)
         for c in _walk_code(code):
             for name in c.co_names:
-                if name in glb and name not in state:
+                # Dunder globals (``__file__``, ``__name__``) say where the code is installed, not
+                # what it does: hashed, two checkouts (or nodes sharing a store) would never share entries.
+                if name in glb and name not in state and not (name.startswith("__") and name.endswith("__")):
                     value = glb[name]
                     if _plain(value):
                         h.update(f"{name}={_const_repr(value)}".encode())

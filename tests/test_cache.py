@@ -301,6 +301,30 @@ def test_code_version_follows_the_stage_and_what_it_runs(toy_package):
     assert v3 not in (v0, v1, v2)
 
 
+def test_code_versions_do_not_depend_on_where_the_code_is_installed(tmp_path, monkeypatch):
+    """Two copies of one package at different paths (two checkouts, two nodes sharing a store) give
+    their stages the same code version, also when the code reads ``__file__``."""
+    import importlib
+
+    source = "from pathlib import Path\n\ndef stage(x):\n    return Path(__file__).parent, x + 1\n"
+    versions = []
+    for where in ("a", "b"):
+        root = tmp_path / where / "pkgs"
+        (root / "wherepkg").mkdir(parents=True)
+        (root / "wherepkg" / "__init__.py").write_text("")
+        (root / "wherepkg" / "stage.py").write_text(source)
+        monkeypatch.syspath_prepend(str(root))
+        for name in [m for m in sys.modules if m.startswith("wherepkg")]:
+            del sys.modules[name]
+        importlib.invalidate_caches()
+        module = importlib.import_module("wherepkg.stage")
+        assert module.stage(1)[0] == root / "wherepkg"  # this copy is the one loaded
+        versions.append(cache.code_version(module.stage, package="wherepkg"))
+    for name in [m for m in sys.modules if m.startswith("wherepkg")]:
+        del sys.modules[name]
+    assert versions[0] == versions[1]
+
+
 def test_the_real_stages_versions_cover_their_modules():
     reward = cache.code_parts(stages.learned_reward)
     assert {"spot.stages:learned_reward", "spot.reward.train", "spot.reward.pt", "spot.reward.mr", "spot.nets"} <= set(
