@@ -7,8 +7,9 @@ diagnostics) run per seed, one seed after another, through the stage cache as in
 with two exceptions: the MR/PT reward models of the seeds that miss the stage cache are trained
 as one vmapped program first (:func:`vmapped_rewards`, :mod:`spot.reward.vmapped`), and so are
 their offline CVAEs once every seed's subgoals are extracted (:func:`vmapped_cvaes`,
-:mod:`spot.subgoal.vmapped`); each is stored by its seed's stage under its one-seed key. IQL then trains all seeds as **one**
-``jit(vmap(chunk))`` over a leading seed axis
+:mod:`spot.subgoal.vmapped`); each is stored by its seed's stage. A vmap trial's stage-cache
+entries are kept apart from one-seed runs' (:data:`KEY_EXTRA`). IQL then trains all seeds as
+**one** ``jit(vmap(chunk))`` over a leading seed axis
 (:func:`spot.policy.iql.make_vmapped_train_chunk`): the observations, actions and masks are
 shared, each seed has its own reward (its reward model's, shaped by its CVAE), initial networks
 and minibatch keys, derived from its seed exactly as in a one-seed run. After each stretch of
@@ -41,6 +42,11 @@ from spot import SpotError, cache, pipeline, stages
 from spot.config import ExperimentConfig
 from spot.stages import Context, Policy, Shaped
 from spot.tracking import Tracker
+
+KEY_EXTRA = {"seed_mode": "vmap"}
+"""Added to the deps of every stage-cache entry a vmap trial makes or reads (``Context.key_extra``):
+its reward models and CVAEs differ from one-seed training in the last bits, so the two kinds of
+entries are kept apart and a one-seed run's numbers never depend on which filled the cache first."""
 
 
 def check(cfgs: Sequence[ExperimentConfig]) -> stages.RewardKind:
@@ -95,6 +101,7 @@ def run(
             if tracker is not None:
                 tr.set_tags(mode_tags)
             ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
+            ctx.key_extra = dict(KEY_EXTRA)
             ctx.times["time/data_s"] = data_s
             labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
@@ -124,7 +131,7 @@ def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stag
     todo = []
     for i, (ctx, lab) in enumerate(zip(ctxs, labelled, strict=True)):
         deps = stages._reward_deps(ctx, lab, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
-        k = cache.key("reward", deps, code)
+        k = cache.key("reward", {**deps, **ctx.key_extra}, code)
         if not cache.load(k)[0]:
             todo.append((i, k))
     clip = cfg.reward.clip_action
@@ -159,7 +166,7 @@ def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Se
     code = cache.code_version(stages._offline_cvae)
     todo = []
     for i, (ctx, rw) in enumerate(zip(ctxs, rewards, strict=True)):
-        k = cache.key("cvae", stages.cvae_deps(ctx, rw), code)
+        k = cache.key("cvae", {**stages.cvae_deps(ctx, rw), **ctx.key_extra}, code)
         if not cache.load(k)[0]:
             todo.append((i, k))
     if len(todo) < 2:

@@ -114,6 +114,10 @@ class Context:
     # stage -> (key, value) computed for this run outside its stage (seed_mode vmap: the seeds'
     # reward models as one program); the stage stores and logs it as computed (:meth:`cached`)
     precomputed: dict[str, tuple[str, Any]] = field(default_factory=dict)
+    # added to every stage's deps: ``{"seed_mode": "vmap"}`` in a vmap trial, whose reward models
+    # and CVAEs differ from one-seed training in the last bits (more after Adam): kept apart, so a
+    # one-seed run never depends on whether a vmap trial filled the cache first
+    key_extra: dict[str, Any] = field(default_factory=dict)
 
     def log(self, metrics: Mapping[str, Any], step: int | None = None) -> None:
         self.tracker.log_metrics(metrics, step=step)
@@ -182,7 +186,8 @@ class Context:
         about the run, not a measurement) and ``stage.<name>.source`` = ``computed`` or ``reused`` and
         ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
         with the same key and ``computed``). ``code``: the stage's code version (default: that of
-        ``compute``'s stage function, :func:`spot.cache.code_version`)."""
+        ``compute``'s stage function, :func:`spot.cache.code_version`); ``deps`` get :attr:`key_extra`."""
+        deps = {**deps, **self.key_extra}
         if name in self.precomputed:
             code = code if code is not None else cache.code_version(compute)
             compute = self._precomputed(name, cache.key(name, deps, code), compute)

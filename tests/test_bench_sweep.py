@@ -13,6 +13,7 @@ import re
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from spot import phases
@@ -168,13 +169,26 @@ def test_bench_seeds_go_with_iql_and_pt_only():
     )
 
 
-def test_reward_steps_of_vmapped_seeds_count_seed_steps():
+def test_reward_steps_of_vmapped_seeds_count_seed_steps(monkeypatch):
+    """bench.reward_steps with 3 seeds times one vmapped chunk over states stacked on a seed axis
+    and counts steps x seeds (the timer is replaced by fixed figures: 1 s, 3 CPU-seconds)."""
+    import jax
+
     from spot import bench
     from spot.config import MRConfig
     from spot.reward.mr import MR
 
+    seen = {}
+
+    def fixed_timer(chunk, state, n, args, repeats):
+        seen["leading"] = {np.shape(x)[0] for x in jax.tree.leaves(state.params)}
+        seen["keys"] = np.shape(args[1])
+        return {"elapsed_s": 1.0, "cpu_s": 3.0, "compile_s": 0.5}
+
+    monkeypatch.setattr(bench, "_time_chunks", fixed_timer)
     out = bench.reward_steps(MR(MRConfig(hidden=(16, 16))), batch=8, length=5, steps=2, seeds=3)
-    assert out["steps_per_s"] > 0 and out["cpu_s_per_step"] > 0 and out["compile_s"] > 0
+    assert seen == {"leading": {3}, "keys": (3,)}
+    assert out["steps_per_s"] == 6.0 and out["cpu_s_per_step"] == 0.5 and out["compile_s"] == 0.5
 
 
 # --------------------------------------------------------------------------- a real sweep

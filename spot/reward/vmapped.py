@@ -4,8 +4,9 @@
 preference pairs have one shape (the seeds of one config): the update, the chunking, the held-out
 evaluation and the best-checkpoint rule are that module's, vmapped over a leading seed axis. It
 lives in its own module so that the stage cache's code version of the one-seed reward stage (which
-covers :mod:`spot.reward.train`) does not change with it: a reward model trained here is stored
-under the key of the one-seed stage, whose entry it equals (``tests/test_reward.py``).
+covers :mod:`spot.reward.train`) does not change with it. The result equals one-seed training up to
+rounding (``tests/test_reward.py``), amplified by Adam in the directions the preference loss
+cannot see; so a vmap trial stores it under keys of its own (``spot.multiseed.KEY_EXTRA``).
 """
 
 from __future__ import annotations

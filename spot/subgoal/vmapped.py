@@ -4,10 +4,11 @@
 update (:func:`spot.subgoal.cvae.make_update`), split, padding, chunking and held-out metrics,
 vmapped over a leading seed axis. Each seed's triplets are padded to the largest seed's
 :func:`~spot.subgoal.cvae.bucket` (training draws from the first ``count`` rows only, so the
-padding changes nothing) and its held-out triplets likewise with weight-0 rows. It lives in its own
-module so that the stage cache's code version of the one-seed CVAE stage (which covers
-:mod:`spot.subgoal.cvae`) does not change with it: a CVAE trained here is stored under the key of
-the one-seed stage, whose entry it equals to float tolerance (``tests/test_subgoal.py``).
+padding changes nothing) and its held-out triplets likewise with weight-0 rows. It lives in its
+own module so that the code version of the one-seed CVAE stage (which covers
+:mod:`spot.subgoal.cvae`) does not change with it; the result equals one-seed training to float
+tolerance (``tests/test_subgoal.py``) and a vmap trial stores it under keys of its own
+(``spot.multiseed.KEY_EXTRA``).
 """
 
 from __future__ import annotations
