@@ -38,11 +38,11 @@ def _series(tracker: MemoryTracker, name: str) -> list[tuple[int, float]]:
 
 
 @pytest.mark.slow  # 20-60 s of CPU each (two tiny one-seed runs and their vmapped pair)
-@pytest.mark.parametrize("method", ["oracle", "mr", "spot"])
+@pytest.mark.parametrize("method", ["oracle", "spot"])
 def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_drawer, monkeypatch):
     """Two seeds as one vmap trial against one run per seed, in one stage cache. Oracle: IQL for
     both seeds in one program; every seed's curve, chunk metrics, final metrics and saved policy
-    equal its one-seed run's to float tolerance. MR and SPOT: the reward models (and SPOT's CVAEs)
+    equal its one-seed run's to float tolerance. SPOT: the reward models and the CVAEs
     are trained as one vmapped program too, under keys of their own (never the one-seed runs'
     entries), equal to one-seed training up to rounding that Adam amplifies (~1e-3), so IQL
     downstream is compared at that tolerance. The two seeds differ from each other."""
