@@ -171,3 +171,22 @@ def test_record_failure_once_per_attempt(client):
     assert run.data.tags["mlflow.parentRunId"] == "p" and run.data.tags["method"] == "pt"
     assert run.data.params == _params(cfg)  # every active param (over 100: several batches)
     assert tracking.record_failure(client, exp, cfg, tags, ValueError("again")) is None  # the attempt has one
+
+
+def test_a_run_is_found_by_its_lookup_tags_only_once_its_params_are_in(client):
+    """A process killed between creating a run and logging its params leaves a run that the sweep's
+    lookups (trial_key, attempt) do not find: those tags arrive in the same request as the last
+    batch of params."""
+    from spot.tracking import record
+
+    exp = client.create_experiment("lookup")
+    cfg = config.load(None, ["method=pt", "budget=tiny"])
+    tags = {"trial_key": "k1", "attempt": "a1", "sweep_id": "s"}
+    run = record.create_run(client, exp, "r", tags, cfg)  # ... and the process dies here
+    got = client.get_run(run.info.run_id).data
+    assert got.tags["sweep_id"] == "s" and "trial_key" not in got.tags and "attempt" not in got.tags
+    assert got.params == {}
+    assert tracking.finished_run(client, exp, {"trial_key": "k1"}) is None
+    record.log_params(client, run.info.run_id, cfg, record.lookup_tags(tags))
+    got = client.get_run(run.info.run_id).data
+    assert got.tags["trial_key"] == "k1" and got.tags["attempt"] == "a1" and got.params == _params(cfg)

@@ -15,7 +15,7 @@ from urllib.parse import urlparse
 
 from spot import SpotError
 from spot import config as config_lib
-from spot.tracking.record import log_params, mlflow_tags, run_tags
+from spot.tracking.record import create_run, log_params, lookup_tags, mlflow_tags, run_tags
 from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
 
 STATUSES = ("RUNNING", "SCHEDULED", "FINISHED", "FAILED", "KILLED")
@@ -89,8 +89,8 @@ def record_failure(
     all_tags["failure_reason"] = f"{type(error).__name__}: {error}"[:4000]
     if parent_run_id:
         all_tags["mlflow.parentRunId"] = parent_run_id
-    run = client.create_run(experiment_id, run_name=f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", tags=all_tags)
-    log_params(client, run.info.run_id, cfg)
+    run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
+    log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
     client.set_terminated(run.info.run_id, "FAILED")
     return run.info.run_id
 

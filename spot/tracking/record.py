@@ -439,15 +439,38 @@ class MlflowTracker:
         self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
 
 
-def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig) -> None:
+LOOKUP_TAGS = ("trial_key", "attempt")
+"""The tags sweeps find a run by (finished-run lookups on resume, failure records). A run is
+created without them; they arrive in the same ``log_batch`` as the last of its params
+(:func:`create_run`), so a process killed in between leaves a run that no lookup finds (closed
+later as a dead process's run), never one that is found without its params."""
+
+
+def create_run(
+    client: Any, experiment_id: str, name: str, tags: dict[str, str], cfg: config_lib.ExperimentConfig
+) -> Any:
+    """``client.create_run`` with ``tags`` except :data:`LOOKUP_TAGS`; returns the run. Follow it
+    with :func:`log_params` and :func:`lookup_tags` of the same ``tags``."""
+    return client.create_run(experiment_id, run_name=name, tags={k: v for k, v in tags.items() if k not in LOOKUP_TAGS})
+
+
+def lookup_tags(tags: dict[str, str]) -> dict[str, str]:
+    """The :data:`LOOKUP_TAGS` among ``tags`` (they go with the params: :func:`log_params`)."""
+    return {k: tags[k] for k in LOOKUP_TAGS if k in tags}
+
+
+def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig, tags: dict[str, str] | None = None) -> None:
     """The resolved config as params (flat dotted keys, :func:`active_params`), in batches of
-    MLflow's limit."""
-    from mlflow.entities import Param
+    MLflow's limit; ``tags`` go in the last batch (one request: the store writes both or neither)."""
+    from mlflow.entities import Param, RunTag
 
     flat = active_params(cfg)
     params = [Param(k, str(list(v) if isinstance(v, tuple) else v)) for k, v in flat.items()]
-    for i in range(0, len(params), 100):  # MLflow's limit of params per batch
-        client.log_batch(run_id, params=params[i : i + 100])
+    starts = list(range(0, len(params), 100)) or [0]  # MLflow's limit of params per batch
+    for i in starts:
+        last = i == starts[-1]
+        run_tags_ = [RunTag(k, str(v)) for k, v in (tags or {}).items()] if last else []
+        client.log_batch(run_id, params=params[i : i + 100], tags=run_tags_)
 
 
 def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[str, str]:
@@ -566,11 +589,11 @@ def start_run(
     if parent_run_id:
         tags["mlflow.parentRunId"] = parent_run_id
     name = run_name or f"{cfg.method}-{tags['dataset']}-s{cfg.seed}"
-    run = client.create_run(exp_id, run_name=name, tags=tags)
+    run = create_run(client, exp_id, name, tags, cfg)
     tracker = MlflowTracker(client, run.info.run_id)
     monitor = SystemMetrics(run.info.run_id, uri).start() if system_metrics else None
     try:
-        log_params(client, run.info.run_id, cfg)
+        log_params(client, run.info.run_id, cfg, lookup_tags(tags))
         if digest:
             log_dataset_input(client, run.info.run_id, dataset, card, cfg, digest)
         tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
