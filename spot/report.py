@@ -51,6 +51,8 @@ OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
+# F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
+# `spot` variant's SPOT runs are lab_table1's (the same config).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -59,6 +61,7 @@ EXPERIMENTS = {
     "5": ("lab_table7", "table7_cvae_loss"),
     "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
+    "F": ("lab_fidelity+lab_table1", "fidelity"),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -92,6 +95,16 @@ _RANDOM_SUBGOALS = _param("subgoal.source", "random")
 _CONSTANT_BONUS = _param("shaping.kind", "constant")
 # SPOT proper: method spot, neither control (a control run is also method spot)
 _SPOT = _both(_method("spot"), _not(_either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)))
+
+
+def _variant(name: str) -> Filter:
+    """SPOT's runs (no controls) under fidelity variant ``name``; runs logged before the key are ``spot``."""
+
+    def select(df: pd.DataFrame) -> pd.Series:
+        variant = df["params.variant"].fillna("spot") if "params.variant" in df else pd.Series("spot", df.index)
+        return _SPOT(df) & (variant == name)
+
+    return select
 
 
 @dataclass
@@ -274,6 +287,18 @@ CLAIMS: tuple[tuple[str, str, str, Callable[[pd.DataFrame, str, Row], Row]], ...
         "control: SPOT beats a constant bonus of the same mean",
         "spot vs constant bonus",
         lambda df, m, r: compare(df, _SPOT, _CONSTANT_BONUS, m, r, ("spot", "constant bonus")),
+    ),
+    (
+        "F",
+        "fidelity: SPOT as the authors' code runs it vs as the paper's text says",
+        "variant authors vs paper",
+        lambda df, m, r: compare(df, _variant("authors"), _variant("paper"), m, r, ("authors", "paper")),
+    ),
+    (
+        "F",
+        "fidelity: SPOT as the paper's text says vs this package's defaults",
+        "variant paper vs spot",
+        lambda df, m, r: compare(df, _variant("paper"), _variant("spot"), m, r, ("paper", "spot")),
     ),
 )
 

@@ -192,3 +192,23 @@ def test_a_verdict_needs_three_runs_per_arm_and_dataset(runs):
     assert r.min_n == 2 and r.effect is not None and not np.isnan(r.effect.low)
     assert r.verdict == stats.TOO_FEW
     assert _row(report.build(runs), "1", "spot vs pt").min_n == 3
+
+
+def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
+    # lab_fidelity holds the paper and authors variants on hopper; the spot variant's arm is Table 1's
+    # SPOT runs (no params.variant column there: logged before the key, so `spot`)
+    spot = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+    paper = spot.assign(experiment="lab_fidelity", config_hash="paper", **{"params.variant": "paper"})
+    paper = paper.assign(run_id=["f1", "f2", "f3"], **{"metrics.eval/score_final": [70.0, 72.0, 77.0]})
+    authors = spot.assign(experiment="lab_fidelity", config_hash="authors", **{"params.variant": "authors"})
+    authors = authors.assign(run_id=["f4", "f5", "f6"], **{"metrics.eval/score_final": [60.0, 62.0, 65.0]})
+    rows = report.build(pd.concat([runs, paper, authors], ignore_index=True))
+    ap = _row(rows, "F", "variant authors vs paper")
+    # mean(60, 62, 65) - mean(70, 72, 77) = 62.333 - 73 = -10.667; every paper seed beats every authors seed
+    assert ap.experiment == "lab_fidelity+lab_table1" and ap.effect.value == pytest.approx(187 / 3 - 73)
+    assert ap.verdict == stats.NOT_SUPPORTED and ap.poi.value == 0.0
+    ps = _row(rows, "F", "variant paper vs spot")
+    # hopper only (the variants ran there): 73 - mean(61, 64, 66) = 73 - 63.667 = 9.333
+    assert ps.effect.value == pytest.approx(73 - 191 / 3) and ps.datasets == ["hopper-medium-replay"]
+    assert ps.n_x == 3 and ps.n_y == 3 and ps.verdict == stats.SUPPORTED
+    assert any("walker2d-medium-replay left out" in n for n in ps.notes)
