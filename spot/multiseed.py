@@ -127,29 +127,23 @@ def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stag
 
     cfg = ctxs[0].cfg
     model = models.from_config(cfg)
-    code = cache.code_version(stages.learned_reward)
-    todo = []
-    for i, (ctx, lab) in enumerate(zip(ctxs, labelled, strict=True)):
-        deps = stages._reward_deps(ctx, lab, reward=model.kind, reward_cfg=cfg.reward, model_cfg=model.cfg)
-        k = cache.key("reward", {**deps, **ctx.key_extra}, code)
-        if not cache.load(k)[0]:
-            todo.append((i, k))
+    extra = {"reward": model.kind, "reward_cfg": cfg.reward, "model_cfg": model.cfg}  # as the reward stage's
+    deps_of = lambda i: stages._reward_deps(ctxs[i], labelled[i], **extra)  # noqa: E731
+    todo = _misses(ctxs, "reward", deps_of, cache.code_version(stages.learned_reward))
+    if len(todo) < 2:
+        return []
     clip = cfg.reward.clip_action
     batches = [
         [reward_train.clip_actions(getattr(labelled[i], name), clip) for i, _ in todo]
         for name in ("train_batch", "eval_batch")
     ]
-    if len(todo) < 2 or len({str(_shapes(t, e)) for t, e in zip(*batches, strict=True)}) > 1:
-        return []  # one seed at a time, in its reward stage
     t0 = time.perf_counter()
-    keys = [ctxs[i].keys["reward"] for i, _ in todo]
-    trained = vmapped.train_reward_models(model, keys, *batches, cfg.reward, progress=ctxs[0].progress)
-    elapsed = time.perf_counter() - t0
-    for (i, k), (params, history) in zip(todo, trained, strict=True):
-        ctxs[i].precomputed["reward"] = (k, {"params": params, "history": history})
-        ctxs[i].times["time/reward_s"] = ctxs[i].times.get("time/reward_s", 0.0) + elapsed
-        ctxs[i].tracker.set_tags({"vmap.reward": ",".join(str(ctxs[j].cfg.seed) for j, _ in todo)})
-    return [i for i, _ in todo]
+    try:
+        keys = [ctxs[i].keys["reward"] for i, _ in todo]
+        trained = vmapped.train_reward_models(model, keys, *batches, cfg.reward, progress=ctxs[0].progress)
+    except SpotError:  # the pairs do not fit one program: one seed at a time, in the reward stage
+        return []
+    return _hand_over(ctxs, todo, trained, "reward", time.perf_counter() - t0)
 
 
 def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Sequence[Any]) -> list[int]:
@@ -163,12 +157,8 @@ def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Se
     from spot.subgoal import cvae, vmapped
 
     cfg = ctxs[0].cfg
-    code = cache.code_version(stages._offline_cvae)
-    todo = []
-    for i, (ctx, rw) in enumerate(zip(ctxs, rewards, strict=True)):
-        k = cache.key("cvae", {**stages.cvae_deps(ctx, rw), **ctx.key_extra}, code)
-        if not cache.load(k)[0]:
-            todo.append((i, k))
+    deps_of = lambda i: stages.cvae_deps(ctxs[i], rewards[i])  # noqa: E731
+    todo = _misses(ctxs, "cvae", deps_of, cache.code_version(stages._offline_cvae))
     if len(todo) < 2:
         return []
     t0 = time.perf_counter()
@@ -184,17 +174,28 @@ def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Se
         )
     except SpotError:  # the triplets do not fit one program: one seed at a time, in the CVAE stage
         return []
-    elapsed = time.perf_counter() - t0
+    return _hand_over(ctxs, todo, trained, "cvae", time.perf_counter() - t0)
+
+
+def _misses(
+    ctxs: Sequence[Context], stage: str, deps_of: Callable[[int], dict[str, Any]], code: str
+) -> list[tuple[int, str]]:
+    """``(index, key)`` of the seeds whose entry of ``stage`` is not in the stage cache."""
+    keys = [(i, cache.key(stage, {**deps_of(i), **ctx.key_extra}, code)) for i, ctx in enumerate(ctxs)]  # as ctx.cached
+    return [(i, k) for i, k in keys if not cache.load(k)[0]]
+
+
+def _hand_over(
+    ctxs: Sequence[Context], todo: list[tuple[int, str]], trained: Sequence[tuple[Any, Any]], stage: str, elapsed: float
+) -> list[int]:
+    """Leave each trained seed's ``{params, history}`` in its ``ctx.precomputed`` under its key, add
+    the shared wall time to its ``time/<stage>_s`` and tag it ``vmap.<stage>``; the seeds' indices."""
+    seeds = ",".join(str(ctxs[i].cfg.seed) for i, _ in todo)
     for (i, k), (params, history) in zip(todo, trained, strict=True):
-        ctxs[i].precomputed["cvae"] = (k, {"params": params, "history": history})
-        ctxs[i].times["time/cvae_s"] = ctxs[i].times.get("time/cvae_s", 0.0) + elapsed
-        ctxs[i].tracker.set_tags({"vmap.cvae": ",".join(str(ctxs[j].cfg.seed) for j, _ in todo)})
+        ctxs[i].precomputed[stage] = (k, {"params": params, "history": history})
+        ctxs[i].times[f"time/{stage}_s"] = ctxs[i].times.get(f"time/{stage}_s", 0.0) + elapsed
+        ctxs[i].tracker.set_tags({f"vmap.{stage}": seeds})
     return [i for i, _ in todo]
-
-
-def _shapes(*batches: Any) -> list[Any]:
-    """The shapes of each array of each ``batches`` dict (None stays None)."""
-    return [None if b is None else {k: np.shape(v) for k, v in sorted(b.items())} for b in batches]
 
 
 def _seed(tree: Any, s: int) -> Any:
