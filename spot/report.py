@@ -33,6 +33,11 @@ The claims (paper section; which runs):
 Controls no table has (does the gain come from attention subgoals, or from a survival bonus?):
 SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random``), and SPOT vs a
 **constant bonus** of the same mean as SPOT's cosine term (``shaping.kind=constant``).
+
+Claims 1 and C compare runs of the package's default fidelity variant (``variant=spot``; runs
+logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same comparisons under
+``variant=paper`` (docs/fidelity.md), from the runs of lab_fidelity, lab_variant_rows, lab_paper and
+lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper).
 """
 
 from __future__ import annotations
@@ -52,7 +57,8 @@ OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
 # F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
-# `spot` variant's SPOT runs are lab_table1's (the same config).
+# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P and CP
+# (claim 1 and the controls under variant paper).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -62,6 +68,7 @@ EXPERIMENTS = {
     "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
     "F": ("lab_fidelity+lab_table1", "fidelity"),
+    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random",),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -97,14 +104,19 @@ _CONSTANT_BONUS = _param("shaping.kind", "constant")
 _SPOT = _both(_method("spot"), _not(_either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)))
 
 
-def _variant(name: str) -> Filter:
-    """SPOT's runs (no controls) under fidelity variant ``name``; runs logged before the key are ``spot``."""
+def _in_variant(select: Filter, name: str) -> Filter:
+    """``select``'s runs under fidelity variant ``name``; runs logged before the key are ``spot``."""
 
-    def select(df: pd.DataFrame) -> pd.Series:
+    def both(df: pd.DataFrame) -> pd.Series:
         variant = df["params.variant"].fillna("spot") if "params.variant" in df else pd.Series("spot", df.index)
-        return _SPOT(df) & (variant == name)
+        return select(df) & (variant == name)
 
-    return select
+    return both
+
+
+def _variant(name: str) -> Filter:
+    """SPOT's runs (no controls) under fidelity variant ``name``."""
+    return _in_variant(_SPOT, name)
 
 
 @dataclass
@@ -240,29 +252,78 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     return row
 
 
-CLAIMS: tuple[tuple[str, str, str, Callable[[pd.DataFrame, str, Row], Row]], ...] = (
+Claim = tuple[str, str, str, str, Callable[[pd.DataFrame, str, Row], Row]]
+
+
+def _versus(x: Filter, y: Filter, labels: tuple[str, str]) -> Callable[[pd.DataFrame, str, Row], Row]:
+    return lambda df, m, r: compare(df, x, y, m, r, labels)
+
+
+def _claim1_and_controls(claim: str, key: str, variant: str) -> list[Claim]:
+    """Claim 1 and the two controls among the runs of one fidelity variant (ids "1"/"C", or with a suffix)."""
+    spot, where = _in_variant(_SPOT, variant), "" if variant == "spot" else f" (variant {variant})"
+
+    def arm(select: Filter) -> Filter:
+        return _in_variant(select, variant)
+
+    rows: list[Claim] = [
+        (
+            f"1{claim}",
+            key,
+            f"SPOT ≥ PT on average (Table 1){where}",
+            "spot vs pt",
+            _versus(spot, arm(_method("pt")), ("spot", "pt")),
+        ),
+        (
+            f"1{claim}",
+            key,
+            f"SPOT ≥ MR on average (Table 1){where}",
+            "spot vs mr",
+            _versus(spot, arm(_method("mr")), ("spot", "mr")),
+        ),
+    ]
+    if variant != "spot":  # a reference, not a claim: the preference methods against IQL on the true reward
+        rows.append(
+            (
+                f"1{claim}",
+                key,
+                f"reference: SPOT vs Oracle (IQL on the true reward){where}",
+                "spot vs oracle",
+                _versus(spot, arm(_method("oracle")), ("spot", "oracle")),
+            )
+        )
+    c_key = "C" if variant == "spot" else key
+    return rows + [
+        (
+            f"C{claim}",
+            c_key,
+            f"control: attention subgoals beat random-state subgoals{where}",
+            "spot vs random subgoals",
+            _versus(spot, arm(_RANDOM_SUBGOALS), ("spot", "random subgoals")),
+        ),
+        (
+            f"C{claim}",
+            c_key,
+            f"control: SPOT beats a constant bonus of the same mean{where}",
+            "spot vs constant bonus",
+            _versus(spot, arm(_CONSTANT_BONUS), ("spot", "constant bonus")),
+        ),
+    ]
+
+
+# (claim id shown, key into EXPERIMENTS, text, comparison, how)
+CLAIMS: tuple[Claim, ...] = (
+    *[c for c in _claim1_and_controls("", "1", "spot") if c[0] == "1"],
     (
-        "1",
-        "SPOT ≥ PT on average (Table 1)",
-        "spot vs pt",
-        lambda df, m, r: compare(df, _SPOT, _method("pt"), m, r, ("spot", "pt")),
-    ),
-    (
-        "1",
-        "SPOT ≥ MR on average (Table 1)",
-        "spot vs mr",
-        lambda df, m, r: compare(df, _SPOT, _method("mr"), m, r, ("spot", "mr")),
-    ),
-    (
+        "2",
         "2",
         "top-10 % subgoals beat bottom-10 % (Table 2)",
         "group top vs bottom",
-        lambda df, m, r: compare(
-            df, _param("subgoal.group", "top"), _param("subgoal.group", "bottom"), m, r, ("top", "bottom")
-        ),
+        _versus(_param("subgoal.group", "top"), _param("subgoal.group", "bottom"), ("top", "bottom")),
     ),
-    ("3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _claim3),
+    ("3", "3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _claim3),
     (
+        "4",
         "4",
         "SPOT keeps its score with fewer queries, PT does not (Table 4)",
         "(spot few − most) − (pt few − most)",
@@ -270,36 +331,27 @@ CLAIMS: tuple[tuple[str, str, str, Callable[[pd.DataFrame, str, Row], Row]], ...
     ),
     (
         "5",
+        "5",
         "MSE + cosine beats MSE for the CVAE (Table 7)",
         "mse_cos vs mse",
-        lambda df, m, r: compare(
-            df, _param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), m, r, ("mse_cos", "mse")
-        ),
+        _versus(_param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), ("mse_cos", "mse")),
     ),
+    *[c for c in _claim1_and_controls("", "1", "spot") if c[0] == "C"],
     (
-        "C",
-        "control: attention subgoals beat random-state subgoals",
-        "spot vs random subgoals",
-        lambda df, m, r: compare(df, _SPOT, _RANDOM_SUBGOALS, m, r, ("spot", "random subgoals")),
-    ),
-    (
-        "C",
-        "control: SPOT beats a constant bonus of the same mean",
-        "spot vs constant bonus",
-        lambda df, m, r: compare(df, _SPOT, _CONSTANT_BONUS, m, r, ("spot", "constant bonus")),
-    ),
-    (
+        "F",
         "F",
         "fidelity: SPOT as the authors' code runs it vs as the paper's text says",
         "variant authors vs paper",
-        lambda df, m, r: compare(df, _variant("authors"), _variant("paper"), m, r, ("authors", "paper")),
+        _versus(_variant("authors"), _variant("paper"), ("authors", "paper")),
     ),
     (
         "F",
+        "F",
         "fidelity: SPOT as the paper's text says vs this package's defaults",
         "variant paper vs spot",
-        lambda df, m, r: compare(df, _variant("paper"), _variant("spot"), m, r, ("paper", "spot")),
+        _versus(_variant("paper"), _variant("spot"), ("paper", "spot")),
     ),
+    *_claim1_and_controls("P", "P", "paper"),
 )
 
 
@@ -308,8 +360,8 @@ def build(df: pd.DataFrame, experiments: Mapping[str, Sequence[str]] | None = No
     exps = {**EXPERIMENTS, **(experiments or {})}
     rows = []
     for stat, metric in METRICS.items():
-        for claim, text, comparison, fn in CLAIMS:
-            name, sub = _experiment(df, exps[claim])
+        for claim, key, text, comparison, fn in CLAIMS:
+            name, sub = _experiment(df, exps[key])
             rows.append(fn(sub, metric, Row(claim, text, comparison, name, stat)))
     name, sub = _experiment(df, exps["6"])
     row = Row("6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", name, "ood")

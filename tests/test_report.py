@@ -212,3 +212,42 @@ def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
     assert ps.effect.value == pytest.approx(73 - 191 / 3) and ps.datasets == ["hopper-medium-replay"]
     assert ps.n_x == 3 and ps.n_y == 3 and ps.verdict == stats.SUPPORTED
     assert any("walker2d-medium-replay left out" in n for n in ps.notes)
+
+
+def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
+    # rows 1P/CP: SPOT under variant paper (lab_fidelity) against PT and Oracle (lab_variant_rows), MR and the
+    # constant bonus (lab_paper) and random subgoals (lab_paper_random), all under variant paper; lab_fidelity's
+    # variant-spot SPOT runs and Table 1's runs never enter these rows
+    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+
+    def arm(experiment, tag, scores, variant="paper", **params):
+        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
+        return out.assign(**{"params.variant": variant, "metrics.eval/score_final": scores, **params})
+
+    frame = pd.concat(
+        [
+            runs,
+            arm("lab_fidelity", "sp", [70.0, 80.0, 90.0]),
+            arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], variant="spot"),
+            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt"),
+            arm("lab_variant_rows", "or", [21.0, 22.0, 23.0], method="oracle"),
+            arm("lab_paper", "mr", [30.0, 40.0, 50.0], method="mr"),
+            arm("lab_paper", "cb", [75.0, 85.0, 86.0], **{"params.shaping.kind": "constant"}),
+            arm("lab_paper_random", "rs", [60.0, 61.0, 62.0], **{"params.subgoal.source": "random"}),
+        ],
+        ignore_index=True,
+    )
+    rows = report.build(frame)
+    pt = _row(rows, "1P", "spot vs pt")
+    # mean(70, 80, 90) = 80 against mean(20, 25, 30) = 25: 55
+    assert pt.experiment == report.EXPERIMENTS["P"][0] and pt.effect.value == pytest.approx(55.0)
+    assert pt.n_x == 3 and pt.n_y == 3 and pt.verdict == stats.SUPPORTED
+    assert _row(rows, "1P", "spot vs mr").effect.value == pytest.approx(80 - 40)
+    assert _row(rows, "1P", "spot vs oracle").effect.value == pytest.approx(80 - 22)
+    assert _row(rows, "CP", "spot vs random").effect.value == pytest.approx(80 - 61)
+    const = _row(rows, "CP", "spot vs constant")
+    # 80 - mean(75, 85, 86) = 80 - 82 = -2; the CI spans 0
+    assert const.effect.value == pytest.approx(-2.0) and const.verdict == stats.INCONCLUSIVE
+    # the default-variant rows are unchanged by the paper runs in the frame
+    assert _row(rows, "1", "spot vs pt").effect.value == pytest.approx(8.5)
+    assert _row(rows, "C", "spot vs constant").effect is None
