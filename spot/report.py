@@ -308,6 +308,13 @@ def _claim1_and_controls(claim: str, key: str, variant: str) -> list[Claim]:
             "spot vs constant bonus",
             _versus(spot, arm(_CONSTANT_BONUS), ("spot", "constant bonus")),
         ),
+        (  # a reference, not a claim: the constant control is PT's reward plus the bonus, so this is the bonus alone
+            f"C{claim}",
+            c_key,
+            f"reference: PT's reward plus the constant bonus vs PT{where}",
+            "constant bonus vs pt",
+            _versus(arm(_CONSTANT_BONUS), arm(_method("pt")), ("constant bonus", "pt")),
+        ),
     ]
 
 

@@ -180,6 +180,8 @@ def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
     const = _row(rows, "C", "spot vs constant")
     assert const.effect.value == pytest.approx(191 / 3 - 72) and const.verdict == stats.NOT_SUPPORTED
     assert any("walker2d-medium-replay left out" in n for n in const.notes)
+    # the bonus alone on hopper: mean(70, 71, 75) - mean(50, 52, 57) = 72 - 53 = 19
+    assert _row(rows, "C", "constant bonus vs pt").effect.value == pytest.approx(19.0)
     # claim 1 with the controls in the same frame: SPOT's arm is still the six Table 1 runs
     moved = pd.concat([mixed, random_sg.assign(experiment="lab_table1")], ignore_index=True)
     assert _row(report.build(moved), "1", "spot vs pt").effect.value == pytest.approx(8.5)
@@ -248,6 +250,8 @@ def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
     const = _row(rows, "CP", "spot vs constant")
     # 80 - mean(75, 85, 86) = 80 - 82 = -2; the CI spans 0
     assert const.effect.value == pytest.approx(-2.0) and const.verdict == stats.INCONCLUSIVE
+    # the bonus alone: the constant control (PT's reward plus the bonus) against PT: 82 - 25 = 57
+    assert _row(rows, "CP", "constant bonus vs pt").effect.value == pytest.approx(57.0)
     # the default-variant rows are unchanged by the paper runs in the frame
     assert _row(rows, "1", "spot vs pt").effect.value == pytest.approx(8.5)
     assert _row(rows, "C", "spot vs constant").effect is None
