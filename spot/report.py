@@ -259,68 +259,70 @@ def _versus(x: Filter, y: Filter, labels: tuple[str, str]) -> Callable[[pd.DataF
     return lambda df, m, r: compare(df, x, y, m, r, labels)
 
 
-def _claim1_and_controls(claim: str, key: str, variant: str) -> list[Claim]:
-    """Claim 1 and the two controls among the runs of one fidelity variant (ids "1"/"C", or with a suffix)."""
-    spot, where = _in_variant(_SPOT, variant), "" if variant == "spot" else f" (variant {variant})"
+def _suffix(variant: str) -> str:
+    return "" if variant == "spot" else f" (variant {variant})"
 
-    def arm(select: Filter) -> Filter:
-        return _in_variant(select, variant)
 
+def _claim1(claim: str, key: str, variant: str, oracle: bool = False) -> list[Claim]:
+    """Claim 1 among the runs of one fidelity variant; with ``oracle``, SPOT vs Oracle beside it as a
+    reference (not a claim: the preference methods against IQL on the true reward)."""
+    spot, where = _variant(variant), _suffix(variant)
     rows: list[Claim] = [
         (
-            f"1{claim}",
+            claim,
             key,
-            f"SPOT ≥ PT on average (Table 1){where}",
-            "spot vs pt",
-            _versus(spot, arm(_method("pt")), ("spot", "pt")),
-        ),
-        (
-            f"1{claim}",
-            key,
-            f"SPOT ≥ MR on average (Table 1){where}",
-            "spot vs mr",
-            _versus(spot, arm(_method("mr")), ("spot", "mr")),
-        ),
+            f"SPOT ≥ {m.upper()} on average (Table 1){where}",
+            f"spot vs {m}",
+            _versus(spot, _in_variant(_method(m), variant), ("spot", m)),
+        )
+        for m in ("pt", "mr")
     ]
-    if variant != "spot":  # a reference, not a claim: the preference methods against IQL on the true reward
+    if oracle:
         rows.append(
             (
-                f"1{claim}",
+                claim,
                 key,
                 f"reference: SPOT vs Oracle (IQL on the true reward){where}",
                 "spot vs oracle",
-                _versus(spot, arm(_method("oracle")), ("spot", "oracle")),
+                _versus(spot, _in_variant(_method("oracle"), variant), ("spot", "oracle")),
             )
         )
-    c_key = "C" if variant == "spot" else key
-    return rows + [
+    return rows
+
+
+def _controls(claim: str, key: str, variant: str) -> list[Claim]:
+    """The two controls among the runs of one fidelity variant, and the bonus alone as a reference
+    (not a claim: the constant control is PT's reward plus the bonus)."""
+    spot, where = _variant(variant), _suffix(variant)
+    random_sg, constant = _in_variant(_RANDOM_SUBGOALS, variant), _in_variant(_CONSTANT_BONUS, variant)
+    return [
         (
-            f"C{claim}",
-            c_key,
+            claim,
+            key,
             f"control: attention subgoals beat random-state subgoals{where}",
             "spot vs random subgoals",
-            _versus(spot, arm(_RANDOM_SUBGOALS), ("spot", "random subgoals")),
+            _versus(spot, random_sg, ("spot", "random subgoals")),
         ),
         (
-            f"C{claim}",
-            c_key,
+            claim,
+            key,
             f"control: SPOT beats a constant bonus of the same mean{where}",
             "spot vs constant bonus",
-            _versus(spot, arm(_CONSTANT_BONUS), ("spot", "constant bonus")),
+            _versus(spot, constant, ("spot", "constant bonus")),
         ),
-        (  # a reference, not a claim: the constant control is PT's reward plus the bonus, so this is the bonus alone
-            f"C{claim}",
-            c_key,
+        (
+            claim,
+            key,
             f"reference: PT's reward plus the constant bonus vs PT{where}",
             "constant bonus vs pt",
-            _versus(arm(_CONSTANT_BONUS), arm(_method("pt")), ("constant bonus", "pt")),
+            _versus(constant, _in_variant(_method("pt"), variant), ("constant bonus", "pt")),
         ),
     ]
 
 
 # (claim id shown, key into EXPERIMENTS, text, comparison, how)
 CLAIMS: tuple[Claim, ...] = (
-    *[c for c in _claim1_and_controls("", "1", "spot") if c[0] == "1"],
+    *_claim1("1", "1", "spot"),
     (
         "2",
         "2",
@@ -343,7 +345,7 @@ CLAIMS: tuple[Claim, ...] = (
         "mse_cos vs mse",
         _versus(_param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), ("mse_cos", "mse")),
     ),
-    *[c for c in _claim1_and_controls("", "1", "spot") if c[0] == "C"],
+    *_controls("C", "C", "spot"),
     (
         "F",
         "F",
@@ -358,7 +360,8 @@ CLAIMS: tuple[Claim, ...] = (
         "variant paper vs spot",
         _versus(_variant("paper"), _variant("spot"), ("paper", "spot")),
     ),
-    *_claim1_and_controls("P", "P", "paper"),
+    *_claim1("1P", "P", "paper", oracle=True),
+    *_controls("CP", "P", "paper"),
 )
 
 
