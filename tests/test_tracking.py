@@ -190,3 +190,67 @@ def test_a_run_is_found_by_its_lookup_tags_only_once_its_params_are_in(client):
     record.log_params(client, run.info.run_id, cfg, record.lookup_tags(tags))
     got = client.get_run(run.info.run_id).data
     assert got.tags["trial_key"] == "k1" and got.tags["attempt"] == "a1" and got.params == _params(cfg)
+
+
+class _LosesTheInsertRace:
+    """A client whose first ``log_inputs`` finds that another run (``rival``) inserted the same
+    dataset between MLflow's lookup and its insert: the rival's call goes through, then the store's
+    unique-constraint error is raised, as the REST store raised it in a sweep (session 8)."""
+
+    def __init__(self, client, rival, fails=1, message=None):
+        self.client, self.rival, self.fails, self.calls = client, rival, fails, 0
+        self.message = message or (
+            "BAD_REQUEST: (sqlite3.IntegrityError) UNIQUE constraint failed: "
+            "datasets.experiment_id, datasets.name, datasets.digest"
+        )
+
+    def log_inputs(self, run_id, datasets):
+        from mlflow.exceptions import MlflowException
+
+        self.calls += 1
+        if self.calls == 1:
+            self.client.log_inputs(self.rival, datasets=datasets)
+        if self.calls <= self.fails:
+            raise MlflowException(self.message)
+        return self.client.log_inputs(run_id, datasets=datasets)
+
+
+def _dataset_args(tmp_path):
+    from types import SimpleNamespace
+
+    path = tmp_path / "toy.hdf5"
+    path.write_bytes(b"")
+    ds = SimpleNamespace(observations=np.zeros((4, 3), np.float32), actions=np.zeros((4, 2), np.float32))
+    cfg = config.load(None, ["method=pt", "budget=tiny", f"data.name={path}"])
+    return ds, {"name": "toy"}, cfg, "ab" * 20
+
+
+def test_a_run_that_loses_the_dataset_insert_race_still_logs_its_input(client, tmp_path, monkeypatch):
+    from spot.tracking import record
+
+    monkeypatch.setattr(record.time, "sleep", lambda s: None)
+    exp = client.create_experiment("race")
+    first, second = (client.create_run(exp).info.run_id for _ in range(2))
+    racing = _LosesTheInsertRace(client, rival=first)
+    record.log_dataset_input(racing, second, *_dataset_args(tmp_path))
+    assert racing.calls == 2  # the lost race, then the retry that links the existing row
+    for run_id in (first, second):
+        (inp,) = client.get_run(run_id).inputs.dataset_inputs
+        assert (inp.dataset.name, inp.dataset.digest) == ("toy", "ab" * 16)
+        assert {t.key: t.value for t in inp.tags} == {"mlflow.data.context": "training"}
+
+
+@pytest.mark.parametrize("fails, message", [(5, None), (1, "RESOURCE_DOES_NOT_EXIST: run 'x' not found")])
+def test_other_input_errors_and_a_race_that_never_ends_are_raised(client, tmp_path, monkeypatch, fails, message):
+    from mlflow.exceptions import MlflowException
+
+    from spot.tracking import record
+
+    assert message or record.INPUT_RACE_TRIES == fails  # the race is lost on every try
+    monkeypatch.setattr(record.time, "sleep", lambda s: None)
+    exp = client.create_experiment(f"race-{fails}")
+    first, second = (client.create_run(exp).info.run_id for _ in range(2))
+    racing = _LosesTheInsertRace(client, rival=first, fails=fails, message=message)
+    with pytest.raises(MlflowException, match=message.split(":")[0] if message else "UNIQUE constraint"):
+        record.log_dataset_input(racing, second, *_dataset_args(tmp_path))
+    assert racing.calls == fails

@@ -275,7 +275,31 @@ def log_dataset_input(
         LocalArtifactDatasetSource(str(path.resolve())), name=name, digest=digest[:DIGEST_CHARS], schema=schema
     )
     tags = [InputTag("mlflow.data.context", "training")]
-    client.log_inputs(run_id, datasets=[DatasetInput(dataset._to_mlflow_entity(), tags)])
+    _log_inputs_once_inserted(client, run_id, [DatasetInput(dataset._to_mlflow_entity(), tags)])
+
+
+INPUT_RACE_TRIES = 5
+
+
+def _log_inputs_once_inserted(client: Any, run_id: str, datasets: list[Any]) -> None:
+    """``client.log_inputs``, tried again when a concurrent run inserted the same dataset first.
+
+    MLflow's SQL store looks the dataset (experiment, name, digest) up and inserts it when missing;
+    two runs of one sweep starting together both miss it and the second insert fails on the unique
+    constraint (session 8: a sweep's second trial died at launch). On retry the row exists and
+    MLflow links it to the run. Any other error, or the same one :data:`INPUT_RACE_TRIES` times,
+    is raised."""
+    from mlflow.exceptions import MlflowException
+
+    for attempt in range(INPUT_RACE_TRIES):
+        try:
+            client.log_inputs(run_id, datasets=datasets)
+            return
+        except MlflowException as err:
+            text = str(err).lower()  # sqlite: "UNIQUE constraint failed"; postgres: "violates unique constraint"
+            if "unique constraint" not in text or "dataset" not in text or attempt == INPUT_RACE_TRIES - 1:
+                raise
+            time.sleep(0.2 * (attempt + 1))
 
 
 class SystemMetrics:
