@@ -37,7 +37,9 @@ SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random
 Claims 1 and C compare runs of the package's default fidelity variant (``variant=spot``; runs
 logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same comparisons under
 ``variant=paper`` (docs/fidelity.md), from the runs of lab_fidelity, lab_variant_rows, lab_paper and
-lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper).
+lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper). Rows
+``2P`` and ``5P`` are claims 2 and 5 on the same data and variant: lab_fidelity's SPOT runs (top
+group, MSE + cosine CVAE) against lab_paper_ablations' bottom-group and MSE-only arms.
 """
 
 from __future__ import annotations
@@ -57,8 +59,8 @@ OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
 # F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
-# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P and CP
-# (claim 1 and the controls under variant paper).
+# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P
+# and 5P (claims 1, 2, 5 and the controls under variant paper).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -68,7 +70,7 @@ EXPERIMENTS = {
     "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
     "F": ("lab_fidelity+lab_table1", "fidelity"),
-    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random",),
+    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations",),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -100,8 +102,16 @@ def _either(a: Filter, b: Filter) -> Filter:
 
 _RANDOM_SUBGOALS = _param("subgoal.source", "random")
 _CONSTANT_BONUS = _param("shaping.kind", "constant")
-# SPOT proper: method spot, neither control (a control run is also method spot)
-_SPOT = _both(_method("spot"), _not(_either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)))
+_BOTTOM_GROUP = _param("subgoal.group", "bottom")
+_MSE_CVAE = _param("cvae.loss", "mse")
+# another percentile group than the top one, or the CVAE on MSE alone (claims 2 and 5's other arms)
+_NEXT_GROUPS = _either(_param("subgoal.group", "top_next"), _param("subgoal.group", "bottom_next"))
+_ABLATED_GROUP = _either(_BOTTOM_GROUP, _NEXT_GROUPS)
+_ABLATED = _either(_ABLATED_GROUP, _MSE_CVAE)
+_CONTROL = _either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)
+# SPOT proper: method spot with its top-group subgoals and its CVAE loss, neither control (the
+# control and ablation runs are also method spot)
+_SPOT = _both(_method("spot"), _not(_either(_CONTROL, _ABLATED)))
 
 
 def _in_variant(select: Filter, name: str) -> Filter:
@@ -320,6 +330,31 @@ def _controls(claim: str, key: str, variant: str) -> list[Claim]:
     ]
 
 
+def _ablations(claim2: str, claim5: str, key: str, variant: str) -> list[Claim]:
+    """Claims 2 and 5 among the runs of one fidelity variant: SPOT proper (top group, its CVAE loss)
+    against the bottom-10 % group and against the CVAE on MSE alone, each changing only that key."""
+    spot, where = _variant(variant), _suffix(variant)
+    plain = _both(_method("spot"), _not(_CONTROL))
+    bottom = _in_variant(_both(plain, _both(_BOTTOM_GROUP, _not(_MSE_CVAE))), variant)
+    mse = _in_variant(_both(plain, _both(_MSE_CVAE, _not(_ABLATED_GROUP))), variant)
+    return [
+        (
+            claim2,
+            key,
+            f"top-10 % subgoals beat bottom-10 % (Table 2){where}",
+            "group top vs bottom",
+            _versus(spot, bottom, ("top", "bottom")),
+        ),
+        (
+            claim5,
+            key,
+            f"MSE + cosine beats MSE for the CVAE (Table 7){where}",
+            "mse_cos vs mse",
+            _versus(spot, mse, ("mse_cos", "mse")),
+        ),
+    ]
+
+
 # (claim id shown, key into EXPERIMENTS, text, comparison, how)
 CLAIMS: tuple[Claim, ...] = (
     *_claim1("1", "1", "spot"),
@@ -362,6 +397,7 @@ CLAIMS: tuple[Claim, ...] = (
     ),
     *_claim1("1P", "P", "paper", oracle=True),
     *_controls("CP", "P", "paper"),
+    *_ablations("2P", "5P", "P", "paper"),
 )
 
 

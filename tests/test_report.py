@@ -255,3 +255,39 @@ def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
     # the default-variant rows are unchanged by the paper runs in the frame
     assert _row(rows, "1", "spot vs pt").effect.value == pytest.approx(8.5)
     assert _row(rows, "C", "spot vs constant").effect is None
+
+
+def test_paper_variant_ablation_rows_change_one_key_and_stay_out_of_the_spot_arm(runs):
+    # rows 2P/5P: lab_fidelity's SPOT runs (top group, mse_cos; logged with those params) against
+    # lab_paper_ablations' bottom-group arm and MSE-only arm; neither ablation counts as SPOT in 1P/CP
+    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+    defaults = {"params.subgoal.group": "top", "params.cvae.loss": "mse_cos"}
+
+    def arm(experiment, tag, scores, method="spot", **params):
+        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
+        cols = {"params.variant": "paper", "method": method, **defaults, **params}
+        return out.assign(**cols, **{"metrics.eval/score_final": scores})
+
+    frame = pd.concat(
+        [
+            runs,
+            arm("lab_fidelity", "sp", [70.0, 80.0, 90.0]),
+            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt"),
+            arm("lab_paper_ablations", "bo", [50.0, 55.0, 66.0], **{"params.subgoal.group": "bottom"}),
+            arm("lab_paper_ablations", "ms", [81.0, 85.0, 89.0], **{"params.cvae.loss": "mse"}),
+        ],
+        ignore_index=True,
+    )
+    rows = report.build(frame)
+    bottom = _row(rows, "2P", "group top vs bottom")
+    # mean(70, 80, 90) = 80 against mean(50, 55, 66) = 57: 23
+    assert bottom.experiment == report.EXPERIMENTS["P"][0] and bottom.effect.value == pytest.approx(23.0)
+    assert bottom.n_x == 3 and bottom.n_y == 3
+    mse = _row(rows, "5P", "mse_cos vs mse")
+    # 80 - mean(81, 85, 89) = 80 - 85 = -5; the arms overlap, the CI spans 0
+    assert mse.effect.value == pytest.approx(-5.0) and mse.verdict == stats.INCONCLUSIVE
+    # SPOT in 1P is lab_fidelity's three runs only: 80 - 25 = 55, n 3
+    pt = _row(rows, "1P", "spot vs pt")
+    assert pt.effect.value == pytest.approx(55.0) and pt.n_x == 3
+    # the default-variant claims 2 and 5 read lab_table2/lab_table7 only
+    assert _row(rows, "2", "group top vs bottom").effect is None and _row(rows, "5", "mse_cos vs mse").effect is None
