@@ -350,12 +350,12 @@ def _aggregate_text(runs: Any, metric: str) -> str:
 
 
 def _results_export(args: argparse.Namespace) -> None:
-    from spot import results, tables
+    from spot import results, tables, tracking
 
     runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
     if runs.empty:
         raise SpotError(f"no runs in experiments {args.experiment} of {args.tracking_uri or 'the default store'}")
-    path = results.export(runs, args.out)
+    path = results.export(results.add_curves(runs, tracking.reader(args.tracking_uri)), args.out)
     print(f"wrote {path} ({len(runs)} runs)")
 
 
@@ -372,7 +372,7 @@ def _report(args: argparse.Namespace) -> None:
         if not sep or claim not in report.EXPERIMENTS:
             raise SpotError(f"--use {item!r}: expected CLAIM=EXPERIMENT with CLAIM one of {sorted(report.EXPERIMENTS)}")
         use[claim] = (name,)
-    text = report.format_rows(report.build(runs, use))
+    text = report.format_rows(report.build(runs, use, args.high_mode))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text)
@@ -772,7 +772,7 @@ def _add_tables(sub: Any) -> None:
     d = _parser(
         res,
         "export",
-        "one row per run: identity, config hash, data digest, params, metrics",
+        "one row per run: identity, config hash, data digest, params, metrics, evaluation curve",
         "spot results export --experiment table1 --out results/table1.csv",
     )
     d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
@@ -795,6 +795,13 @@ def _add_tables(sub: Any) -> None:
         action="append",
         metavar="CLAIM=EXPERIMENT",
         help="read a claim's runs from this experiment (claims 1-6, C for the controls)",
+    )
+    d.add_argument(
+        "--high-mode",
+        type=float,
+        default=50.0,
+        metavar="SCORE",
+        help="count the periodic evaluations scoring at least SCORE, per arm, from the exported curves (default 50)",
     )
     d.add_argument("--out", help="write the report (Markdown) to this file instead of printing it")
     d.set_defaults(fn=_report)

@@ -5,7 +5,9 @@ A sweep's runs live in an MLflow store, which is large, machine-local and not so
 with one row per run: identity (run id, experiment, sweep, status, method, dataset, source, seed),
 ``config_hash`` (SHA-256 of every param except ``seed`` and ``tracking.*``: runs of one cell share
 it), ``data_digest`` and ``git_commit`` (tags the run logged), every ``params.*`` and the metrics
-named by :data:`METRIC_PREFIXES` (last logged value). :func:`read` returns the frame
+named by :data:`METRIC_PREFIXES` (last logged value), and each run's evaluation curve
+(:data:`CURVE_COLUMN`: every logged ``eval/score`` as ``step:value`` pairs joined by ``;``) where
+the export read it (:func:`add_curves`). :func:`read` returns the frame
 :func:`spot.tables.build_table` and :mod:`spot.report` take, so every table and verdict can be
 rebuilt from the committed file alone (``spot tables --results``, ``spot report --results``).
 
@@ -19,7 +21,9 @@ import hashlib
 import json
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from spot import SpotError
@@ -43,6 +47,44 @@ ID_COLUMNS = (
 METRIC_PREFIXES = ("eval/", "diag/", "time/", "cache/", "reward/", "cvae/", "subgoal/", "shaping/")
 TAG_COLUMNS = {"sweep_id": "tags.sweep_id", "data_digest": "tags.data_digest", "git_commit": "tags.git_commit"}
 REQUIRED = ("run_id", "experiment", "status", "method", "dataset", "seed")
+CURVE_METRIC = "eval/score"  # the periodic evaluations' mean normalised score, logged at its IQL step
+CURVE_COLUMN = f"curve.{CURVE_METRIC}"
+
+
+def format_curve(points: Iterable[tuple[int, float]]) -> str:
+    """``step:value`` pairs joined by ``;``, in step order (values to 4 decimals)."""
+    return ";".join(f"{int(step)}:{float(value):.4f}" for step, value in sorted(points))
+
+
+def parse_curve(text: object, where: str) -> tuple[np.ndarray, np.ndarray]:
+    """Steps (int) and values (float) of a :func:`format_curve` string; empty arrays for no curve.
+    Anything else is a :class:`SpotError` naming ``where``."""
+    if text is None or (isinstance(text, float) and np.isnan(text)) or text is pd.NA or text == "":
+        return np.zeros(0, np.int64), np.zeros(0, np.float64)
+    steps, values = [], []
+    for item in str(text).split(";"):
+        step, sep, value = item.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            steps.append(int(step))
+            values.append(float(value))
+        except ValueError:
+            raise SpotError(
+                f"{where}: {CURVE_COLUMN} item {item[:40]!r} is not STEP:VALUE (an integer step, a number)"
+            ) from None
+    return np.asarray(steps, np.int64), np.asarray(values, np.float64)
+
+
+def add_curves(runs: pd.DataFrame, client: Any) -> pd.DataFrame:
+    """``runs`` with :data:`CURVE_COLUMN`: each run's :data:`CURVE_METRIC` history read from
+    ``client`` (an ``MlflowClient``); empty for a run that logged none."""
+    out = runs.copy()
+    out[CURVE_COLUMN] = [
+        format_curve((m.step, m.value) for m in client.get_metric_history(run_id, CURVE_METRIC))
+        for run_id in runs["run_id"]
+    ]
+    return out
 
 
 def config_hash(params: dict[str, str]) -> str:
@@ -72,7 +114,8 @@ def to_frame(runs: pd.DataFrame) -> pd.DataFrame:
     params = sorted(c for c in runs if c.startswith("params."))
     out["config_hash"] = [config_hash({c[len("params.") :]: r[c] for c in params}) for _, r in runs.iterrows()]
     metrics = sorted(c for c in runs if c.startswith("metrics.") and c[len("metrics.") :].startswith(METRIC_PREFIXES))
-    out = pd.concat([out[list(ID_COLUMNS)], runs[params], runs[metrics]], axis=1)
+    curves = [CURVE_COLUMN] if CURVE_COLUMN in runs else []
+    out = pd.concat([out[list(ID_COLUMNS)], runs[params], runs[metrics], runs[curves]], axis=1)
     return out.sort_values(["experiment", "method", "dataset", "config_hash", "seed", "run_id"]).reset_index(drop=True)
 
 
@@ -103,6 +146,8 @@ def read(paths: str | Path | Iterable[str | Path]) -> pd.DataFrame:
                 f"results file {f}: missing columns {missing}; expected a file written by `spot results export`"
             )
         frames.append(df)
+        for run_id, text in zip(df["run_id"], df.get(CURVE_COLUMN, []), strict=False):
+            parse_curve(text, f"results file {f}, run {run_id}")  # a clear error now, not in the report
     df = pd.concat(frames, ignore_index=True)
     for col in df:
         if col.startswith("metrics."):

@@ -125,6 +125,8 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
         client.log_param(run.info.run_id, "seed", str(seed))
         client.log_param(run.info.run_id, "iql.steps", "1000")
         client.log_metric(run.info.run_id, "eval/score_final", score)
+        for step, value in ((20000, score + 0.5), (0, 1.0), (10000, 60.0 * seed)):  # out of step order
+            client.log_metric(run.info.run_id, "eval/score", value, step=step)
         client.log_metric(run.info.run_id, "iql/value_loss", 1.0)  # not a results metric
         client.set_terminated(run.info.run_id)
     out = tmp_path / "r.csv"
@@ -134,6 +136,12 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
     assert sorted(df["metrics.eval/score_final"]) == [10.0, 20.0]
     assert "metrics.iql/value_loss" not in df
     assert df["config_hash"].nunique() == 1 and set(df["data_digest"]) == {"d1"}
+    curves = dict(zip(df["seed"], df[results.CURVE_COLUMN], strict=True))
+    assert curves[0] == "0:1.0000;10000:0.0000;20000:10.5000"  # in step order
+    steps, values = results.parse_curve(curves[1], "x")
+    assert steps.tolist() == [0, 10000, 20000] and values.tolist() == [1.0, 60.0, 20.5]
+    # seed 1's evaluation at 10k (60) is in the high mode; step 0 is not an evaluation of training
+    assert report.high_mode(df, 50.0) == report.Mode(evals_high=1, evals=4, runs_high=1, runs=2)
     p = run_cli("tables", "--table", "1", "--results", str(out))
     assert p.returncode == 0 and "15.00 ± 7.07** (2)" in p.stdout, p.stdout + p.stderr
 
@@ -291,3 +299,41 @@ def test_paper_variant_ablation_rows_change_one_key_and_stay_out_of_the_spot_arm
     assert pt.effect.value == pytest.approx(55.0) and pt.n_x == 3
     # the default-variant claims 2 and 5 read lab_table2/lab_table7 only
     assert _row(rows, "2", "group top vs bottom").effect is None and _row(rows, "5", "mse_cos vs mse").effect is None
+
+
+def test_high_mode_counts_each_arms_evaluations_from_the_curves(runs, tmp_path):
+    # Table 1's hopper runs, SPOT's and PT's with curves: SPOT reaches 50 in 3 of its 6 evaluations
+    # after step 0 (in two of its three runs), PT in none (49.9 is below); MR's runs have no curve
+    curves = {61.0: "0:1;10000:55;20000:20", 64.0: "10000:20;20000:20", 66.0: "0:2;10000:80;20000:90"}
+    hop = (runs["dataset"] == "hopper-medium-replay") & (runs["status"] == "FINISHED")
+    frame = runs.copy()
+    frame[results.CURVE_COLUMN] = ""
+    spot = hop & (frame["method"] == "spot")
+    frame.loc[spot, results.CURVE_COLUMN] = frame.loc[spot, "metrics.eval/score_final"].map(curves)
+    pt = hop & (frame["method"] == "pt")
+    frame.loc[pt, results.CURVE_COLUMN] = "10000:30;20000:49.9"
+    frame = frame[frame["dataset"] == "hopper-medium-replay"]
+    path = tmp_path / "r.csv"
+    frame.to_csv(path, index=False)
+    rows = report.build(results.read(path))
+    r = _row(rows, "1", "spot vs pt")
+    assert r.high == (report.Mode(3, 6, 2, 3), report.Mode(0, 6, 0, 3))
+    text = report.format_rows(rows)
+    assert "| 1 | spot vs pt | 3 of 6 (2 of 3 runs) | 0 of 6 (0 of 3 runs) |" in text
+    # a higher threshold counts fewer; the CLI option reaches it
+    assert _row(report.build(results.read(path), high=85.0), "1", "spot vs pt").high[0] == report.Mode(1, 6, 1, 3)
+    p = run_cli("report", "--results", str(path), "--high-mode", "85")
+    assert p.returncode == 0 and "scoring ≥ 85 (the high mode)" in p.stdout, p.stderr
+    # an arm without curves shows no counts (MR's hopper runs have none)
+    assert _row(rows, "1", "spot vs mr").high is None
+
+
+def test_a_malformed_curve_is_a_clear_error_naming_the_file_and_run(runs, tmp_path):
+    frame = runs.copy()
+    frame[results.CURVE_COLUMN] = ""
+    frame.loc[0, results.CURVE_COLUMN] = "10000:20;oops"
+    path = tmp_path / "bad.csv"
+    frame.to_csv(path, index=False)
+    run_id = frame.loc[0, "run_id"]
+    with pytest.raises(SpotError, match=rf"bad.csv, run {run_id}: curve.eval/score item 'oops' is not STEP:VALUE"):
+        results.read(path)
