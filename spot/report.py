@@ -38,8 +38,9 @@ Claims 1 and C compare runs of the package's default fidelity variant (``variant
 logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same comparisons under
 ``variant=paper`` (docs/fidelity.md), from the runs of lab_fidelity, lab_variant_rows, lab_paper and
 lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper). Rows
-``2P`` and ``5P`` are claims 2 and 5 on the same data and variant: lab_fidelity's SPOT runs (top
-group, MSE + cosine CVAE) against lab_paper_ablations' bottom-group and MSE-only arms.
+``2P``, ``3P`` and ``5P`` are claims 2, 3 and 5 on the same data and variant: lab_fidelity's SPOT
+runs (top group, MSE + cosine CVAE, cosine shaping at λ = 1) against lab_paper_ablations'
+bottom-group and MSE-only arms and lab_paper_shaping's other (kind, λ) arms.
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ HIGH_MODE = 50.0
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
 # F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
-# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P
-# and 5P (claims 1, 2, 5 and the controls under variant paper).
+# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P,
+# 3P and 5P (claims 1, 2, 3, 5 and the controls under variant paper).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -72,7 +73,7 @@ EXPERIMENTS = {
     "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
     "F": ("lab_fidelity+lab_table1", "fidelity"),
-    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations",),
+    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping",),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -111,9 +112,23 @@ _NEXT_GROUPS = _either(_param("subgoal.group", "top_next"), _param("subgoal.grou
 _ABLATED_GROUP = _either(_BOTTOM_GROUP, _NEXT_GROUPS)
 _ABLATED = _either(_ABLATED_GROUP, _MSE_CVAE)
 _CONTROL = _either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)
-# SPOT proper: method spot with its top-group subgoals and its CVAE loss, neither control (the
-# control and ablation runs are also method spot)
-_SPOT = _both(_method("spot"), _not(_either(_CONTROL, _ABLATED)))
+SHAPING_KINDS = ("cosine", "neg_distance", "potential")  # Table 3's rows
+
+
+def _other_shaping(df: pd.DataFrame) -> pd.Series:
+    """Table 3's other arms: a shaping kind other than cosine, or a weight other than 1 (runs
+    without the keys count as cosine at 1)."""
+    out = pd.Series(False, index=df.index)
+    if "params.shaping.kind" in df:
+        out |= df["params.shaping.kind"].astype(str).isin(SHAPING_KINDS[1:])
+    if "params.shaping.weight" in df:
+        out |= pd.to_numeric(df["params.shaping.weight"], errors="coerce").fillna(1.0) != 1.0
+    return out
+
+
+# SPOT proper: method spot with its top-group subgoals, its CVAE loss and cosine shaping at
+# lambda 1, neither control (the control and ablation runs are also method spot)
+_SPOT = _both(_method("spot"), _not(_either(_either(_CONTROL, _ABLATED), _other_shaping)))
 
 
 def _in_variant(select: Filter, name: str) -> Filter:
@@ -247,10 +262,15 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
 
 
 # --------------------------------------------------------------------------- the claims
-def _claim3(df: pd.DataFrame, metric: str, row: Row) -> Row:
+def _table3(base: Filter | None = None) -> Callable[[pd.DataFrame, str, Row], Row]:
+    """Claim 3 among ``base``'s runs (all runs if ``None``)."""
+    return lambda df, metric, row: _claim3(df, metric, row, base)
+
+
+def _claim3(df: pd.DataFrame, metric: str, row: Row, base: Filter | None = None) -> Row:
     if "params.shaping.kind" not in df or "params.shaping.weight" not in df:
         return row
-    shaped = df[df["params.shaping.kind"].isin(["cosine", "neg_distance", "potential"])]
+    shaped = df[df["params.shaping.kind"].isin(SHAPING_KINDS) & (base(df) if base else True)]
     best = _both(_param("shaping.kind", "cosine"), lambda d: pd.to_numeric(d["params.shaping.weight"]) == 1.0)
     done = finished(shaped)
     others = done[~best(done)] if len(done) else done
@@ -401,7 +421,7 @@ CLAIMS: tuple[Claim, ...] = (
         "group top vs bottom",
         _versus(_param("subgoal.group", "top"), _param("subgoal.group", "bottom"), ("top", "bottom")),
     ),
-    ("3", "3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _claim3),
+    ("3", "3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _table3()),
     (
         "4",
         "4",
@@ -434,6 +454,13 @@ CLAIMS: tuple[Claim, ...] = (
     *_claim1("1P", "P", "paper", oracle=True),
     *_controls("CP", "P", "paper"),
     *_ablations("2P", "5P", "P", "paper"),
+    (
+        "3P",
+        "P",
+        "cosine shaping at λ = 1 is best (Table 3) (variant paper)",
+        "cosine λ=1 vs runner-up",
+        _table3(_in_variant(_both(_method("spot"), _not(_either(_CONTROL, _ABLATED))), "paper")),
+    ),
 )
 
 

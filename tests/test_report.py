@@ -337,3 +337,37 @@ def test_a_malformed_curve_is_a_clear_error_naming_the_file_and_run(runs, tmp_pa
     run_id = frame.loc[0, "run_id"]
     with pytest.raises(SpotError, match=rf"bad.csv, run {run_id}: curve.eval/score item 'oops' is not STEP:VALUE"):
         results.read(path)
+
+
+def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(runs):
+    # row 3P: lab_fidelity's SPOT runs (cosine λ=1) against lab_paper_shaping's other arms; the
+    # best-scoring other arm is the runner-up. Control and ablation runs at cosine λ=1 are neither
+    # arm, and the λ/kind arms never count as SPOT in 1P.
+    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+
+    def arm(experiment, tag, scores, kind="cosine", weight="1.0", method="spot", **params):
+        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
+        cols = {"params.variant": "paper", "method": method, "params.shaping.kind": kind, **params}
+        return out.assign(**cols, **{"params.shaping.weight": weight, "metrics.eval/score_final": scores})
+
+    frame = pd.concat(
+        [
+            runs,
+            arm("lab_fidelity", "sp", [70.0, 80.0, 90.0]),
+            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], kind="none", method="pt"),
+            arm("lab_paper_shaping", "c01", [20.0, 25.0, 30.0], weight="0.1"),
+            arm("lab_paper_shaping", "nd1", [40.0, 50.0, 60.0], kind="neg_distance"),
+            arm("lab_paper_random", "rs", [99.0, 99.0, 99.0], **{"params.subgoal.source": "random"}),
+            arm("lab_paper_ablations", "bo", [98.0, 98.0, 98.0], **{"params.subgoal.group": "bottom"}),
+        ],
+        ignore_index=True,
+    )
+    rows = report.build(frame)
+    r = _row(rows, "3P", "cosine λ=1 vs runner-up")
+    # runner-up: neg_distance λ=1 (mean 50) over cosine λ=0.1 (25); effect 80 - 50 = 30
+    assert r.comparison == "cosine λ=1 vs runner-up neg_distance λ=1.0"
+    assert r.effect.value == pytest.approx(30.0) and r.n_x == 3 and r.n_y == 3
+    pt = _row(rows, "1P", "spot vs pt")
+    assert pt.effect.value == pytest.approx(80 - 25) and pt.n_x == 3
+    # the default-variant claim 3 reads lab_table3 only
+    assert _row(rows, "3", "cosine").effect is None
