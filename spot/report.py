@@ -113,6 +113,7 @@ _ABLATED_GROUP = _either(_BOTTOM_GROUP, _NEXT_GROUPS)
 _ABLATED = _either(_ABLATED_GROUP, _MSE_CVAE)
 _CONTROL = _either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)
 SHAPING_KINDS = ("cosine", "neg_distance", "potential")  # Table 3's rows
+TABLE3_OTHER_ARMS = len(SHAPING_KINDS) * 3 - 1  # Table 3's (kind, λ in 1, 0.5, 0.1) arms but cosine at 1
 
 
 def _other_shaping(df: pd.DataFrame) -> pd.Series:
@@ -278,6 +279,12 @@ def _claim3(df: pd.DataFrame, metric: str, row: Row, base: Filter | None = None)
         return compare(shaped, best, _not(best), metric, row, ("cosine λ=1", "others"))
     means = others.groupby(["params.shaping.kind", "params.shaping.weight"])[metric].mean()
     kind, weight = means.idxmax()
+    if len(means) < TABLE3_OTHER_ARMS:
+        row.notes.append(
+            f"only {len(means)} of Table 3's {TABLE3_OTHER_ARMS} other (kind, λ) arms have finished runs: "
+            + ", ".join(f"{k} λ={w}" for k, w in means.index)
+            + "; the verdict is against those alone"
+        )
     row.comparison = f"cosine λ=1 vs runner-up {kind} λ={weight}"
     runner = _both(_param("shaping.kind", kind), _param("shaping.weight", str(weight)))
     return compare(shaped, best, runner, metric, row, ("cosine λ=1", f"{kind} λ={weight}"))

@@ -367,6 +367,7 @@ def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(run
     # runner-up: neg_distance λ=1 (mean 50) over cosine λ=0.1 (25); effect 80 - 50 = 30
     assert r.comparison == "cosine λ=1 vs runner-up neg_distance λ=1.0"
     assert r.effect.value == pytest.approx(30.0) and r.n_x == 3 and r.n_y == 3
+    assert any(n.startswith("only 2 of Table 3's 8 other (kind, λ) arms have finished runs") for n in r.notes)
     pt = _row(rows, "1P", "spot vs pt")
     assert pt.effect.value == pytest.approx(80 - 25) and pt.n_x == 3
     # the default-variant claim 3 reads lab_table3 only
