@@ -255,10 +255,11 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     row.min_n = min(len(a) for a in [*sx, *sy])
-    key = "paper_dataset" if "paper_dataset" in done else "dataset"
-    arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
-    modes = [high_mode(arm, row.high_mode) for arm in arms]
-    row.high = (modes[0], modes[1]) if modes[0] and modes[1] else None
+    if row.stat == "last":  # the arms are the same for every statistic: counted once, shown once
+        key = "paper_dataset" if "paper_dataset" in done else "dataset"
+        arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
+        modes = [high_mode(arm, row.high_mode) for arm in arms]
+        row.high = (modes[0], modes[1]) if modes[0] and modes[1] else None
     return row
 
 
@@ -397,7 +398,7 @@ def _ablations(claim2: str, claim5: str, key: str, variant: str) -> list[Claim]:
     """Claims 2 and 5 among the runs of one fidelity variant: SPOT proper (top group, its CVAE loss)
     against the bottom-10 % group and against the CVAE on MSE alone, each changing only that key."""
     spot, where = _variant(variant), _suffix(variant)
-    plain = _both(_method("spot"), _not(_CONTROL))
+    plain = _both(_method("spot"), _not(_either(_CONTROL, _other_shaping)))
     bottom = _in_variant(_both(plain, _both(_BOTTOM_GROUP, _not(_MSE_CVAE))), variant)
     mse = _in_variant(_both(plain, _both(_MSE_CVAE, _not(_ABLATED_GROUP))), variant)
     return [
@@ -522,7 +523,7 @@ def _n(row: Row) -> str:
 def format_high(rows: Sequence[Row]) -> list[str]:
     """Lines of the high-mode section: per comparison (of the last-score rows) with curves for both
     arms, how many periodic evaluations reached the threshold. A description, not a test."""
-    sel = [r for r in rows if r.stat == "last" and r.high]
+    sel = [r for r in rows if r.high]
     if not sel:
         return []
     lines = [

@@ -1,5 +1,6 @@
 """Results files, tables and claim verdicts rebuilt from a committed fixture, without MLflow."""
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -224,21 +225,24 @@ def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
     assert any("walker2d-medium-replay left out" in n for n in ps.notes)
 
 
+def _paper_arm(runs, experiment, tag, scores, **cols):
+    """Three runs of one arm under variant paper: Table 1's hopper SPOT runs renamed, ``cols`` set."""
+    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
+    out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
+    return out.assign(**{"params.variant": "paper", "metrics.eval/score_final": scores, **cols})
+
+
 def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
     # rows 1P/CP: SPOT under variant paper (lab_fidelity) against PT and Oracle (lab_variant_rows), MR and the
     # constant bonus (lab_paper) and random subgoals (lab_paper_random), all under variant paper; lab_fidelity's
     # variant-spot SPOT runs and Table 1's runs never enter these rows
-    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
-
-    def arm(experiment, tag, scores, variant="paper", **params):
-        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
-        return out.assign(**{"params.variant": variant, "metrics.eval/score_final": scores, **params})
+    arm = functools.partial(_paper_arm, runs)
 
     frame = pd.concat(
         [
             runs,
             arm("lab_fidelity", "sp", [70.0, 80.0, 90.0]),
-            arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], variant="spot"),
+            arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], **{"params.variant": "spot"}),
             arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt"),
             arm("lab_variant_rows", "or", [21.0, 22.0, 23.0], method="oracle"),
             arm("lab_paper", "mr", [30.0, 40.0, 50.0], method="mr"),
@@ -268,13 +272,7 @@ def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
 def test_paper_variant_ablation_rows_change_one_key_and_stay_out_of_the_spot_arm(runs):
     # rows 2P/5P: lab_fidelity's SPOT runs (top group, mse_cos; logged with those params) against
     # lab_paper_ablations' bottom-group arm and MSE-only arm; neither ablation counts as SPOT in 1P/CP
-    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
-    defaults = {"params.subgoal.group": "top", "params.cvae.loss": "mse_cos"}
-
-    def arm(experiment, tag, scores, method="spot", **params):
-        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
-        cols = {"params.variant": "paper", "method": method, **defaults, **params}
-        return out.assign(**cols, **{"metrics.eval/score_final": scores})
+    arm = functools.partial(_paper_arm, runs, **{"params.subgoal.group": "top", "params.cvae.loss": "mse_cos"})
 
     frame = pd.concat(
         [
@@ -343,20 +341,15 @@ def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(run
     # row 3P: lab_fidelity's SPOT runs (cosine λ=1) against lab_paper_shaping's other arms; the
     # best-scoring other arm is the runner-up. Control and ablation runs at cosine λ=1 are neither
     # arm, and the λ/kind arms never count as SPOT in 1P.
-    hop = runs[(runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")]
-
-    def arm(experiment, tag, scores, kind="cosine", weight="1.0", method="spot", **params):
-        out = hop.assign(experiment=experiment, config_hash=tag, run_id=[f"{tag}{i}" for i in range(3)])
-        cols = {"params.variant": "paper", "method": method, "params.shaping.kind": kind, **params}
-        return out.assign(**cols, **{"params.shaping.weight": weight, "metrics.eval/score_final": scores})
+    arm = functools.partial(_paper_arm, runs, **{"params.shaping.kind": "cosine", "params.shaping.weight": "1.0"})
 
     frame = pd.concat(
         [
             runs,
             arm("lab_fidelity", "sp", [70.0, 80.0, 90.0]),
-            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], kind="none", method="pt"),
-            arm("lab_paper_shaping", "c01", [20.0, 25.0, 30.0], weight="0.1"),
-            arm("lab_paper_shaping", "nd1", [40.0, 50.0, 60.0], kind="neg_distance"),
+            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt", **{"params.shaping.kind": "none"}),
+            arm("lab_paper_shaping", "c01", [20.0, 25.0, 30.0], **{"params.shaping.weight": "0.1"}),
+            arm("lab_paper_shaping", "nd1", [40.0, 50.0, 60.0], **{"params.shaping.kind": "neg_distance"}),
             arm("lab_paper_random", "rs", [99.0, 99.0, 99.0], **{"params.subgoal.source": "random"}),
             arm("lab_paper_ablations", "bo", [98.0, 98.0, 98.0], **{"params.subgoal.group": "bottom"}),
         ],
