@@ -193,7 +193,7 @@ class Row:
     datasets: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
-    high: tuple[Mode, Mode] | None = None  # per arm, from the runs' evaluation curves where exported
+    high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
 
     @property
     def verdict(self) -> str:
