@@ -16,6 +16,32 @@ def pytest_configure(config):
     runtime.configure()
 
 
+# The files that take longest (summed setup + call + teardown of `pytest --durations=0` on 2 cores,
+# 2026-11-26: 366 s down to 47 s), longest first. xdist hands out whole files in collection order
+# (`--dist loadfile --no-loadscope-reorder` in pyproject.toml), so starting the long ones first
+# keeps both workers busy to the end: the suite's wall time drops from ~1,100 s to ~970 s of the
+# ~1,940 s of work. Files not listed keep pytest's order after these.
+LONGEST_FIRST = (
+    "test_hardening.py",
+    "test_learning.py",
+    "test_multinode.py",
+    "test_sweep.py",
+    "test_pipeline.py",
+    "test_bench_sweep.py",
+    "test_cli.py",
+    "test_recipe_robosuite.py",
+    "test_docker.py",
+    "test_envs.py",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Run the files of :data:`LONGEST_FIRST` first, in that order (a stable sort: tests keep their
+    order within a file)."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 @pytest.fixture(scope="session")
 def spot_dirs(tmp_path_factory):
     """Session-wide SPOT_DATA_DIR / SPOT_CACHE_DIR so built datasets are shared by tests.
