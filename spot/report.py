@@ -63,7 +63,7 @@ HIGH_MODE = 50.0
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
 # F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
 # `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P,
-# 3P and 5P (claims 1, 2, 3, 5 and the controls under variant paper).
+# 3P, 4P and 5P (claims 1 to 5 and the controls under variant paper).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -73,7 +73,10 @@ EXPERIMENTS = {
     "6": ("lab_table1+lab_table1_fr", "table1"),
     "C": ("lab_table1+lab_controls", "lab_controls"),
     "F": ("lab_fidelity+lab_table1", "fidelity"),
-    "P": ("lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping",),
+    "P": (
+        "lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping"
+        "+lab_paper_queries",
+    ),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -291,6 +294,11 @@ def _claim3(df: pd.DataFrame, metric: str, row: Row, base: Filter | None = None)
     return compare(shaped, best, runner, metric, row, ("cosine λ=1", f"{kind} λ={weight}"))
 
 
+def _table4(base: Filter) -> Callable[[pd.DataFrame, str, Row], Row]:
+    """Claim 4 among ``base``'s runs."""
+    return lambda df, metric, row: _claim4(df[base(df)] if len(df) else df, metric, row)
+
+
 def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     done = finished(df)
     if done.empty or "params.labels.num_queries" not in done:
@@ -462,6 +470,13 @@ CLAIMS: tuple[Claim, ...] = (
     *_claim1("1P", "P", "paper", oracle=True),
     *_controls("CP", "P", "paper"),
     *_ablations("2P", "5P", "P", "paper"),
+    (
+        "4P",
+        "P",
+        "SPOT keeps its score with fewer queries, PT does not (Table 4) (variant paper)",
+        "(spot few − most) − (pt few − most)",
+        _table4(_either(_variant("paper"), _in_variant(_method("pt"), "paper"))),
+    ),
     (
         "3P",
         "P",

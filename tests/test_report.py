@@ -365,3 +365,41 @@ def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(run
     assert pt.effect.value == pytest.approx(80 - 25) and pt.n_x == 3
     # the default-variant claim 3 reads lab_table3 only
     assert _row(rows, "3", "cosine").effect is None
+
+
+def test_paper_variant_table4_row_takes_spot_proper_and_pt_under_variant_paper(runs):
+    # row 4P: SPOT (lab_fidelity) and PT (lab_variant_rows) at 500 queries, both at 50 (lab_paper_queries),
+    # all under variant paper; a control at 50 queries and default-variant runs at 50 queries are neither arm
+    arm = functools.partial(_paper_arm, runs)
+
+    frame = pd.concat(
+        [
+            runs,
+            arm("lab_fidelity", "sp", [70.0, 80.0, 90.0], **{"params.labels.num_queries": "500"}),
+            arm("lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt", **{"params.labels.num_queries": "500"}),
+            arm("lab_paper_queries", "sp50", [60.0, 70.0, 77.0], **{"params.labels.num_queries": "50"}),
+            arm("lab_paper_queries", "pt50", [10.0, 12.0, 20.0], method="pt", **{"params.labels.num_queries": "50"}),
+            arm(
+                "lab_paper_queries",
+                "cb50",
+                [0.0, 0.0, 0.0],
+                **{"params.labels.num_queries": "50", "params.shaping.kind": "constant"},
+            ),
+            arm(
+                "lab_paper_queries",
+                "ss50",
+                [99.0, 99.0, 99.0],
+                **{"params.labels.num_queries": "50", "params.variant": "spot"},
+            ),
+        ],
+        ignore_index=True,
+    )
+    rows = report.build(frame)
+    r = _row(rows, "4P", "(spot")
+    # SPOT: mean(60, 70, 77) - mean(70, 80, 90) = 69 - 80 = -11; PT: mean(10, 12, 20) - 25 = 14 - 25 = -11
+    assert r.effect.value == pytest.approx(0.0)
+    assert r.n_x == 6 and r.n_y == 6 and r.datasets == ["hopper-medium-replay (50 vs 500 queries)"]
+    # without the 50-query runs the row says what it needs
+    rows = report.build(frame[frame["experiment"] != "lab_paper_queries"])
+    r = _row(rows, "4P", "(spot")
+    assert r.effect is None and any("needs spot and pt runs at two query counts" in n for n in r.notes)
