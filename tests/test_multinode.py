@@ -74,8 +74,8 @@ def _start_node(args: list[str], env: dict[str, str], log: Path, stack: contextl
     def stop() -> None:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(30)
+        try:  # a worker node's `ray start --block` ends within ~1 s; the head's never did in 30 s
+            proc.wait(5)
         except subprocess.TimeoutExpired:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGKILL)
