@@ -372,7 +372,8 @@ def _report(args: argparse.Namespace) -> None:
         if not sep or claim not in report.EXPERIMENTS:
             raise SpotError(f"--use {item!r}: expected CLAIM=EXPERIMENT with CLAIM one of {sorted(report.EXPERIMENTS)}")
         use[claim] = (name,)
-    text = report.format_rows(report.build(runs, use, args.high_mode))
+    dose = report.dose_response(runs, use.get("P", report.EXPERIMENTS["P"]), "paper", args.high_mode)
+    text = report.format_rows(report.build(runs, use, args.high_mode), report.format_dose(dose))
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text)

@@ -40,7 +40,9 @@ logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same co
 lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper). Rows
 ``2P``, ``3P`` and ``5P`` are claims 2, 3 and 5 on the same data and variant: lab_fidelity's SPOT
 runs (top group, MSE + cosine CVAE, cosine shaping at λ = 1) against lab_paper_ablations'
-bottom-group and MSE-only arms and lab_paper_shaping's other (kind, λ) arms.
+bottom-group and MSE-only arms and lab_paper_shaping's other (kind, λ) arms; row ``4P`` is claim 4
+with lab_paper_queries' 50-query PT and SPOT runs. :func:`dose_response` sets the term each arm
+adds to the reward per step against its score (a description of the runs, not a claim).
 """
 
 from __future__ import annotations
@@ -530,6 +532,97 @@ def aggregate(df: pd.DataFrame, metric: str = METRICS["last"], reference: str = 
     return pd.DataFrame(out)
 
 
+# --------------------------------------------------------------------------- dose and response
+ADDED = ("metrics.shaping/r_final_mean", "metrics.shaping/r_model_mean")  # their difference: the term added
+
+
+@dataclass
+class Dose:
+    """The term added to the learned reward per step against the final score, over the runs of
+    SPOT and its variants and PT (whose added term is 0) under one fidelity variant."""
+
+    experiment: str
+    variant: str
+    arms: list[dict] = field(default_factory=list)  # label, runs, added, score (stats.cell), high
+    rho: stats.Estimate | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _arm_label(run: pd.Series) -> str:
+    """A short name for the one setting that makes a SPOT-family run's arm (``PT`` for PT)."""
+    if run["method"] == "pt":
+        return "PT"
+    kind, weight = str(run.get("params.shaping.kind", "cosine")), run.get("params.shaping.weight", "1.0")
+    parts = [f"{kind} λ={float(weight):g}" if kind != "constant" else "constant bonus"]
+    extra = {
+        "params.subgoal.source": ("random", "random subgoals"),
+        "params.subgoal.group": ("bottom", "bottom group"),
+        "params.cvae.loss": ("mse", "CVAE mse"),
+    }
+    parts += [text for key, (value, text) in extra.items() if str(run.get(key, "")) == value]
+    return "SPOT, " + ", ".join(parts)
+
+
+def dose_response(
+    df: pd.DataFrame, experiments: Sequence[str], variant: str = "paper", high: float = HIGH_MODE
+) -> Dose:
+    """Per arm, the mean term added per step (``shaping/r_final_mean − shaping/r_model_mean``) and
+    the final score; over runs, Spearman's ρ between the two with its paired-bootstrap CI. ρ > 0
+    (CI above 0) says the score rises with the size of the added term, whatever the term is made of:
+    the survival-bonus reading of rows CP. A description of the runs, not a claim of the paper."""
+    name, sub = _experiment(df, experiments)
+    dose = Dose(name, variant)
+    done = finished(sub)
+    done = done[_in_variant(_either(_method("spot"), _method("pt")), variant)(done)] if len(done) else done
+    if done.empty:
+        return dose
+    missing = [c for c in ADDED if c not in done]
+    added = done[ADDED[0]] - done[ADDED[1]] if not missing else pd.Series(np.nan, done.index)
+    if int(added.isna().sum()):
+        dose.notes.append(f"{int(added.isna().sum())} runs without the shaping metrics left out")
+    done = done.assign(added=added, arm=done.apply(_arm_label, axis=1)).dropna(subset=["added"])
+    for label, g in done.groupby("arm"):
+        dose.arms.append(
+            {
+                "label": label,
+                "runs": len(g),
+                "added": float(g["added"].mean()),
+                "score": stats.cell(g[METRICS["last"]].to_numpy(np.float64)),
+                "high": high_mode(g, high),
+            }
+        )
+    dose.arms.sort(key=lambda a: a["added"])
+    dose.rho = stats.rank_correlation(done["added"].to_numpy(), done[METRICS["last"]].to_numpy())
+    return dose
+
+
+def format_dose(dose: Dose) -> list[str]:
+    """Lines of the dose-and-response section (none without runs)."""
+    if not dose.arms:
+        return []
+    lines = [
+        f"### The term added to the reward per step vs the final score (variant {dose.variant}, {dose.experiment})",
+        "",
+        "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold |",
+        "|---|---|---|---|---|",
+    ]
+    for a in dose.arms:
+        c = a["score"]
+        ci = f"[{c['ci_low']:.1f}, {c['ci_high']:.1f}]" if np.isfinite(c["ci_low"]) else "(CI n/a)"
+        high = a["high"].text() if a["high"] else "–"
+        lines.append(
+            f"| {a['label']} | {a['runs']} | {a['added']:.3f} | {c['mean']:.1f} ± {c['std']:.1f} {ci} | {high} |"
+        )
+    assert dose.rho is not None
+    lines += [
+        "",
+        f"Spearman's ρ between the added term and the final score over the {dose.rho.n} runs: "
+        f"{dose.rho.text(2)} (95% paired bootstrap): {stats.verdict(dose.rho)} that the score rises with "
+        "the added term (a description of these runs, not a claim of the paper).",
+    ]
+    return [*lines, *[f"- {n}" for n in dose.notes], ""]
+
+
 # --------------------------------------------------------------------------- output
 def _n(row: Row) -> str:
     return f"{row.n_x} vs {row.n_y} runs, {len(row.datasets)} datasets" if row.effect else "–"
@@ -553,8 +646,9 @@ def format_high(rows: Sequence[Row]) -> list[str]:
     return [*lines, ""]
 
 
-def format_rows(rows: Sequence[Row]) -> str:
-    """The report as Markdown: one table per statistic, then the notes."""
+def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
+    """The report as Markdown: one table per statistic, the high-mode counts, ``extra`` lines (the
+    dose-and-response section), then the notes."""
     titles = {
         "last": "Last evaluation (`eval/score_final`): verdicts",
         "best": "Best evaluation (`eval/score_best`), for comparison",
@@ -582,6 +676,7 @@ def format_rows(rows: Sequence[Row]) -> str:
             )
         parts.append("")
     parts += format_high(rows)
+    parts += extra
     notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})
     if notes:
         parts += ["Notes:", *[f"- {n}" for n in notes]]

@@ -16,6 +16,7 @@ and the verdict says "too few seeds".
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -147,3 +148,32 @@ def verdict(est: Estimate, null: float = 0.0) -> str:
     if est.high < null:
         return NOT_SUPPORTED
     return INCONCLUSIVE
+
+
+def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -> Estimate:
+    """Spearman's rank correlation of paired values with a 95 % percentile CI from SciPy's paired
+    bootstrap (the pairs are resampled together). Resamples whose x or y values are all equal have
+    no correlation and are left out of the percentiles. The CI is ``(nan, nan)`` below 4 pairs."""
+    a, b = _arrays([x, y])
+    if len(a) != len(b):
+        raise ValueError(f"rank_correlation: {len(a)} x values but {len(b)} y values")
+    if len(a) < 2:
+        return Estimate(float("nan"), float("nan"), float("nan"), len(a))
+    value = float(sps.spearmanr(a, b).statistic)
+    if len(a) < 4:
+        return Estimate(value, float("nan"), float("nan"), len(a))
+    with warnings.catch_warnings():  # the constant resamples (their rho is nan, left out below)
+        warnings.simplefilter("ignore", (sps.ConstantInputWarning, sps.DegenerateDataWarning, RuntimeWarning))
+        res = sps.bootstrap(
+            (a, b),
+            lambda u, v: sps.spearmanr(u, v).statistic,
+            n_resamples=N_RESAMPLES,
+            confidence_level=CONFIDENCE,
+            method="percentile",
+            vectorized=False,
+            paired=True,
+            rng=np.random.default_rng(seed),
+        )
+    tail = 100 * (1 - CONFIDENCE) / 2
+    low, high = np.nanpercentile(res.bootstrap_distribution, [tail, 100 - tail])
+    return Estimate(value, float(low), float(high), len(a))

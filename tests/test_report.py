@@ -403,3 +403,49 @@ def test_paper_variant_table4_row_takes_spot_proper_and_pt_under_variant_paper(r
     rows = report.build(frame[frame["experiment"] != "lab_paper_queries"])
     r = _row(rows, "4P", "(spot")
     assert r.effect is None and any("needs spot and pt runs at two query counts" in n for n in r.notes)
+
+
+def test_dose_response_table_and_rank_correlation_against_an_independent_bootstrap(runs):
+    # PT (added 0) and three SPOT arms under variant paper with shaping metrics: added = r_final - r_model.
+    # Scores ranked by added: 2 1 3 4 6 5 8 7 9 -> rank differences 1 1 0 0 1 1 1 1 0, sum of squares 6:
+    # Spearman's rho = 1 - 6 * 6 / (9 * 80) = 0.95 (no ties)
+    arm = functools.partial(_paper_arm, runs)
+
+    def shaped(frame, added):
+        return frame.assign(
+            **{"metrics.shaping/r_model_mean": 0.5, "metrics.shaping/r_final_mean": [0.5 + a for a in added]}
+        )
+
+    frame = pd.concat(
+        [
+            runs,
+            shaped(arm("lab_variant_rows", "pt", [12.0, 10.0, 14.0], method="pt"), [0.0, 0.01, 0.02]),
+            shaped(
+                arm("lab_paper_shaping", "c01", [16.0, 20.0, 18.0], **{"params.shaping.weight": "0.1"}),
+                [0.06, 0.07, 0.08],
+            ),
+            shaped(arm("lab_fidelity", "sp", [70.0, 60.0, 80.0]), [0.6, 0.65, 0.7]),
+            arm("lab_paper", "mr", [30.0, 40.0, 50.0], method="mr"),  # MR: neither PT nor SPOT, left out
+            shaped(arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], **{"params.variant": "spot"}), [0.9, 0.9, 0.9]),
+        ],
+        ignore_index=True,
+    )
+    dose = report.dose_response(frame, report.EXPERIMENTS["P"])
+    arms = {a["label"]: a for a in dose.arms}
+    assert list(arms) == ["PT", "SPOT, cosine λ=0.1", "SPOT, cosine λ=1"]
+    assert arms["SPOT, cosine λ=0.1"]["added"] == pytest.approx(0.07) and arms["PT"]["runs"] == 3
+    assert arms["SPOT, cosine λ=1"]["score"]["mean"] == pytest.approx(70.0)
+    assert dose.rho.value == pytest.approx(0.95) and dose.rho.n == 9
+    x = np.array([0.0, 0.01, 0.02, 0.06, 0.07, 0.08, 0.6, 0.65, 0.7])
+    y = np.array([12.0, 10.0, 14.0, 16.0, 20.0, 18.0, 70.0, 60.0, 80.0])
+    rng = np.random.default_rng(3)
+
+    boot = []
+    for _ in range(5000):
+        i = rng.integers(0, 9, 9)
+        if np.ptp(x[i]) > 0:  # Spearman's rho: Pearson's r of the ranks, ties given their mean rank
+            boot.append(np.corrcoef(pd.Series(x[i]).rank(), pd.Series(y[i]).rank())[0, 1])
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
+    text = "\n".join(report.format_dose(dose))
+    assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text

@@ -1,6 +1,7 @@
 """spot.stats against hand-computed values and an independent stratified bootstrap."""
 
 import numpy as np
+import pytest
 
 from spot import stats
 
@@ -73,3 +74,13 @@ def test_verdicts():
     assert stats.verdict(stats.Estimate(-2.0, -3.0, -0.5, 6)) == stats.NOT_SUPPORTED
     assert stats.verdict(stats.Estimate(0.2, -1.0, 1.5, 6)) == stats.INCONCLUSIVE
     assert stats.verdict(stats.Estimate(0.7, 0.55, 0.9, 6), null=0.5) == stats.SUPPORTED
+
+
+def test_rank_correlation_by_hand_and_its_small_sample_limits():
+    # ranks of y by x: 2 1 3 4 -> rank differences 1 1 0 0: rho = 1 - 6 * 2 / (4 * 15) = 0.8
+    est = stats.rank_correlation([1.0, 2.0, 3.0, 4.0], [5.0, 1.0, 6.0, 9.0])
+    assert est.value == pytest.approx(0.8, abs=1e-12) and est.n == 4 and est.low <= 0.8 <= est.high
+    few = stats.rank_correlation([1.0, 2.0, 3.0], [1.0, 3.0, 2.0])
+    assert few.value == pytest.approx(0.5) and np.isnan(few.low) and stats.verdict(few) == stats.TOO_FEW
+    with pytest.raises(ValueError, match="3 x values but 2 y values"):
+        stats.rank_correlation([1.0, 2.0, 3.0], [1.0, 2.0])
