@@ -552,14 +552,19 @@ def _arm_label(run: pd.Series) -> str:
     """A short name for the one setting that makes a SPOT-family run's arm (``PT`` for PT)."""
     if run["method"] == "pt":
         return "PT"
-    kind, weight = str(run.get("params.shaping.kind", "cosine")), run.get("params.shaping.weight", "1.0")
-    parts = [f"{kind} λ={float(weight):g}" if kind != "constant" else "constant bonus"]
+
+    def value(key: str, default: str) -> str:  # runs logged before a key have it missing (NaN)
+        v = run.get(key)
+        return default if v is None or pd.isna(v) else str(v)
+
+    kind, weight = value("params.shaping.kind", "cosine"), float(value("params.shaping.weight", "1.0"))
+    parts = [f"{kind} λ={weight:g}" if kind != "constant" else "constant bonus"]
     extra = {
         "params.subgoal.source": ("random", "random subgoals"),
         "params.subgoal.group": ("bottom", "bottom group"),
         "params.cvae.loss": ("mse", "CVAE mse"),
     }
-    parts += [text for key, (value, text) in extra.items() if str(run.get(key, "")) == value]
+    parts += [text for key, (v, text) in extra.items() if value(key, "") == v]
     return "SPOT, " + ", ".join(parts)
 
 
@@ -578,21 +583,31 @@ def dose_response(
         return dose
     missing = [c for c in ADDED if c not in done]
     added = done[ADDED[0]] - done[ADDED[1]] if not missing else pd.Series(np.nan, done.index)
-    if int(added.isna().sum()):
-        dose.notes.append(f"{int(added.isna().sum())} runs without the shaping metrics left out")
-    done = done.assign(added=added, arm=done.apply(_arm_label, axis=1)).dropna(subset=["added"])
+    score = pd.to_numeric(done[METRICS["last"]], errors="coerce") if METRICS["last"] in done else np.nan
+    done = done.assign(added=added, score=score)
+    if lost := len(done) - len(done.dropna(subset=["added", "score"])):
+        dose.notes.append(f"{lost} finished runs without the shaping metrics or a final score left out")
+    done = done.dropna(subset=["added", "score"])
+    if done.empty:
+        return dose
+    done = done.assign(arm=done.apply(_arm_label, axis=1))
+    key = "paper_dataset" if "paper_dataset" in done else "dataset"
+    if done[key].nunique() > 1:
+        dose.notes.append(
+            f"runs of {done[key].nunique()} datasets pooled: scores of different datasets are ranked together"
+        )
     for label, g in done.groupby("arm"):
         dose.arms.append(
             {
                 "label": label,
                 "runs": len(g),
                 "added": float(g["added"].mean()),
-                "score": stats.cell(g[METRICS["last"]].to_numpy(np.float64)),
+                "score": stats.cell(g["score"].to_numpy(np.float64)),
                 "high": high_mode(g, high),
             }
         )
     dose.arms.sort(key=lambda a: a["added"])
-    dose.rho = stats.rank_correlation(done["added"].to_numpy(), done[METRICS["last"]].to_numpy())
+    dose.rho = stats.rank_correlation(done["added"].to_numpy(), done["score"].to_numpy())
     return dose
 
 

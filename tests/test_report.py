@@ -426,6 +426,7 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
             ),
             shaped(arm("lab_fidelity", "sp", [70.0, 60.0, 80.0]), [0.6, 0.65, 0.7]),
             arm("lab_paper", "mr", [30.0, 40.0, 50.0], method="mr"),  # MR: neither PT nor SPOT, left out
+            arm("lab_paper_random", "rs", [1.0, 2.0, 3.0], **{"params.subgoal.source": "random"}),  # no metrics
             shaped(arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], **{"params.variant": "spot"}), [0.9, 0.9, 0.9]),
         ],
         ignore_index=True,
@@ -436,6 +437,7 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
     assert arms["SPOT, cosine λ=0.1"]["added"] == pytest.approx(0.07) and arms["PT"]["runs"] == 3
     assert arms["SPOT, cosine λ=1"]["score"]["mean"] == pytest.approx(70.0)
     assert dose.rho.value == pytest.approx(0.95) and dose.rho.n == 9
+    assert dose.notes == ["3 finished runs without the shaping metrics or a final score left out"]
     x = np.array([0.0, 0.01, 0.02, 0.06, 0.07, 0.08, 0.6, 0.65, 0.7])
     y = np.array([12.0, 10.0, 14.0, 16.0, 20.0, 18.0, 70.0, 60.0, 80.0])
     rng = np.random.default_rng(3)
