@@ -625,9 +625,8 @@ def format_dose(dose: Dose) -> list[str]:
         c = a["score"]
         ci = f"[{c['ci_low']:.1f}, {c['ci_high']:.1f}]" if np.isfinite(c["ci_low"]) else "(CI n/a)"
         high = a["high"].text() if a["high"] else "–"
-        lines.append(
-            f"| {a['label']} | {a['runs']} | {a['added']:.3f} | {c['mean']:.1f} ± {c['std']:.1f} {ci} | {high} |"
-        )
+        sd = f" ± {c['std']:.1f}" if np.isfinite(c["std"]) else ""  # one run has no std
+        lines.append(f"| {a['label']} | {a['runs']} | {a['added']:.3f} | {c['mean']:.1f}{sd} {ci} | {high} |")
     assert dose.rho is not None
     lines += [
         "",
