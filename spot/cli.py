@@ -795,7 +795,8 @@ def _add_tables(sub: Any) -> None:
         "--use",
         action="append",
         metavar="CLAIM=EXPERIMENT",
-        help="read a claim's runs from this experiment (claims 1-6, C for the controls)",
+        help="read a claim's runs from this experiment (claims 1-6, C for the controls, F, P for the variant-paper "
+        "rows and the added-term section)",
     )
     d.add_argument(
         "--high-mode",
