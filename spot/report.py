@@ -224,11 +224,16 @@ def _experiment(df: pd.DataFrame, names: Sequence[str]) -> tuple[str, pd.DataFra
     return names[0], df.iloc[0:0]
 
 
+def _dataset_column(df: pd.DataFrame) -> str:
+    """The column that names a run's dataset: the paper's name where the results have it."""
+    return "paper_dataset" if "paper_dataset" in df else "dataset"
+
+
 def _by_dataset(df: pd.DataFrame, metric: str) -> dict[str, np.ndarray]:
     if metric not in df:
         return {}
     out = {}
-    for name, g in df.groupby("paper_dataset" if "paper_dataset" in df else "dataset", sort=True):
+    for name, g in df.groupby(_dataset_column(df), sort=True):
         v = pd.to_numeric(g[metric], errors="coerce").to_numpy(np.float64)
         v = v[np.isfinite(v)]
         if len(v):
@@ -261,7 +266,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     row.min_n = min(len(a) for a in [*sx, *sy])
     if row.stat == "last":  # the arms are the same for every statistic: counted once, shown once
-        key = "paper_dataset" if "paper_dataset" in done else "dataset"
+        key = _dataset_column(done)
         arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
         modes = [high_mode(arm, row.high_mode) for arm in arms]
         row.high = (modes[0], modes[1]) if modes[0] and modes[1] else None
@@ -581,8 +586,7 @@ def dose_response(
     done = done[_in_variant(_either(_method("spot"), _method("pt")), variant)(done)] if len(done) else done
     if done.empty:
         return dose
-    missing = [c for c in ADDED if c not in done]
-    added = done[ADDED[0]] - done[ADDED[1]] if not missing else pd.Series(np.nan, done.index)
+    added = done[ADDED[0]] - done[ADDED[1]] if all(c in done for c in ADDED) else pd.Series(np.nan, done.index)
     score = pd.to_numeric(done[METRICS["last"]], errors="coerce") if METRICS["last"] in done else np.nan
     done = done.assign(added=added, score=score)
     if lost := len(done) - len(done.dropna(subset=["added", "score"])):
@@ -591,7 +595,7 @@ def dose_response(
     if done.empty:
         return dose
     done = done.assign(arm=done.apply(_arm_label, axis=1))
-    key = "paper_dataset" if "paper_dataset" in done else "dataset"
+    key = _dataset_column(done)
     if done[key].nunique() > 1:
         dose.notes.append(
             f"runs of {done[key].nunique()} datasets pooled: scores of different datasets are ranked together"

@@ -19,6 +19,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy import stats as sps
@@ -30,6 +31,30 @@ SUPPORTED, NOT_SUPPORTED, INCONCLUSIVE, TOO_FEW = ("supported", "not supported",
 
 def _arrays(strata: Sequence[Sequence[float]]) -> list[np.ndarray]:
     return [np.asarray(s, dtype=np.float64).ravel() for s in strata]
+
+
+def _bootstrap(
+    samples: Sequence[np.ndarray],
+    statistic: Callable[..., np.ndarray],
+    *,
+    paired: bool,
+    vectorized: bool,
+    confidence: float = CONFIDENCE,
+    n_resamples: int = N_RESAMPLES,
+    seed: int = 0,
+) -> Any:
+    """SciPy's bootstrap with percentile intervals, seeded: independent resamples of each sample,
+    or (``paired``) of the samples' positions together."""
+    return sps.bootstrap(
+        tuple(samples),
+        statistic,
+        n_resamples=n_resamples,
+        confidence_level=confidence,
+        method="percentile",
+        vectorized=vectorized,
+        paired=paired,
+        rng=np.random.default_rng(seed),
+    )
 
 
 def bootstrap_ci(
@@ -51,15 +76,8 @@ def bootstrap_ci(
     if all(np.ptp(a) == 0 for a in arrays):  # every resample gives the same value
         v = float(statistic(*arrays, axis=-1))
         return v, v
-    res = sps.bootstrap(
-        tuple(arrays),
-        statistic,
-        n_resamples=n_resamples,
-        confidence_level=confidence,
-        method="percentile",
-        vectorized=True,
-        paired=False,
-        rng=np.random.default_rng(seed),
+    res = _bootstrap(
+        arrays, statistic, paired=False, vectorized=True, confidence=confidence, n_resamples=n_resamples, seed=seed
     )
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
@@ -164,16 +182,7 @@ def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -
         return Estimate(value, float("nan"), float("nan"), len(a))
     with warnings.catch_warnings():  # the constant resamples (their rho is nan, left out below)
         warnings.simplefilter("ignore", (sps.ConstantInputWarning, sps.DegenerateDataWarning, RuntimeWarning))
-        res = sps.bootstrap(
-            (a, b),
-            lambda u, v: sps.spearmanr(u, v).statistic,
-            n_resamples=N_RESAMPLES,
-            confidence_level=CONFIDENCE,
-            method="percentile",
-            vectorized=False,
-            paired=True,
-            rng=np.random.default_rng(seed),
-        )
+        res = _bootstrap((a, b), lambda u, v: sps.spearmanr(u, v).statistic, paired=True, vectorized=False, seed=seed)
     tail = 100 * (1 - CONFIDENCE) / 2
     low, high = np.nanpercentile(res.bootstrap_distribution, [tail, 100 - tail])
     return Estimate(value, float(low), float(high), len(a))
