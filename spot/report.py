@@ -249,6 +249,26 @@ def _failures(df: pd.DataFrame, select: Filter, label: str) -> list[str]:
     return [f"{label}: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + " (not counted)"]
 
 
+def _mixed_data(
+    done: pd.DataFrame, arms: tuple[Filter, Filter], shared: Sequence[str], labels: tuple[str, str]
+) -> list[str]:
+    """A note per compared dataset whose runs were trained on more than one data digest (a dataset
+    rebuilt with other numerics, another build seed or size): the arms may not share their data."""
+    if "data_digest" not in done:
+        return []
+    key, out = _dataset_column(done), []
+    for name in shared:
+        counts = []
+        for select, label in zip(arms, labels, strict=True):
+            arm = done[select(done) & (done[key].astype(str) == name)]
+            counts.append((label, arm["data_digest"].dropna().astype(str).value_counts().sort_index()))
+        digests = set().union(*(set(c.index) for _, c in counts))
+        if len(digests) > 1:
+            who = "; ".join(f"{label}: " + ", ".join(f"{n} on {d[:12]}" for d, n in c.items()) for label, c in counts)
+            out.append(f"{name}: the runs span {len(digests)} data digests ({who}); the arms may not share their data")
+    return out
+
+
 def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
     """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
     done = finished(df)
@@ -259,6 +279,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
         row.notes.append(f"{name} left out: only {labels[0] if name in xs else labels[1]} has finished runs")
     if not shared:
         return row
+    row.notes += _mixed_data(done, (x, y), shared, labels)
     sx, sy = [xs[d] for d in shared], [ys[d] for d in shared]
     row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
     row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement)

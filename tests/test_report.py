@@ -451,3 +451,18 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
     assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
     text = "\n".join(report.format_dose(dose))
     assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text
+
+
+def test_a_comparison_over_runs_on_different_data_says_so(runs):
+    assert not any("data digests" in n for r in report.build(runs) for n in r.notes)
+    mixed = runs.copy()
+    pt_hopper = mixed.index[
+        (mixed["method"] == "pt") & (mixed["dataset"] == "hopper-medium-replay") & (mixed["status"] == "FINISHED")
+    ]
+    mixed.loc[pt_hopper[:1], "data_digest"] = "rebuilt-elsewhere-0123"
+    r = _row(report.build(mixed), "1", "spot vs pt")
+    assert (
+        "hopper-medium-replay: the runs span 2 data digests (spot: 3 on digest-hoppe; "
+        "pt: 2 on digest-hoppe, 1 on rebuilt-else); the arms may not share their data"
+    ) in r.notes
+    assert not any(n.startswith("walker2d-medium-replay: the runs span") for n in r.notes)
