@@ -263,7 +263,87 @@ def bench_cvae(small: bool = False) -> dict[str, Any]:
     }
 
 
-BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": bench_cvae}
+def sac_step_parts(env: str, cfg: Any, capacity: int, chunks: int, acts: int) -> dict[str, float]:
+    """The three parts of one environment step of the locomotion recipe's SAC (one update per step):
+    an update of its train chunk (``cfg.update_every`` updates, batches drawn from ``capacity`` random
+    rows), one stochastic action of its jitted actor and one step of the env (``hopper`` or
+    ``walker2d``, in the model the recipe uses), each in milliseconds, and the environment steps per
+    second their sum allows. Evaluations (10 deterministic episodes every 10k steps) are not counted."""
+    import jax
+    import jax.numpy as jnp
+
+    from spot import envs
+    from spot.policy import sac
+    from spot.recipes.locomotion import ENV_IDS
+
+    gym_env = sac.make_env(ENV_IDS[env], cfg, **dict(envs.locomotion_make_kwargs(env)))
+    obs_dim, act_dim = gym_env.observation_space.shape[0], gym_env.action_space.shape[0]
+    rng = np.random.default_rng(0)
+    shapes = {"observations": (obs_dim,), "next_observations": (obs_dim,), "actions": (act_dim,)}
+    replay = sac.Replay(
+        *(jnp.asarray(rng.standard_normal((capacity, *shapes.get(k, ())), np.float32)) for k in sac.Replay._fields)
+    )
+    state = sac.init_state(jax.random.key(0), obs_dim, act_dim, cfg)
+    args = (replay, jnp.int32(capacity), jax.random.key(1), cfg, cfg.update_every)
+    t0 = time.perf_counter()
+    state, metrics = sac.train_chunk(state, *args)  # compile and warm up
+    jax.block_until_ready(state)
+    compile_s = time.perf_counter() - t0
+    t0, c0 = time.perf_counter(), cpu_seconds()
+    for i in range(chunks):
+        state, metrics = sac.train_chunk(
+            state, replay, jnp.int32(capacity), jax.random.key(2 + i), cfg, cfg.update_every
+        )
+    jax.block_until_ready(state)
+    update_s, update_cpu_s = (time.perf_counter() - t0) / (chunks * cfg.update_every), cpu_seconds() - c0
+    obs, _ = gym_env.reset(seed=0)
+    params, key = state.actor.params, jax.random.key(3)
+    np.asarray(sac._act_at(params, obs, key, 0, False, cfg))  # compile
+    t_act = t_env = 0.0
+    for t in range(acts):
+        t0 = time.perf_counter()
+        action = np.asarray(sac._act_at(params, obs, key, t, False, cfg))
+        t1 = time.perf_counter()
+        obs, _, terminated, truncated, _ = gym_env.step(action)
+        t_env += time.perf_counter() - t1
+        t_act += t1 - t0
+        if terminated or truncated:
+            obs, _ = gym_env.reset()
+    gym_env.close()
+    act_s, env_s = t_act / acts, t_env / acts
+    return {
+        "update_ms": 1e3 * update_s,
+        "update_cpus": update_cpu_s / (update_s * chunks * cfg.update_every),
+        "act_ms": 1e3 * act_s,
+        "env_step_ms": 1e3 * env_s,
+        "steps_per_s": 1.0 / (update_s + act_s + env_s),
+        "hours_per_1m_steps": 1e6 * (update_s + act_s + env_s) / 3600.0,
+        "compile_s": compile_s,
+        "peak_rss_mb": peak_rss_mb(),
+    }
+
+
+def bench_sac(small: bool = False, env: str | None = None) -> dict[str, Any]:
+    from spot.policy import sac
+
+    env = env or "walker2d"
+    if small:
+        cfg, capacity, chunks, acts = (
+            sac.SACConfig(hidden_dims=(32, 32), batch_size=64, update_every=100),
+            10_000,
+            2,
+            200,
+        )
+    else:
+        cfg, capacity, chunks, acts = sac.SACConfig(), 1_000_000, 3, 2000
+    return {
+        "what": f"SAC steps of the {env} recipe (batch {cfg.batch_size}, {cfg.hidden_dims}, one update per step, "
+        f"{capacity} buffer rows)",
+        **sac_step_parts(env, cfg, capacity, chunks, acts),
+    }
+
+
+BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": bench_cvae, "sac": bench_sac}
 
 
 def format_result(name: str, result: dict[str, Any]) -> str:

@@ -263,6 +263,10 @@ def _bench(args: argparse.Namespace) -> int | None:
         raise SpotError(f"spot bench {args.what}: --seeds (seeds as a vmap axis) goes with iql and pt")
     if args.what == "relabel":
         kwargs["mode"] = args.mode
+    if args.what == "sac":
+        kwargs["env"] = args.env
+    elif args.env:
+        raise SpotError(f"spot bench {args.what}: --env goes with 'spot bench sac'")
     print(bench.format_result(args.what, bench.BENCHES[args.what](**kwargs)))
 
 
@@ -684,9 +688,9 @@ def _add_run(sub: Any) -> None:
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
         "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
-        "spot bench sweep sweeps/quickstart.yaml",
+        "spot bench sac --env hopper\nspot bench sweep sweeps/quickstart.yaml",
     )
-    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sweep"), help="the stage, or a whole sweep")
+    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "sweep"), help="the stage, or a whole sweep")
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
     d.add_argument("--smoke", action="store_true", help="sweep: the file's smoke block")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
@@ -694,6 +698,7 @@ def _add_run(sub: Any) -> None:
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
+    d.add_argument("--env", choices=("hopper", "walker2d"), help="sac: the locomotion recipe's env (default: walker2d)")
     d.set_defaults(fn=_bench)
 
 
