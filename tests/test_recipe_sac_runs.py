@@ -1,6 +1,7 @@
 """SAC's stop rule (target return with a step cap) and checkpoint/resume, at size tiny in Hopper-v5."""
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -93,3 +94,28 @@ def test_paper_size_trains_to_d4rl_expert_level():
     for size in locomotion.SIZES.values():
         for env in locomotion.ENV_IDS:
             assert size.checkpoint_every % size.sac_config(env).eval_every == 0
+
+
+def test_paper_fast_keeps_papers_rows_and_targets_with_a_smaller_sac():
+    paper, fast = locomotion.SIZES["paper"], locomotion.SIZES["paper-fast"]
+    assert (fast.transitions, fast.stop, fast.medium_fraction) == (paper.transitions, paper.stop, paper.medium_fraction)
+    for env in locomotion.ENV_IDS:
+        p, f = paper.sac_config(env), fast.sac_config(env)
+        assert (f.target_return, f.total_steps, f.eval_every, f.eval_episodes) == (
+            p.target_return,
+            p.total_steps,
+            p.eval_every,
+            p.eval_episodes,
+        )
+        assert (f.hidden_dims, f.batch_size, f.actor_lr, f.critic_lr) == ((128, 128), 128, 1e-3, 1e-3)
+        assert (p.hidden_dims, p.batch_size, p.actor_lr) == ((256, 256), 256, 3e-4)
+    assert locomotion.sac_cache_path(Path("c"), "walker2d", "paper-fast", 0) != locomotion.sac_cache_path(
+        Path("c"), "walker2d", "paper", 0
+    )
+
+
+def test_paper_fast_is_a_locomotion_size_only(tmp_path):
+    from spot.recipes import metaworld
+
+    with pytest.raises(SpotError, match="unknown size 'paper-fast' for dataset 'drawer-open'"):
+        metaworld.build("drawer-open", "paper-fast", 0, tmp_path, progress=False)

@@ -66,7 +66,7 @@ for _name, _desc in _MW.items():
 for _name, _desc in _ROBO.items():
     REGISTRY[_name] = Entry(_name, "robosuite", "robosuite", _desc)
 
-SIZES = ("tiny", "small", "paper")
+SIZES = ("tiny", "small", "paper", "paper-fast")  # paper-fast: locomotion only
 
 
 def canonical(name: str) -> str:
