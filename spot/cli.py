@@ -26,7 +26,8 @@ def _data_list(args: argparse.Namespace) -> None:
     print(f"{'name':28s} {'family':11s} description")
     for e in registry.REGISTRY.values():
         print(f"{e.name:28s} {e.family:11s} {e.description}")
-    print(f"\nsizes: {', '.join(registry.SIZES)}   cache dir: {registry.data_dir()} (set SPOT_DATA_DIR)")
+    sizes = ", ".join(registry.SIZES).replace("paper-fast", "paper-fast (hopper-*, walker2d-* only)")
+    print(f"\nsizes: {sizes}   cache dir: {registry.data_dir()} (set SPOT_DATA_DIR)")
     built = registry.cached()
     if built:
         print("\nbuilt:")
@@ -248,6 +249,9 @@ def _eval(args: argparse.Namespace) -> None:
 def _bench(args: argparse.Namespace) -> int | None:
     from spot import bench
 
+    for flag, value in (("--env", args.env), ("--size", args.size)):
+        if value and args.what != "sac":
+            raise SpotError(f"spot bench {args.what}: {flag} goes with 'spot bench sac'")
     if args.what == "sweep":
         if not args.file:
             raise SpotError("spot bench sweep needs the sweep file: spot bench sweep FILE [--smoke]")
@@ -264,9 +268,7 @@ def _bench(args: argparse.Namespace) -> int | None:
     if args.what == "relabel":
         kwargs["mode"] = args.mode
     if args.what == "sac":
-        kwargs["env"] = args.env
-    elif args.env:
-        raise SpotError(f"spot bench {args.what}: --env goes with 'spot bench sac'")
+        kwargs["env"], kwargs["size"] = args.env, args.size
     print(bench.format_result(args.what, bench.BENCHES[args.what](**kwargs)))
 
 
@@ -688,7 +690,7 @@ def _add_run(sub: Any) -> None:
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
         "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
-        "spot bench sac --env hopper\nspot bench sweep sweeps/quickstart.yaml",
+        "spot bench sac --env hopper --size paper-fast\nspot bench sweep sweeps/quickstart.yaml",
     )
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "sweep"), help="the stage, or a whole sweep")
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
@@ -699,6 +701,7 @@ def _add_run(sub: Any) -> None:
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
     d.add_argument("--env", choices=("hopper", "walker2d"), help="sac: the locomotion recipe's env (default: walker2d)")
+    d.add_argument("--size", choices=("paper", "paper-fast"), help="sac: the recipe's size (default: paper)")
     d.set_defaults(fn=_bench)
 
 

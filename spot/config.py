@@ -48,7 +48,7 @@ class DataConfig:
     size: str = F(
         "small",
         "size of a locally built dataset; paper-fast (locomotion only) = paper's rows and SAC stop targets "
-        "with a SAC 4x cheaper per step (128x128, batch 128, lr 1e-3; docs/datasets.md)",
+        "with a SAC ~4x cheaper per step on CPU (128x128, batch 128, lr 1e-3; docs/datasets.md)",
         choices=("tiny", "small", "paper", "paper-fast"),
     )
     build_seed: int = F(0, "seed of the local recipe that builds the dataset", range=(0, None))
@@ -1124,6 +1124,11 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
         cfg.cvae.schedule == "offline" or cfg.subgoal.source == "attention",
         "cvae.schedule=online trains on the attention subgoals of each minibatch; the control "
         "subgoal.source=random needs cvae.schedule=offline",
+    )
+    _rule(
+        cfg.data.size != "paper-fast" or suite_of(cfg.data.name) in (None, "locomotion"),
+        f"data.size=paper-fast is a size of the locomotion recipes (hopper-*, walker2d-*); "
+        f"data.name={cfg.data.name!r} is built at tiny, small or paper",
     )
     _rule(
         kind != "hpl" or cfg.labels.segment_length <= cfg.hpl.seq_len,

@@ -269,6 +269,20 @@ def _mixed_data(
     return out
 
 
+def _digest_spread(runs: pd.DataFrame) -> list[str]:
+    """The same note for a set of runs without arms (claim 4's cells, the dose section): per dataset
+    with more than one data digest, how many runs are on each."""
+    if "data_digest" not in runs or runs.empty:
+        return []
+    out = []
+    for name, g in runs.groupby(_dataset_column(runs), sort=True):
+        counts = g["data_digest"].dropna().astype(str).value_counts().sort_index()
+        if len(counts) > 1:
+            who = ", ".join(f"{n} on {d[:12]}" for d, n in counts.items())
+            out.append(f"{name}: the runs span {len(counts)} data digests ({who}); they may not share their data")
+    return out
+
+
 def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
     """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
     done = finished(df)
@@ -347,6 +361,7 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
         for s, c in zip(strata, cells, strict=True):
             s.append(c)
         row.datasets.append(f"{name} ({few} vs {most} queries)")
+        row.notes += _digest_spread(g[g["method"].isin(("spot", "pt")) & qs.isin((few, most))])
     if not strata[0]:
         return row
     m = len(strata[0])
@@ -616,6 +631,7 @@ def dose_response(
     if done.empty:
         return dose
     done = done.assign(arm=done.apply(_arm_label, axis=1))
+    dose.notes += _digest_spread(done)
     key = _dataset_column(done)
     if done[key].nunique() > 1:
         dose.notes.append(

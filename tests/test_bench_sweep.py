@@ -297,17 +297,21 @@ def test_trials_reuse_one_process_and_give_a_fresh_process_numbers(benched, tmp_
 
 
 def test_bench_sac_times_the_three_parts_of_a_recipe_step_and_env_goes_with_sac_only():
-    out = run_cli("bench", "sac", "--small", "--env", "hopper")
+    out = run_cli("bench", "sac", "--small", "--env", "hopper", "--size", "paper-fast")
     assert out.returncode == 0, out.stderr
     figures = {
         line.split()[0]: float(line.split()[1].replace(",", ""))
         for line in out.stdout.splitlines()[1:]
         if line.split()[0] != "device"
     }
-    assert out.stdout.startswith("[sac] SAC steps of the hopper recipe (batch 64, (32, 32)")
+    assert out.stdout.startswith(
+        "[sac] SAC steps of the hopper recipe at size paper-fast (--small) (batch 64, (32, 32)"
+    )
     parts_s = (figures["update_ms"] + figures["act_ms"] + figures["env_step_ms"]) / 1e3
     assert min(figures["update_ms"], figures["act_ms"], figures["env_step_ms"]) > 0
     assert figures["steps_per_s"] == pytest.approx(1 / parts_s, rel=0.01)  # printed to 3 decimals
     assert figures["hours_per_1m_steps"] == pytest.approx(1e6 * parts_s / 3600, rel=0.01)
     out = run_cli("bench", "iql", "--small", "--env", "hopper")
     assert out.returncode == 2 and out.stderr.strip() == "error: spot bench iql: --env goes with 'spot bench sac'"
+    out = run_cli("bench", "sweep", "sweeps/quickstart.yaml", "--size", "paper-fast")
+    assert out.returncode == 2 and out.stderr.strip() == "error: spot bench sweep: --size goes with 'spot bench sac'"

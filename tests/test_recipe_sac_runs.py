@@ -107,15 +107,32 @@ def test_paper_fast_keeps_papers_rows_and_targets_with_a_smaller_sac():
             p.eval_every,
             p.eval_episodes,
         )
-        assert (f.hidden_dims, f.batch_size, f.actor_lr, f.critic_lr) == ((128, 128), 128, 1e-3, 1e-3)
+        assert (f.hidden_dims, f.batch_size, f.actor_lr, f.critic_lr, f.temperature_lr) == (
+            (128, 128),
+            128,
+            1e-3,
+            1e-3,
+            1e-3,
+        )
         assert (p.hidden_dims, p.batch_size, p.actor_lr) == ((256, 256), 256, 3e-4)
-    assert locomotion.sac_cache_path(Path("c"), "walker2d", "paper-fast", 0) != locomotion.sac_cache_path(
-        Path("c"), "walker2d", "paper", 0
-    )
+    # the cache name ends in a hash of the SAC settings: a paper-fast run is never taken for a paper one
+    digests = [
+        locomotion.sac_cache_path(Path("c"), "walker2d", s, 0).stem.rsplit("__", 1)[1] for s in ("paper", "paper-fast")
+    ]
+    assert digests[0] != digests[1]
 
 
-def test_paper_fast_is_a_locomotion_size_only(tmp_path):
-    from spot.recipes import metaworld
+def test_paper_fast_is_a_locomotion_size_only(tmp_path, monkeypatch):
+    from spot import config
+    from spot.data import registry
 
-    with pytest.raises(SpotError, match="unknown size 'paper-fast' for dataset 'drawer-open'"):
-        metaworld.build("drawer-open", "paper-fast", 0, tmp_path, progress=False)
+    monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path))
+    for name, recipe in (("drawer-open", "metaworld"), ("lift-ph", "robosuite")):
+        with pytest.raises(
+            SpotError, match=f"size 'paper-fast' is not built for dataset '{name}' \\({recipe} recipe\\)"
+        ):
+            registry.build(name, "paper-fast", 0, progress=False)
+    assert list(tmp_path.iterdir()) == []  # refused before any lock or file
+    with pytest.raises(SpotError, match="data.size=paper-fast is a size of the locomotion recipes"):
+        config.resolve({"data.name": "drawer-open", "data.size": "paper-fast"})
+    assert config.resolve({"data.name": "walker2d-medium-replay", "data.size": "paper-fast"}).data.size == "paper-fast"

@@ -86,11 +86,13 @@ def test_claim4_difference_in_differences():
                         "params.labels.num_queries": str(q),
                         "metrics.eval/score_final": v,
                         "metrics.eval/score_best": v,
+                        "data_digest": "d-rebuilt" if (m, q, s) == ("pt", 30, 1) else "d-original",
                     }
                 )
     r = _row(report.build(pd.DataFrame(rows)), "4", "(spot")
     # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9
     assert r.effect.value == pytest.approx(9.0)
+    assert r.notes == ["h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data"]
 
 
 def test_bad_results_files_are_clear_errors(tmp_path):

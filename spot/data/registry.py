@@ -189,6 +189,12 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
     e = entry(name)
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
+    recipe_sizes = getattr(importlib.import_module(f"spot.recipes.{e.recipe}"), "SIZES", SIZES)
+    if size not in recipe_sizes:
+        raise SpotError(
+            f"size '{size}' is not built for dataset '{e.name}' ({e.recipe} recipe); its sizes: "
+            f"{', '.join(recipe_sizes)}"
+        )
     path = dataset_path(e.name, size, seed)
     with _lock(path), store.dataset_lock(path):  # the shared store (spot.store): built once, on one node
         clean_stale_temp(path.parent)
