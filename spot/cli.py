@@ -378,8 +378,9 @@ def _report(args: argparse.Namespace) -> None:
         if not sep or claim not in report.EXPERIMENTS:
             raise SpotError(f"--use {item!r}: expected CLAIM=EXPERIMENT with CLAIM one of {sorted(report.EXPERIMENTS)}")
         use[claim] = (name,)
-    dose = report.dose_response(runs, use.get("P", report.EXPERIMENTS["P"]), "paper", args.high_mode)
-    text = report.format_rows(report.build(runs, use, args.high_mode), report.format_dose(dose))
+    doses = report.dose_response(runs, use.get("P", report.EXPERIMENTS["P"]), "paper", args.high_mode)
+    extra = [line for dose in doses for line in report.format_dose(dose)]
+    text = report.format_rows(report.build(runs, use, args.high_mode), extra)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text(text)

@@ -580,10 +580,11 @@ ADDED = ("metrics.shaping/r_final_mean", "metrics.shaping/r_model_mean")  # thei
 @dataclass
 class Dose:
     """The term added to the learned reward per step against the final score, over the runs of
-    SPOT and its variants and PT (whose added term is 0) under one fidelity variant."""
+    SPOT and its variants and PT (whose added term is 0) under one fidelity variant, on one dataset."""
 
     experiment: str
     variant: str
+    dataset: str
     arms: list[dict] = field(default_factory=list)  # label, runs, added, score (stats.cell), high
     rho: stats.Estimate | None = None
     notes: list[str] = field(default_factory=list)
@@ -611,17 +612,23 @@ def _arm_label(run: pd.Series) -> str:
 
 def dose_response(
     df: pd.DataFrame, experiments: Sequence[str], variant: str = "paper", high: float = HIGH_MODE
-) -> Dose:
-    """Per arm, the mean term added per step (``shaping/r_final_mean − shaping/r_model_mean``) and
-    the final score; over runs, Spearman's ρ between the two with its paired-bootstrap CI. ρ > 0
-    (CI above 0) says the score rises with the size of the added term, whatever the term is made of:
-    the survival-bonus reading of rows CP. A description of the runs, not a claim of the paper."""
+) -> list[Dose]:
+    """Per dataset (scores of different datasets are never ranked together) and per arm, the mean
+    term added per step (``shaping/r_final_mean − shaping/r_model_mean``) and the final score; over
+    the dataset's runs, Spearman's ρ between the two with its paired-bootstrap CI. ρ > 0 (CI above
+    0) says the score rises with the size of the added term, whatever the term is made of: the
+    survival-bonus reading of rows CP. A description of the runs, not a claim of the paper."""
     name, sub = _experiment(df, experiments)
-    dose = Dose(name, variant)
     done = finished(sub)
     done = done[_in_variant(_either(_method("spot"), _method("pt")), variant)(done)] if len(done) else done
     if done.empty:
-        return dose
+        return []
+    return [_dose(g, name, variant, str(ds), high) for ds, g in done.groupby(_dataset_column(done), sort=True)]
+
+
+def _dose(done: pd.DataFrame, experiment: str, variant: str, dataset: str, high: float) -> Dose:
+    """:func:`dose_response` on one dataset's finished runs."""
+    dose = Dose(experiment, variant, dataset)
     added = done[ADDED[0]] - done[ADDED[1]] if all(c in done for c in ADDED) else pd.Series(np.nan, done.index)
     score = pd.to_numeric(done[METRICS["last"]], errors="coerce") if METRICS["last"] in done else np.nan
     done = done.assign(added=added, score=score)
@@ -632,11 +639,6 @@ def dose_response(
         return dose
     done = done.assign(arm=done.apply(_arm_label, axis=1))
     dose.notes += _digest_spread(done)
-    key = _dataset_column(done)
-    if done[key].nunique() > 1:
-        dose.notes.append(
-            f"runs of {done[key].nunique()} datasets pooled: scores of different datasets are ranked together"
-        )
     for label, g in done.groupby("arm"):
         dose.arms.append(
             {
@@ -657,7 +659,8 @@ def format_dose(dose: Dose) -> list[str]:
     if not dose.arms:
         return []
     lines = [
-        f"### The term added to the reward per step vs the final score (variant {dose.variant}, {dose.experiment})",
+        f"### The term added to the reward per step vs the final score on {dose.dataset} "
+        f"(variant {dose.variant}, {dose.experiment})",
         "",
         "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold |",
         "|---|---|---|---|---|",

@@ -92,7 +92,9 @@ def test_claim4_difference_in_differences():
     r = _row(report.build(pd.DataFrame(rows)), "4", "(spot")
     # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9
     assert r.effect.value == pytest.approx(9.0)
-    assert r.notes == ["h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data"]
+    assert r.notes == [
+        "h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data"
+    ]
 
 
 def test_bad_results_files_are_clear_errors(tmp_path):
@@ -433,7 +435,8 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
         ],
         ignore_index=True,
     )
-    dose = report.dose_response(frame, report.EXPERIMENTS["P"])
+    (dose,) = report.dose_response(frame, report.EXPERIMENTS["P"])
+    assert dose.dataset == "hopper-medium-replay"
     arms = {a["label"]: a for a in dose.arms}
     assert list(arms) == ["PT", "SPOT, cosine λ=0.1", "SPOT, cosine λ=1"]
     assert arms["SPOT, cosine λ=0.1"]["added"] == pytest.approx(0.07) and arms["PT"]["runs"] == 3
@@ -453,6 +456,37 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
     assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
     text = "\n".join(report.format_dose(dose))
     assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text
+    assert "final score on hopper-medium-replay (variant paper" in text
+
+
+def test_dose_response_ranks_each_dataset_on_its_own(runs):
+    # the same arms on a second dataset: Walker2d's scores sit lower, so pooling the 12 runs would rank them
+    # against Hopper's; per dataset each ranking is exact (rho 1: scores rise with the added term on both)
+    arm = functools.partial(_paper_arm, runs)
+
+    def shaped(frame, added, dataset):
+        cols = {"metrics.shaping/r_model_mean": 0.5, "metrics.shaping/r_final_mean": [0.5 + a for a in added]}
+        return frame.assign(dataset=dataset, paper_dataset=dataset, **cols)
+
+    hop, walk = "hopper-medium-replay", "walker2d-medium-replay"
+    frame = pd.concat(
+        [
+            shaped(arm("lab_variant_rows", "pt", [20.0, 21.0, 22.0], method="pt"), [0.0, 0.01, 0.02], hop),
+            shaped(arm("lab_fidelity", "sp", [60.0, 70.0, 80.0]), [0.6, 0.65, 0.7], hop),
+            shaped(arm("lab_variant_rows", "wpt", [2.0, 3.0, 4.0], method="pt"), [0.0, 0.01, 0.02], walk),
+            shaped(arm("lab_fidelity", "wsp", [5.0, 6.0, 7.0]), [0.6, 0.65, 0.7], walk),
+        ],
+        ignore_index=True,
+    )
+    doses = report.dose_response(frame, report.EXPERIMENTS["P"])
+    assert [d.dataset for d in doses] == [hop, walk]
+    for d in doses:
+        assert d.rho.value == pytest.approx(1.0) and d.rho.n == 6
+        assert [a["runs"] for a in d.arms] == [3, 3] and not any("pooled" in n for n in d.notes)
+    assert doses[1].arms[1]["score"]["mean"] == pytest.approx(6.0)
+    # pooled, the ranking would not be exact: Walker2d's SPOT runs (5-7) rank below Hopper's PT runs (20-22)
+    added = frame["metrics.shaping/r_final_mean"] - frame["metrics.shaping/r_model_mean"]
+    assert added.corr(frame["metrics.eval/score_final"], "spearman") < 0.9
 
 
 def test_a_comparison_over_runs_on_different_data_says_so(runs):
