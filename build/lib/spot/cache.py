@@ -1,0 +1,589 @@
+"""Content-addressed stage cache, stored as data only.
+
+Each pipeline stage's output is stored under a key hashed from everything it depends on (the
+dataset's fingerprint, labels, its config section, the seed) and from the code the stage runs
+(:func:`code_version`: the bytecode, constants and defaults of the stage function, the helpers it
+calls and every spot module it uses, as loaded in this process), so editing a stage or a module it
+uses retires its old entries without a hand-bumped number; comments and line numbers do not count,
+and a file edited while a process runs does not change that process's keys (they name the code
+that computed the entry). A run that changes only the shaping weight therefore reuses the reward
+model and the CVAE of an earlier run.
+
+Entries hold data only and reading one never runs code from it. An entry is one ``.npz`` file (read
+with ``allow_pickle=False``): the output's numpy arrays plus a JSON description of the tree around
+them (dicts, lists, tuples, numbers, strings, None, and NamedTuples or dataclasses *defined in
+spot* by qualified name, rebuilt from their fields) and a SHA-256 digest of both. An entry that is
+truncated, fails its digest, holds a pickle or an object array, names a type outside spot or
+has any other wrong structure is reported, deleted and recomputed, never used. Entries of the
+older pickle format (``<key>.pkl``) are never opened.
+
+Entries are read and written through the store (:mod:`spot.store`): ``<store>/stages/<key>.npz``
+when ``$SPOT_STORE`` names one (a shared folder or ``s3://bucket/prefix``), else the cache dir
+``$SPOT_CACHE_DIR`` (default ``~/.cache/spot/stages``). Writes are atomic (a temporary name renamed
+into place; one PUT on S3). :func:`cached` computes a missing entry under the store's lock on its
+key, so trials that need the same entry at the same time, on one machine or on several, compute it
+once: the others wait for the lock and then read the entry.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import dis
+import functools
+import hashlib
+import importlib
+import io
+import json
+import os
+import sys
+import types
+import warnings
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = 2  # the entry format; part of every key (format 1 was pickles)
+PACKAGE = "spot"
+# Modules whose code a stage's key does not cover: the config only declares fields, and the values
+# a stage reads are in its deps.
+NOT_CODE = frozenset({"spot.config"})
+
+
+class EntryError(ValueError):
+    """A stage-cache entry that cannot be used (corrupt, foreign or of the wrong structure)."""
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("SPOT_CACHE_DIR", Path.home() / ".cache" / "spot" / "stages")).expanduser()
+
+
+# --------------------------------------------------------------------------- code versions
+def _const_repr(c: Any) -> str:
+    """A process-independent repr of a code constant (frozensets sorted: their order follows string
+    hashes, which differ between processes)."""
+    if isinstance(c, (frozenset, set)):
+        return "{" + ",".join(sorted(_const_repr(x) for x in c)) + "}"
+    if isinstance(c, (tuple, list)):
+        return "(" + ",".join(_const_repr(x) for x in c) + ")"
+    if isinstance(c, dict):
+        return "{" + ",".join(sorted(f"{_const_repr(k)}:{_const_repr(v)}" for k, v in c.items())) + "}"
+    if isinstance(c, (int, float, complex, str, bytes, bool, type(None), type(Ellipsis))):
+        return repr(c)
+    target = _unwrap(c)  # a function, class or other object as a default value: by name, never by address
+    name = getattr(target, "__qualname__", None) or type(target).__qualname__
+    return f"<{getattr(target, '__module__', None) or type(target).__module__}.{name}>"
+
+
+def _walk_code(co: types.CodeType) -> Iterator[types.CodeType]:
+    yield co
+    for c in co.co_consts:
+        if isinstance(c, types.CodeType):
+            yield from _walk_code(c)
+
+
+def _hash_code(co: types.CodeType, h: Any) -> None:
+    for c in _walk_code(co):
+        h.update(c.co_code)
+        h.update(repr(c.co_names).encode())
+        h.update(repr([_const_repr(k) for k in c.co_consts if not isinstance(k, types.CodeType)]).encode())
+
+
+def _imports_in(co: types.CodeType, package: str | None) -> set[str]:
+    """Modules named by the ``import`` statements inside a function (``IMPORT_NAME``/``IMPORT_FROM``)."""
+    out: set[str] = set()
+    for c in _walk_code(co):
+        current = None
+        instructions = list(dis.get_instructions(c))
+        for i, ins in enumerate(instructions):
+            if ins.opname == "IMPORT_NAME":
+                level = instructions[i - 2].argval if i >= 2 and instructions[i - 2].opname == "LOAD_CONST" else 0
+                current = ins.argval
+                if isinstance(level, int) and level > 0 and package:  # from .x import y
+                    base = package.rsplit(".", level - 1)[0] if level > 1 else package
+                    current = f"{base}.{current}" if current else base
+                out.add(current)
+            elif ins.opname == "IMPORT_FROM" and current is not None:
+                out.add(f"{current}.{ins.argval}")
+    return out
+
+
+def _plain(value: Any) -> bool:
+    """Data a definition may read as a constant: scalars, strings and containers of them."""
+    if isinstance(value, (int, float, str, bytes, bool, type(None))):
+        return True
+    if isinstance(value, (tuple, list, frozenset, set)):
+        return all(_plain(v) for v in value)
+    if isinstance(value, dict):
+        return all(_plain(k) and _plain(v) for k, v in value.items())
+    return False
+
+
+def _state_names(glb: Mapping[str, Any]) -> frozenset[str]:
+    """Globals of a module that hold process state, not code: the names its functions assign with
+    ``global`` (``STORE_GLOBAL``) and private mutable containers (``_seen: set = set()``). Their
+    values change as a process runs (a reused Ray actor runs trial after trial), so they are left
+    out of code versions."""
+    name = glb.get("__name__")
+    if name in _STATE_CACHE:
+        return _STATE_CACHE[name]
+    out = {k for k, v in glb.items() if k.startswith("_") and isinstance(v, (set, list, dict))}
+    for value in list(glb.values()):
+        target = _unwrap(value)
+        if getattr(target, "__module__", None) != name:
+            continue
+        codes = [target.__code__] if hasattr(target, "__code__") else []
+        if isinstance(target, type):
+            codes += [_unwrap(v).__code__ for v in vars(target).values() if hasattr(_unwrap(v), "__code__")]
+        for co in codes:
+            for c in _walk_code(co):
+                out.update(i.argval for i in dis.get_instructions(c) if i.opname in ("STORE_GLOBAL", "DELETE_GLOBAL"))
+    result = frozenset(out)
+    if isinstance(name, str):
+        _STATE_CACHE[name] = result
+    return result
+
+
+_STATE_CACHE: dict[str, frozenset[str]] = {}
+
+
+def _usable(value: Any) -> bool:
+    """A global a definition's code may run: a module, a function or a class."""
+    target = _unwrap(value)
+    return isinstance(target, (types.ModuleType, type)) or hasattr(target, "__code__")
+
+
+def _unwrap(obj: Any) -> Any:
+    while True:
+        if isinstance(obj, (staticmethod, classmethod)):
+            obj = obj.__func__
+        elif isinstance(obj, property):
+            obj = obj.fget
+        elif isinstance(obj, functools.partial):
+            obj = obj.func
+        elif hasattr(obj, "__wrapped__") and not isinstance(obj, type):
+            obj = obj.__wrapped__
+        else:
+            return obj
+
+
+class _Code:
+    """Digests of the code a stage runs, as loaded in this process: functions by their bytecode,
+    constants and defaults; modules by all the functions and classes they define."""
+
+    def __init__(self, package: str) -> None:
+        self.package = package
+        self.parts: dict[str, str] = {}
+
+    def _in_package(self, name: str) -> bool:
+        return (name == self.package or name.startswith(self.package + ".")) and name not in NOT_CODE
+
+    def _module_of_import(self, name: str) -> str | None:
+        """The package module an import names (``a.b.c`` where ``c`` may be an attribute)."""
+        for candidate in (name, name.rpartition(".")[0]):
+            if candidate and self._in_package(candidate):
+                try:
+                    importlib.import_module(candidate)
+                except ImportError:
+                    continue
+                return candidate
+        return None
+
+    def _function(self, fn: Any, h: Any, deps: list[Any]) -> None:
+        fn = _unwrap(fn)
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            return
+        _hash_code(code, h)
+        h.update(_const_repr((fn.__defaults__ or ()) + tuple(sorted((fn.__kwdefaults__ or {}).items()))).encode())
+        glb = getattr(fn, "__globals__", {})
+        state = _state_names(glb)
+        for c in _walk_code(code):
+            for name in c.co_names:
+                # Dunder globals (``__file__``, ``__name__``) say where the code is installed, not
+                # what it does: hashed, two checkouts (or nodes sharing a store) would never share entries.
+                if name in glb and name not in state and not (name.startswith("__") and name.endswith("__")):
+                    value = glb[name]
+                    if _plain(value):
+                        h.update(f"{name}={_const_repr(value)}".encode())
+                    elif _usable(value):
+                        deps.append(value)
+        deps.extend(sorted(_imports_in(code, glb.get("__package__"))))
+
+    def _object(self, obj: Any, h: Any, deps: list[Any]) -> None:
+        """A function or a class (its methods, class attributes and dataclass fields)."""
+        obj = _unwrap(obj)
+        if isinstance(obj, type):
+            for name, value in sorted(vars(obj).items()):
+                value = _unwrap(value)
+                if hasattr(value, "__code__"):
+                    h.update(name.encode())
+                    self._function(value, h, deps)
+                elif _plain(value) and not name.startswith("__"):
+                    h.update(f"{name}={_const_repr(value)}".encode())
+            if dataclasses.is_dataclass(obj):
+                for f in dataclasses.fields(obj):
+                    default = f.default if _plain(f.default) else type(f.default).__name__
+                    h.update(f"field {f.name}={_const_repr(default)}".encode())
+        else:
+            self._function(obj, h, deps)
+
+    def _follow(self, deps: list[Any]) -> None:
+        for dep in deps:
+            if isinstance(dep, str):
+                module = self._module_of_import(dep)
+                if module is not None:
+                    self.add_module(module)
+            elif isinstance(dep, types.ModuleType):
+                if self._in_package(dep.__name__):
+                    self.add_module(dep.__name__)
+            else:
+                module = getattr(_unwrap(dep), "__module__", None)
+                if isinstance(module, str) and self._in_package(module):
+                    self.add_module(module)
+
+    def add_module(self, name: str) -> None:
+        if name in self.parts or not self._in_package(name):
+            return
+        self.parts[name] = ""  # placeholder: import cycles end here
+        module = importlib.import_module(name)
+        h, deps = hashlib.sha256(), []
+        state = _state_names(vars(module))
+        for attr, value in sorted(vars(module).items()):
+            if attr in state:
+                continue
+            target = _unwrap(value)
+            if getattr(target, "__module__", None) == name and (
+                isinstance(target, type) or hasattr(target, "__code__")
+            ):
+                h.update(attr.encode())
+                self._object(target, h, deps)
+            elif _plain(value) and not attr.startswith("__"):
+                h.update(f"{attr}={_const_repr(value)}".encode())
+            elif isinstance(value, types.ModuleType) and value.__name__.startswith(name + "."):
+                continue  # a submodule: the import system sets it on its package, the package does not use it
+            elif _usable(value):
+                deps.append(value)
+        self.parts[name] = h.hexdigest()
+        self._follow(deps)
+
+    def add_definition(self, module: str, name: str) -> None:
+        """A module-level function or class, the definitions of its module it uses, and the
+        package modules it uses (whole)."""
+        ref = f"{module}:{name}"
+        if ref in self.parts or module in self.parts:
+            return
+        self.parts[ref] = ""
+        mod = importlib.import_module(module)
+        obj = getattr(mod, name, None)
+        if obj is None:
+            raise ValueError(f"cannot find {name!r} in module {module!r}")
+        h, deps = hashlib.sha256(), []
+        self._object(obj, h, deps)
+        self.parts[ref] = h.hexdigest()
+        for dep in deps:
+            target = _unwrap(dep) if not isinstance(dep, str) else dep
+            own = getattr(target, "__module__", None) == module and getattr(target, "__name__", None) in vars(mod)
+            if own and (isinstance(target, type) or hasattr(target, "__code__")):
+                self.add_definition(module, target.__name__)
+            else:
+                self._follow([dep])
+
+
+def code_parts(fn: Callable[..., Any], package: str = PACKAGE) -> dict[str, str]:
+    """``name -> digest`` of the code a stage runs, as loaded in this process: the module-level
+    function or class that defines ``fn`` (the enclosing stage function of a closure or lambda;
+    the class of a callable instance), the functions and classes of its module that this uses, and
+    every module of ``package`` those use or import, transitively (module-level and function-level
+    imports; a module's digest covers every function and class it defines and its plain constants).
+    Bytecode, constants and defaults count; line numbers and comments do not."""
+    while isinstance(fn, functools.partial):
+        fn = fn.func
+    if not hasattr(fn, "__qualname__"):  # a callable instance: its class
+        fn = type(fn)
+    module, qualname = getattr(fn, "__module__", None), getattr(fn, "__qualname__", None)
+    if not module or not qualname:
+        raise ValueError(f"cannot find the code of {fn!r}; pass code= to cache.cached")
+    code = _Code(package)
+    code.add_definition(module, qualname.split(".<locals>.")[0].split(".")[0])
+    return dict(sorted(code.parts.items()))
+
+
+def code_version(fn: Callable[..., Any], package: str = PACKAGE) -> str:
+    """SHA-256 (hex, 16 chars) over :func:`code_parts`; changes when any of that code changes."""
+    h = hashlib.sha256(f"python {sys.version_info[:2]}".encode())
+    for name, digest in code_parts(fn, package).items():
+        h.update(f"{name}:{digest};".encode())
+    return h.hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------- keys
+def _canonical(obj: Any) -> Any:
+    if isinstance(obj, Mapping):
+        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {
+            "__type__": type(obj).__qualname__,
+            **{f.name: _canonical(getattr(obj, f.name)) for f in dataclasses.fields(obj)},
+        }
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return {
+            "sha256": hashlib.sha256(np.ascontiguousarray(obj).tobytes()).hexdigest(),
+            "shape": list(obj.shape),
+            "dtype": str(obj.dtype),
+        }
+    if isinstance(obj, (np.integer, np.floating, np.bool_)):
+        return obj.item()
+    return obj
+
+
+def key(stage: str, deps: Mapping[str, Any], code: str) -> str:
+    """Hash of the stage name, its code version (:func:`code_version`) and its dependencies.
+
+    Under ``SPOT_FAST_COMPILE`` (:mod:`spot.runtime`: XLA's optimisations off, which rounds
+    differently) the key also says so: a smoke run's entries never stand in for a normal run's.
+    """
+    from spot import runtime
+
+    fields = {"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)}
+    if runtime.fast_compile():
+        fields["xla"] = "fast_compile"  # only then: every other key stays what it was
+    payload = json.dumps(fields, sort_keys=True, default=str)
+    return f"{stage}-{hashlib.sha256(payload.encode()).hexdigest()[:20]}"
+
+
+# --------------------------------------------------------------------------- entry format
+def _type_ref(cls: type) -> str:
+    if "<locals>" in cls.__qualname__:
+        raise TypeError(f"stage cache: cannot store an instance of local class {cls.__qualname__}")
+    return f"{cls.__module__}:{cls.__qualname__}"
+
+
+def encode(value: Any) -> tuple[Any, dict[str, np.ndarray]]:
+    """``(tree, arrays)``: a JSON-able description of ``value`` and its arrays, named ``a0, a1, ...``."""
+    arrays: dict[str, np.ndarray] = {}
+
+    def array(x: np.ndarray, kind: str) -> dict[str, Any]:
+        if x.dtype.hasobject or x.dtype.kind not in "biufc":
+            raise TypeError(f"stage cache: cannot store an array of dtype {x.dtype}")
+        name = f"a{len(arrays)}"
+        arrays[name] = np.ascontiguousarray(x)
+        return {"t": kind, "ref": name}
+
+    def enc(x: Any) -> Any:
+        if x is None:
+            return {"t": "none"}
+        if isinstance(x, np.generic):
+            return array(np.asarray(x), "scalar")
+        if isinstance(x, bool):
+            return {"t": "bool", "v": x}
+        if isinstance(x, int):
+            return {"t": "int", "v": int(x)}
+        if isinstance(x, float):
+            return {"t": "float", "v": float(x)}
+        if isinstance(x, str):
+            return {"t": "str", "v": x}
+        if isinstance(x, np.ndarray):
+            return array(x, "array")
+        if isinstance(x, tuple) and hasattr(type(x), "_fields"):
+            return {"t": "namedtuple", "type": _type_ref(type(x)), "v": [enc(v) for v in x]}
+        if dataclasses.is_dataclass(x) and not isinstance(x, type):
+            names = [f.name for f in dataclasses.fields(x)]
+            return {"t": "dataclass", "type": _type_ref(type(x)), "k": names, "v": [enc(getattr(x, n)) for n in names]}
+        if isinstance(x, (list, tuple)):
+            return {"t": type(x).__name__ if type(x) in (list, tuple) else "list", "v": [enc(v) for v in x]}
+        if isinstance(x, Mapping):
+            keys = list(x)
+            if not all(isinstance(k, (str, int)) and not isinstance(k, bool) for k in keys):
+                raise TypeError(f"stage cache: dict keys must be str or int, got {keys[:5]}")
+            return {"t": "dict", "k": keys, "v": [enc(x[k]) for k in keys]}
+        if hasattr(x, "__array__"):
+            return array(np.asarray(x), "array")
+        raise TypeError(f"stage cache: cannot store a {type(x).__module__}.{type(x).__qualname__}")
+
+    return enc(value), arrays
+
+
+def _resolve_type(ref: Any, package: str) -> type:
+    if not isinstance(ref, str) or ref.count(":") != 1:
+        raise EntryError(f"bad type reference {ref!r}")
+    module, qualname = ref.split(":")
+    if not (module == package or module.startswith(package + ".")) or "<" in qualname:
+        raise EntryError(f"type {ref!r} is not a {package} type")
+    obj: Any = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part, None)
+    if not isinstance(obj, type):
+        raise EntryError(f"type {ref!r} does not exist")
+    return obj
+
+
+def decode(tree: Any, arrays: Mapping[str, np.ndarray], package: str = PACKAGE) -> Any:
+    """Inverse of :func:`encode`; raises :class:`EntryError` on anything it did not write."""
+
+    def dec(node: Any) -> Any:
+        if not isinstance(node, dict) or not isinstance(node.get("t"), str):
+            raise EntryError(f"bad node {str(node)[:80]}")
+        t = node["t"]
+        if t == "none":
+            return None
+        if t in ("bool", "int", "float", "str"):
+            v = node.get("v")
+            kinds = {"bool": (bool,), "int": (int,), "float": (float, int), "str": (str,)}[t]
+            if not isinstance(v, kinds) or (t == "int" and isinstance(v, bool)):
+                raise EntryError(f"bad {t} value {v!r}")
+            return float(v) if t == "float" else v
+        if t in ("array", "scalar"):
+            ref = node.get("ref")
+            if not isinstance(ref, str) or ref not in arrays:
+                raise EntryError(f"missing array {ref!r}")
+            return arrays[ref][()] if t == "scalar" else arrays[ref]
+        items = node.get("v")
+        if not isinstance(items, list):
+            raise EntryError(f"bad {t} node")
+        values = [dec(v) for v in items]
+        if t == "list":
+            return values
+        if t == "tuple":
+            return tuple(values)
+        if t == "dict":
+            keys = node.get("k")
+            if not isinstance(keys, list) or len(keys) != len(values):
+                raise EntryError("bad dict node")
+            return dict(zip(keys, values, strict=True))
+        if t == "namedtuple":
+            cls = _resolve_type(node.get("type"), package)
+            if not (issubclass(cls, tuple) and len(getattr(cls, "_fields", ())) == len(values)):
+                raise EntryError(f"{node['type']} is not a NamedTuple of {len(values)} fields")
+            return cls(*values)
+        if t == "dataclass":
+            cls = _resolve_type(node.get("type"), package)
+            names = node.get("k")
+            if not dataclasses.is_dataclass(cls) or names != [f.name for f in dataclasses.fields(cls)]:
+                raise EntryError(f"{node['type']} is not a dataclass with fields {names}")
+            return cls(**dict(zip(names, values, strict=True)))
+        raise EntryError(f"unknown node type {t!r}")
+
+    try:
+        return dec(tree)
+    except (TypeError, ValueError, KeyError) as e:
+        if isinstance(e, EntryError):
+            raise
+        raise EntryError(f"cannot rebuild the stored value ({type(e).__name__}: {e})") from None
+
+
+def _digest(tree_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
+    h = hashlib.sha256(tree_bytes)
+    for name in sorted(arrays):
+        a = arrays[name]
+        h.update(f"|{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def entry_bytes(value: Any) -> bytes:
+    """``value`` as the bytes of an entry (an ``.npz``)."""
+    tree, arrays = encode(value)  # jax arrays are copied to host numpy arrays
+    tree_bytes = json.dumps(tree).encode()
+    meta = {
+        "__tree__": np.frombuffer(tree_bytes, np.uint8),
+        "__digest__": np.frombuffer(_digest(tree_bytes, arrays).encode(), np.uint8),
+    }
+    buf = io.BytesIO()
+    np.savez(buf, **meta, **arrays)
+    return buf.getvalue()
+
+
+def write_entry(path: Path, value: Any) -> None:
+    """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename."""
+    data = entry_bytes(value)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def read_entry_bytes(data: bytes, package: str = PACKAGE) -> Any:
+    """The value an entry's bytes hold; :class:`EntryError` if they cannot be used. Never unpickles."""
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            arrays = {name: npz[name] for name in npz.files}
+    except Exception as e:  # noqa: BLE001 - a truncated zip, a pickle, an object array: all unusable
+        raise EntryError(f"not a readable entry ({type(e).__name__}: {e})") from None
+    tree_bytes = arrays.pop("__tree__", np.zeros(0, np.uint8)).tobytes()
+    digest = arrays.pop("__digest__", np.zeros(0, np.uint8)).tobytes().decode("ascii", "replace")
+    if not tree_bytes or digest != _digest(tree_bytes, arrays):
+        raise EntryError("checksum mismatch")
+    try:
+        tree = json.loads(tree_bytes)
+    except ValueError as e:
+        raise EntryError(f"bad tree description ({e})") from None
+    return decode(tree, arrays, package)
+
+
+def read_entry(path: Path, package: str = PACKAGE) -> Any:
+    """The value stored at ``path``; :class:`EntryError` if the entry cannot be used. Never unpickles."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError as e:
+        raise EntryError(f"not a readable entry ({type(e).__name__}: {e})") from None
+    return read_entry_bytes(data, package)
+
+
+# --------------------------------------------------------------------------- the cache
+def _store() -> Any:
+    from spot import store as store_lib
+
+    return store_lib.stages(cache_dir())
+
+
+def entry_path(k: str) -> Path:
+    """The local file of entry ``k`` in the cache dir (the default store)."""
+    return cache_dir() / f"{k}.npz"
+
+
+def load(k: str) -> tuple[bool, Any]:
+    """``(found, value)`` of entry ``k``; an unusable entry is reported, deleted and not found."""
+    st = _store()
+    name = f"{k}.npz"
+    data = st.get_bytes(name)
+    if data is None:
+        return False, None
+    try:
+        return True, read_entry_bytes(data)
+    except EntryError as e:
+        warnings.warn(
+            f"stage cache entry {st.describe(name)} is unusable ({e}); deleting and recomputing it", stacklevel=2
+        )
+        st.delete(name)
+        return False, None
+
+
+def store(k: str, value: Any) -> None:
+    _store().put_bytes(f"{k}.npz", entry_bytes(value))
+
+
+def cached(
+    stage: str, deps: Mapping[str, Any], compute: Callable[[], Any], code: str | None = None
+) -> tuple[Any, bool, str]:
+    """``(value, hit, key)``: the cached value for ``deps``, or ``compute()`` stored under it.
+
+    A miss is computed under the store's lock on the key: a process that finds the lock held
+    waits, then reads the entry the holder stored (a hit). ``code`` is the stage's code version;
+    by default :func:`code_version` of ``compute`` (the code of the stage function that defines it
+    and of what that runs).
+    """
+    k = key(stage, deps, code if code is not None else code_version(compute))
+    found, value = load(k)
+    if found:
+        return value, True, k
+    with _store().lock(k):
+        found, value = load(k)  # computed by another process while this one waited
+        if found:
+            return value, True, k
+        value = compute()
+        store(k, value)
+    return value, False, k

@@ -1,0 +1,246 @@
+"""Several seeds of one config in one process, IQL trained for all of them as one vmapped program.
+
+:func:`run` is :func:`spot.pipeline.run` for seeds ``s_1 .. s_S`` of a config (``seed_mode: vmap``
+in a sweep file). Each seed gets its own run (its own MLflow run, or the tracker given), and
+the stages before the policy (labels, reward model, relabelling, subgoals, CVAE, shaping,
+diagnostics) run per seed, one seed after another, through the stage cache as in a one-seed run,
+with two exceptions: the MR/PT reward models of the seeds that miss the stage cache are trained
+as one vmapped program first (:func:`vmapped_rewards`, :mod:`spot.reward.vmapped`), and so are
+their offline CVAEs once every seed's subgoals are extracted (:func:`vmapped_cvaes`,
+:mod:`spot.subgoal.vmapped`); each is stored by its seed's stage. A vmap trial's stage-cache
+entries are kept apart from one-seed runs' (:data:`KEY_EXTRA`). IQL then trains all seeds as
+**one** ``jit(vmap(chunk))`` over a leading seed axis
+(:func:`spot.policy.iql.make_vmapped_train_chunk`): the observations, actions and masks are
+shared, each seed has its own reward (its reward model's, shaped by its CVAE), initial networks
+and minibatch keys, derived from its seed exactly as in a one-seed run. After each stretch of
+updates every seed's policy is evaluated in the env with that seed's episodes and logged to its
+own run, and each run gets its own learning curve, ``models/policy`` and final metrics
+(:func:`spot.stages.finish`). The per-seed results equal one-seed runs' to float tolerance
+(batched matmuls round differently): ``tests/test_multiseed.py``.
+
+Per-seed timings: ``time/iql_s`` of every seed is the wall time of the shared vmapped training
+(the evaluations excluded), ``time/eval_s`` that seed's own evaluations, ``time/total_s`` the
+whole multi-seed call. The runs are tagged ``seed_mode = vmap`` and ``vmap.seeds`` (all seeds).
+
+Only methods whose policy stage is IQL (:func:`spot.stages.iql_policy`) can be vmapped; IPL
+trains its own critic on the preferences and is refused (run its seeds with ``seed_mode:
+sequential`` or ``trials``). If one seed fails before or during training, every seed's run ends
+FAILED with the reason: the seeds share one program.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from spot import SpotError, cache, pipeline, stages
+from spot.config import ExperimentConfig
+from spot.stages import Context, Policy, Shaped
+from spot.tracking import Tracker
+
+KEY_EXTRA = {"seed_mode": "vmap"}
+"""Added to the deps of every stage-cache entry a vmap trial makes or reads (``Context.key_extra``):
+its reward models and CVAEs differ from one-seed training in the last bits, so the two kinds of
+entries are kept apart and a one-seed run's numbers never depend on which filled the cache first."""
+
+
+def check(cfgs: Sequence[ExperimentConfig]) -> stages.RewardKind:
+    """The method's stages, after checking that ``cfgs`` are one config with distinct seeds whose
+    policy stage is IQL (SpotError otherwise)."""
+    if not cfgs:
+        raise SpotError("seed_mode vmap: no seeds to run")
+    seeds = [c.seed for c in cfgs]
+    if len(set(seeds)) != len(seeds):
+        raise SpotError(f"seed_mode vmap: seeds {seeds} repeat")
+    base = dataclasses.replace(cfgs[0], seed=0)
+    for cfg in cfgs[1:]:
+        if dataclasses.replace(cfg, seed=0) != base:
+            raise SpotError(
+                f"seed_mode vmap: seed {cfg.seed}'s config differs from seed {cfgs[0].seed}'s beyond the seed"
+            )
+    kind = stages.stages_of(cfgs[0])
+    if kind.policy is not stages.iql_policy:
+        raise SpotError(
+            f"seed_mode vmap trains IQL over seeds; method {cfgs[0].method!r} trains its own policy "
+            f"({kind.policy.__name__}): use seed_mode: sequential or trials"
+        )
+    return kind
+
+
+def run(
+    cfgs: Sequence[ExperimentConfig],
+    *,
+    progress: bool = True,
+    parent_run_id: str | None = None,
+    extra_tags: Sequence[dict[str, str] | None] | None = None,
+    on_eval: Sequence[Callable[[dict[str, float]], None] | None] | None = None,
+    trackers: Sequence[Tracker | None] | None = None,
+) -> list[dict[str, Any]]:
+    """Run the seeds of ``cfgs`` (one config, distinct seeds), IQL vmapped over them (module docstring).
+
+    ``extra_tags``, ``on_eval`` and ``trackers`` are per seed (as :func:`spot.pipeline.run`'s).
+    Returns each seed's final metrics and ``run_id``, in the order of ``cfgs``.
+    """
+    t_start = time.perf_counter()
+    kind = check(cfgs)
+    n = len(cfgs)
+    extra_tags, on_eval, trackers = extra_tags or [None] * n, on_eval or [None] * n, trackers or [None] * n
+    ds, card, env_name, data_s = pipeline._load(cfgs[0], progress)
+    mode_tags = {"seed_mode": "vmap", "vmap.seeds": ",".join(str(c.seed) for c in cfgs)}
+    with contextlib.ExitStack() as stack:
+        ctxs, labelled = [], []
+        for cfg, tags, callback, tracker in zip(cfgs, extra_tags, on_eval, trackers, strict=True):
+            tr = stack.enter_context(
+                pipeline._tracking(cfg, card, tracker, parent_run_id, {**(tags or {}), **mode_tags}, ds)
+            )
+            if tracker is not None:
+                tr.set_tags(mode_tags)
+            ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
+            ctx.key_extra = dict(KEY_EXTRA)
+            ctx.times["time/data_s"] = data_s
+            labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
+            ctxs.append(ctx)
+        vmapped_rewards(ctxs, labelled, kind)
+        parts = [pipeline.up_to_subgoals(ctx, kind, lab) for ctx, lab in zip(ctxs, labelled, strict=True)]
+        vmapped_cvaes(ctxs, [p[1] for p in parts], [p[2] for p in parts])
+        shaped = [pipeline.from_cvae(ctx, *p) for ctx, p in zip(ctxs, parts, strict=True)]
+        policies = train_iql(ctxs, shaped)
+        return [stages.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
+
+
+def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stages.RewardKind) -> list[int]:
+    """Train the reward models (MR or PT, :func:`spot.stages.learned_reward`) of the seeds that miss
+    the stage cache as one vmapped program (:func:`spot.reward.vmapped.train_reward_models`), when
+    at least two miss and their preference pairs have one shape. Each model waits in its run's
+    ``ctx.precomputed``; the seed's reward stage then stores it under its own key and logs it as
+    computed, exactly as if it had trained it. Each seed's ``time/reward_s`` gets the shared
+    training's wall time. Returns the indices of the seeds trained here."""
+    if kind.reward is not stages.learned_reward or len(ctxs) < 2:
+        return []
+    from spot.reward import models, vmapped
+    from spot.reward import train as reward_train
+
+    cfg = ctxs[0].cfg
+    model = models.from_config(cfg)
+    extra = {"reward": model.kind, "reward_cfg": cfg.reward, "model_cfg": model.cfg}  # as the reward stage's
+    deps_of = lambda i: stages._reward_deps(ctxs[i], labelled[i], **extra)  # noqa: E731
+    todo = _misses(ctxs, "reward", deps_of, cache.code_version(stages.learned_reward))
+    if len(todo) < 2:
+        return []
+    clip = cfg.reward.clip_action
+    batches = [
+        [reward_train.clip_actions(getattr(labelled[i], name), clip) for i, _ in todo]
+        for name in ("train_batch", "eval_batch")
+    ]
+    t0 = time.perf_counter()
+    try:
+        keys = [ctxs[i].keys["reward"] for i, _ in todo]
+        trained = vmapped.train_reward_models(model, keys, *batches, cfg.reward, progress=ctxs[0].progress)
+    except SpotError:  # the pairs do not fit one program: one seed at a time, in the reward stage
+        return []
+    return _hand_over(ctxs, todo, trained, "reward", time.perf_counter() - t0)
+
+
+def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Sequence[Any]) -> list[int]:
+    """Train the offline CVAEs (``cvae.schedule=offline``) of the seeds that miss the stage cache as
+    one vmapped program (:func:`spot.subgoal.vmapped.train_cvaes`), when at least two miss and their
+    triplets fit one program; as :func:`vmapped_rewards`, each waits in ``ctx.precomputed`` for
+    its seed's CVAE stage, and each seed's ``time/cvae_s`` gets the shared wall time. Returns the
+    indices of the seeds trained here."""
+    if len(ctxs) < 2 or extracted[0] is None or stages.online_cvae(ctxs[0].cfg):
+        return []
+    from spot.subgoal import cvae, vmapped
+
+    cfg = ctxs[0].cfg
+    deps_of = lambda i: stages.cvae_deps(ctxs[i], rewards[i])  # noqa: E731
+    todo = _misses(ctxs, "cvae", deps_of, cache.code_version(stages._offline_cvae))
+    if len(todo) < 2:
+        return []
+    t0 = time.perf_counter()
+    try:
+        trained = vmapped.train_cvaes(
+            [ctxs[i].keys["cvae"] for i, _ in todo],
+            [(extracted[i][0].s, extracted[i][0].a, extracted[i][0].g) for i, _ in todo],
+            cfg.cvae,
+            cvae.obs_stats(ctxs[0].ds.observations),
+            progress=ctxs[0].progress,
+            groups=[extracted[i][2] for i, _ in todo],
+            goal_actions=cfg.shaping.state_action,
+        )
+    except SpotError:  # the triplets do not fit one program: one seed at a time, in the CVAE stage
+        return []
+    return _hand_over(ctxs, todo, trained, "cvae", time.perf_counter() - t0)
+
+
+def _misses(
+    ctxs: Sequence[Context], stage: str, deps_of: Callable[[int], dict[str, Any]], code: str
+) -> list[tuple[int, str]]:
+    """``(index, key)`` of the seeds whose entry of ``stage`` is not in the stage cache."""
+    keys = [(i, cache.key(stage, {**deps_of(i), **ctx.key_extra}, code)) for i, ctx in enumerate(ctxs)]  # as ctx.cached
+    return [(i, k) for i, k in keys if not cache.load(k)[0]]
+
+
+def _hand_over(
+    ctxs: Sequence[Context], todo: list[tuple[int, str]], trained: Sequence[tuple[Any, Any]], stage: str, elapsed: float
+) -> list[int]:
+    """Leave each trained seed's ``{params, history}`` in its ``ctx.precomputed`` under its key, add
+    the shared wall time to its ``time/<stage>_s`` and tag it ``vmap.<stage>``; the seeds' indices."""
+    seeds = ",".join(str(ctxs[i].cfg.seed) for i, _ in todo)
+    for (i, k), (params, history) in zip(todo, trained, strict=True):
+        ctxs[i].precomputed[stage] = (k, {"params": params, "history": history})
+        ctxs[i].times[f"time/{stage}_s"] = ctxs[i].times.get(f"time/{stage}_s", 0.0) + elapsed
+        ctxs[i].tracker.set_tags({f"vmap.{stage}": seeds})
+    return [i for i, _ in todo]
+
+
+def _seed(tree: Any, s: int) -> Any:
+    import jax
+
+    return jax.tree.map(lambda a: a[s], tree)
+
+
+def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]:
+    """IQL for every seed of ``ctxs`` as one vmapped program; each seed evaluated and logged to its
+    own context, as :func:`spot.stages.iql_policy` does for one seed (same keys, same schedule)."""
+    import jax
+    import jax.numpy as jnp
+
+    from spot.policy import iql
+
+    cfg, ds = ctxs[0].cfg, ctxs[0].ds
+    rewards = np.stack([np.asarray(s.reward, np.float32) for s in shaped])
+    data = jax.device_put(stages.policy_transitions(cfg, ds, rewards[0])._replace(rew=rewards))
+    init_keys, train_keys = (
+        jnp.stack(k) for k in zip(*(jax.random.split(c.keys["policy"]) for c in ctxs), strict=True)
+    )
+    state = iql.init_state(init_keys, ds.obs_dim, ds.act_dim, cfg.iql)
+    chunk = iql.make_vmapped_train_chunk(cfg.iql, per_seed_rewards=True)
+    fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
+    evaluates = [stages._evaluate_fn(ctx) for ctx in ctxs]
+    scores: list[list[float]] = [[] for _ in ctxs]
+    eval_s = [0.0] * len(ctxs)
+
+    def evaluate(actor_params: Any, step: int) -> float:
+        for s, fn in enumerate(evaluates):
+            t0 = time.perf_counter()
+            scores[s].append(float(fn(_seed(actor_params, s), step)["score_mean"]))
+            eval_s[s] += time.perf_counter() - t0
+        return float(np.mean([seed_scores[-1] for seed_scores in scores]))  # iql.train's curve; unused
+
+    def log(metrics: dict[str, Any], step: int) -> None:
+        for s, ctx in enumerate(ctxs):
+            ctx.log({k: float(np.asarray(v)[s]) for k, v in metrics.items()}, step=step)
+
+    t0 = time.perf_counter()
+    curve = iql.train(chunk, state, lambda c: (data, fold(train_keys, c)), cfg.iql, cfg.eval.every, evaluate, log)
+    train_s = time.perf_counter() - t0 - curve.eval_s
+    policies = []
+    for s, ctx in enumerate(ctxs):
+        ctx.times["time/iql_s"] = train_s + eval_s[s]  # stages.finish subtracts this seed's evaluations
+        policies.append(Policy(_seed(curve.state, s), curve.steps, scores[s], eval_s[s]))
+    return policies

@@ -1,0 +1,741 @@
+"""The paper's claims, measured: one effect with its 95 % CI, n and a verdict per claim (`spot report`).
+
+Input is a results frame (:mod:`spot.results`: a committed CSV, or runs read from MLflow). Each
+claim compares two arms of runs from one experiment (a sweep's MLflow experiment), dataset by
+dataset; datasets where either arm has no finished run are left out of that claim and named, so
+two arms are never averaged over different datasets. Within a dataset and config, a re-run of a
+seed replaces the earlier run; FAILED, KILLED and unfinished runs never count and are reported.
+
+Effects (``x`` is the arm the paper says is better):
+
+* a **mean difference**: over datasets, ``mean(x) - mean(y)`` (each dataset weighs the same);
+  verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*, and
+  *too few seeds* while an arm has fewer than :data:`MIN_SEEDS` finished runs on a dataset;
+* the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it.
+
+CIs are 95 % stratified-bootstrap percentile intervals (:mod:`spot.stats`). Both the last
+evaluation (``eval/score_final``) and the best (``eval/score_best``) are reported, in separate
+tables, because the paper does not say which it reports; verdicts are read from the last.
+
+The claims (paper section; which runs):
+
+1. SPOT ≥ PT and MR on average (§5.1, Table 1): ``method`` spot vs pt, spot vs mr.
+2. Top-10 % attention subgoals beat bottom-10 % (Table 2): ``subgoal.group`` top vs bottom.
+3. Cosine shaping with λ = 1 is best among Table 3's variants: cosine at λ = 1 vs the
+   best-scoring other (kind, λ) cell, named in the row (the runner-up is picked on the point
+   estimates, so its CI is slightly optimistic for the runner-up).
+4. SPOT keeps its score with fewer queries (Table 4): SPOT's change from the most to the fewest
+   queries minus PT's (> 0: SPOT loses less).
+5. MSE + cosine beats MSE for the CVAE (Table 7): ``cvae.loss`` mse_cos vs mse.
+6. SPOT lowers out-of-distribution extrapolation error (Fig. 2): PT's
+   ``diag/extrapolation_error_ood`` minus SPOT's (> 0: SPOT lower), from the Table 1 runs.
+
+Controls no table has (does the gain come from attention subgoals, or from a survival bonus?):
+SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random``), and SPOT vs a
+**constant bonus** of the same mean as SPOT's cosine term (``shaping.kind=constant``).
+
+Claims 1 and C compare runs of the package's default fidelity variant (``variant=spot``; runs
+logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same comparisons under
+``variant=paper`` (docs/fidelity.md), from the runs of lab_fidelity, lab_variant_rows, lab_paper and
+lab_paper_random, with SPOT vs Oracle beside them as a reference (not a claim of the paper). Rows
+``2P``, ``3P`` and ``5P`` are claims 2, 3 and 5 on the same data and variant: lab_fidelity's SPOT
+runs (top group, MSE + cosine CVAE, cosine shaping at λ = 1) against lab_paper_ablations'
+bottom-group and MSE-only arms and lab_paper_shaping's other (kind, λ) arms; row ``4P`` is claim 4
+with lab_paper_queries' 50-query PT and SPOT runs. :func:`dose_response` sets the term each arm
+adds to the reward per step against its score (a description of the runs, not a claim).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from spot import SpotError, results, stats
+
+MIN_SEEDS = 3  # a verdict needs at least this many finished runs per arm and dataset (effect and CI shown below it)
+METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"}
+OOD_METRIC = "metrics.diag/extrapolation_error_ood"
+# On the local Hopper data the runs are bimodal (docs/reproduction.md): ~20 or 55-91 normalised.
+HIGH_MODE = 50.0
+# Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
+# of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
+# Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
+# F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
+# `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P,
+# 3P, 4P and 5P (claims 1 to 5 and the controls under variant paper).
+EXPERIMENTS = {
+    "1": ("lab_table1+lab_table1_fr", "table1"),
+    "2": ("lab_table2", "table2_topk"),
+    "3": ("lab_table3", "table3_shaping"),
+    "4": ("lab_table4", "table4_queries"),
+    "5": ("lab_table7", "table7_cvae_loss"),
+    "6": ("lab_table1+lab_table1_fr", "table1"),
+    "C": ("lab_table1+lab_controls", "lab_controls"),
+    "F": ("lab_fidelity+lab_table1", "fidelity"),
+    "P": (
+        "lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping"
+        "+lab_paper_queries",
+    ),
+}
+
+Filter = Callable[[pd.DataFrame], pd.Series]
+
+
+def _param(key: str, value: str) -> Filter:
+    def select(df: pd.DataFrame) -> pd.Series:
+        col = f"params.{key}"
+        return df[col].astype(str) == value if col in df else pd.Series(False, index=df.index)
+
+    return select
+
+
+def _method(name: str) -> Filter:
+    return lambda df: df["method"] == name
+
+
+def _both(a: Filter, b: Filter) -> Filter:
+    return lambda df: a(df) & b(df)
+
+
+def _not(a: Filter) -> Filter:
+    return lambda df: ~a(df)
+
+
+def _either(a: Filter, b: Filter) -> Filter:
+    return lambda df: a(df) | b(df)
+
+
+_RANDOM_SUBGOALS = _param("subgoal.source", "random")
+_CONSTANT_BONUS = _param("shaping.kind", "constant")
+_BOTTOM_GROUP = _param("subgoal.group", "bottom")
+_MSE_CVAE = _param("cvae.loss", "mse")
+# another percentile group than the top one, or the CVAE on MSE alone (claims 2 and 5's other arms)
+_NEXT_GROUPS = _either(_param("subgoal.group", "top_next"), _param("subgoal.group", "bottom_next"))
+_ABLATED_GROUP = _either(_BOTTOM_GROUP, _NEXT_GROUPS)
+_ABLATED = _either(_ABLATED_GROUP, _MSE_CVAE)
+_CONTROL = _either(_RANDOM_SUBGOALS, _CONSTANT_BONUS)
+SHAPING_KINDS = ("cosine", "neg_distance", "potential")  # Table 3's rows
+TABLE3_OTHER_ARMS = len(SHAPING_KINDS) * 3 - 1  # Table 3's (kind, λ in 1, 0.5, 0.1) arms but cosine at 1
+
+
+def _other_shaping(df: pd.DataFrame) -> pd.Series:
+    """Table 3's other arms: a shaping kind other than cosine, or a weight other than 1 (runs
+    without the keys count as cosine at 1)."""
+    out = pd.Series(False, index=df.index)
+    if "params.shaping.kind" in df:
+        out |= df["params.shaping.kind"].astype(str).isin(SHAPING_KINDS[1:])
+    if "params.shaping.weight" in df:
+        out |= pd.to_numeric(df["params.shaping.weight"], errors="coerce").fillna(1.0) != 1.0
+    return out
+
+
+# SPOT proper: method spot with its top-group subgoals, its CVAE loss and cosine shaping at
+# lambda 1, neither control (the control and ablation runs are also method spot)
+_SPOT = _both(_method("spot"), _not(_either(_either(_CONTROL, _ABLATED), _other_shaping)))
+
+
+def _in_variant(select: Filter, name: str) -> Filter:
+    """``select``'s runs under fidelity variant ``name``; runs logged before the key are ``spot``."""
+
+    def both(df: pd.DataFrame) -> pd.Series:
+        variant = df["params.variant"].fillna("spot") if "params.variant" in df else pd.Series("spot", df.index)
+        return select(df) & (variant == name)
+
+    return both
+
+
+def _variant(name: str) -> Filter:
+    """SPOT's runs (no controls) under fidelity variant ``name``."""
+    return _in_variant(_SPOT, name)
+
+
+@dataclass(frozen=True)
+class Mode:
+    """How often one arm's periodic evaluations (step > 0) scored at least a threshold."""
+
+    evals_high: int
+    evals: int
+    runs_high: int  # runs with at least one such evaluation
+    runs: int
+
+    def text(self) -> str:
+        return f"{self.evals_high} of {self.evals} ({self.runs_high} of {self.runs} runs)"
+
+
+def high_mode(df: pd.DataFrame, threshold: float) -> Mode | None:
+    """:class:`Mode` of ``df``'s runs from their exported curves; ``None`` if a run has no curve."""
+    if results.CURVE_COLUMN not in df or df.empty:
+        return None
+    evals_high = evals = runs_high = 0
+    for run_id, text in zip(df["run_id"], df[results.CURVE_COLUMN], strict=True):
+        steps, values = results.parse_curve(text, f"run {run_id}")
+        values = values[steps > 0]
+        if not len(values):
+            return None
+        hits = int((values >= threshold).sum())
+        evals_high, evals, runs_high = evals_high + hits, evals + len(values), runs_high + (hits > 0)
+    return Mode(evals_high, evals, runs_high, len(df))
+
+
+@dataclass
+class Row:
+    """One line of the report."""
+
+    claim: str
+    text: str
+    comparison: str
+    experiment: str
+    stat: str  # last | best | ood
+    effect: stats.Estimate | None = None
+    poi: stats.Estimate | None = None
+    n_x: int = 0
+    n_y: int = 0
+    means: tuple[float, float] | None = None  # each arm's mean over datasets of its per-dataset means
+    min_n: int = 0  # the fewest finished runs of an arm on one dataset
+    datasets: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
+    high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
+
+    @property
+    def verdict(self) -> str:
+        if self.effect is None:
+            return "no runs"
+        return stats.TOO_FEW if self.min_n < MIN_SEEDS else stats.verdict(self.effect)
+
+
+# --------------------------------------------------------------------------- selecting runs
+def finished(df: pd.DataFrame) -> pd.DataFrame:
+    """FINISHED runs, one per (config, seed): a re-run replaces the earlier run."""
+    out = df[df["status"] == "FINISHED"]
+    if "start_time" in out:
+        out = out.sort_values("start_time", kind="stable")
+    return out.drop_duplicates(["config_hash", "seed"], keep="last")
+
+
+def _experiment(df: pd.DataFrame, names: Sequence[str]) -> tuple[str, pd.DataFrame]:
+    for name in names:
+        sub = df[df["experiment"].isin(name.split("+"))]
+        if len(sub):
+            return name, sub
+    return names[0], df.iloc[0:0]
+
+
+def _dataset_column(df: pd.DataFrame) -> str:
+    """The column that names a run's dataset: the paper's name where the results have it."""
+    return "paper_dataset" if "paper_dataset" in df else "dataset"
+
+
+def _by_dataset(df: pd.DataFrame, metric: str) -> dict[str, np.ndarray]:
+    if metric not in df:
+        return {}
+    out = {}
+    for name, g in df.groupby(_dataset_column(df), sort=True):
+        v = pd.to_numeric(g[metric], errors="coerce").to_numpy(np.float64)
+        v = v[np.isfinite(v)]
+        if len(v):
+            out[str(name)] = v
+    return out
+
+
+def _failures(df: pd.DataFrame, select: Filter, label: str) -> list[str]:
+    bad = df[select(df) & (df["status"] != "FINISHED")]
+    if bad.empty:
+        return []
+    counts = bad.groupby("status").size().to_dict()
+    return [f"{label}: " + ", ".join(f"{n} {s}" for s, n in sorted(counts.items())) + " (not counted)"]
+
+
+def _mixed_data(
+    done: pd.DataFrame, arms: tuple[Filter, Filter], shared: Sequence[str], labels: tuple[str, str]
+) -> list[str]:
+    """A note per compared dataset whose runs were trained on more than one data digest (a dataset
+    rebuilt with other numerics, another build seed or size): the arms may not share their data."""
+    if "data_digest" not in done:
+        return []
+    key, out = _dataset_column(done), []
+    for name in shared:
+        counts = []
+        for select, label in zip(arms, labels, strict=True):
+            arm = done[select(done) & (done[key].astype(str) == name)]
+            counts.append((label, arm["data_digest"].dropna().astype(str).value_counts().sort_index()))
+        digests = set().union(*(set(c.index) for _, c in counts))
+        if len(digests) > 1:
+            who = "; ".join(f"{label}: " + ", ".join(f"{n} on {d[:12]}" for d, n in c.items()) for label, c in counts)
+            out.append(f"{name}: the runs span {len(digests)} data digests ({who}); the arms may not share their data")
+    return out
+
+
+def _digest_spread(runs: pd.DataFrame) -> list[str]:
+    """The same note for a set of runs without arms (claim 4's cells, the dose section): per dataset
+    with more than one data digest, how many runs are on each."""
+    if "data_digest" not in runs or runs.empty:
+        return []
+    out = []
+    for name, g in runs.groupby(_dataset_column(runs), sort=True):
+        counts = g["data_digest"].dropna().astype(str).value_counts().sort_index()
+        if len(counts) > 1:
+            who = ", ".join(f"{n} on {d[:12]}" for d, n in counts.items())
+            out.append(f"{name}: the runs span {len(counts)} data digests ({who}); they may not share their data")
+    return out
+
+
+def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
+    """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
+    done = finished(df)
+    xs, ys = _by_dataset(done[x(done)], metric), _by_dataset(done[y(done)], metric)
+    shared = sorted(set(xs) & set(ys))
+    row.notes += _failures(df, x, labels[0]) + _failures(df, y, labels[1])
+    for name in sorted(set(xs) ^ set(ys)):
+        row.notes.append(f"{name} left out: only {labels[0] if name in xs else labels[1]} has finished runs")
+    if not shared:
+        return row
+    row.notes += _mixed_data(done, (x, y), shared, labels)
+    sx, sy = [xs[d] for d in shared], [ys[d] for d in shared]
+    row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
+    row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement)
+    row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
+    row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
+    row.min_n = min(len(a) for a in [*sx, *sy])
+    if row.stat == "last":  # the arms are the same for every statistic: counted once, shown once
+        key = _dataset_column(done)
+        arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
+        modes = [high_mode(arm, row.high_mode) for arm in arms]
+        row.high = (modes[0], modes[1]) if modes[0] and modes[1] else None
+    return row
+
+
+# --------------------------------------------------------------------------- the claims
+def _table3(base: Filter | None = None) -> Callable[[pd.DataFrame, str, Row], Row]:
+    """Claim 3 among ``base``'s runs (all runs if ``None``)."""
+    return lambda df, metric, row: _claim3(df, metric, row, base)
+
+
+def _claim3(df: pd.DataFrame, metric: str, row: Row, base: Filter | None = None) -> Row:
+    if "params.shaping.kind" not in df or "params.shaping.weight" not in df:
+        return row
+    shaped = df[df["params.shaping.kind"].isin(SHAPING_KINDS) & (base(df) if base else True)]
+    best = _both(_param("shaping.kind", "cosine"), lambda d: pd.to_numeric(d["params.shaping.weight"]) == 1.0)
+    done = finished(shaped)
+    others = done[~best(done)] if len(done) else done
+    if others.empty:
+        return compare(shaped, best, _not(best), metric, row, ("cosine λ=1", "others"))
+    means = others.groupby(["params.shaping.kind", "params.shaping.weight"])[metric].mean()
+    kind, weight = means.idxmax()
+    if len(means) < TABLE3_OTHER_ARMS:
+        row.notes.append(
+            f"only {len(means)} of Table 3's {TABLE3_OTHER_ARMS} other (kind, λ) arms have finished runs: "
+            + ", ".join(f"{k} λ={w}" for k, w in means.index)
+            + "; the verdict is against those alone"
+        )
+    row.comparison = f"cosine λ=1 vs runner-up {kind} λ={weight}"
+    runner = _both(_param("shaping.kind", kind), _param("shaping.weight", str(weight)))
+    return compare(shaped, best, runner, metric, row, ("cosine λ=1", f"{kind} λ={weight}"))
+
+
+def _table4(base: Filter) -> Callable[[pd.DataFrame, str, Row], Row]:
+    """Claim 4 among ``base``'s runs."""
+    return lambda df, metric, row: _claim4(df[base(df)] if len(df) else df, metric, row)
+
+
+def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
+    done = finished(df)
+    if done.empty or "params.labels.num_queries" not in done:
+        return row
+    q = pd.to_numeric(done["params.labels.num_queries"])
+    strata: list[list[np.ndarray]] = [[], [], [], []]  # spot few, spot most, pt few, pt most
+    for name, g in done.groupby("paper_dataset"):
+        qs = q[g.index]
+        few, most = qs.min(), qs.max()
+        cells = [
+            g[(g["method"] == m) & (qs == n)][metric].dropna().to_numpy(np.float64)
+            for m in ("spot", "pt")
+            for n in (few, most)
+        ]
+        if few == most or any(len(c) == 0 for c in cells):
+            row.notes.append(f"{name} left out: needs spot and pt runs at two query counts")
+            continue
+        for s, c in zip(strata, cells, strict=True):
+            s.append(c)
+        row.datasets.append(f"{name} ({few} vs {most} queries)")
+        row.notes += _digest_spread(g[g["method"].isin(("spot", "pt")) & qs.isin((few, most))])
+    if not strata[0]:
+        return row
+    m = len(strata[0])
+
+    def diff_in_diff(*xs: np.ndarray, axis: int = -1) -> np.ndarray:
+        mean = [np.mean(x, axis=axis) for x in xs]
+        return np.mean([(mean[i] - mean[m + i]) - (mean[2 * m + i] - mean[3 * m + i]) for i in range(m)], axis=0)
+
+    flat = [a for s in strata for a in s]
+    row.min_n = min(len(a) for a in flat)
+    row.effect = stats.estimate(flat, diff_in_diff)
+    row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
+    return row
+
+
+Claim = tuple[str, str, str, str, Callable[[pd.DataFrame, str, Row], Row]]
+
+
+def _versus(x: Filter, y: Filter, labels: tuple[str, str]) -> Callable[[pd.DataFrame, str, Row], Row]:
+    return lambda df, m, r: compare(df, x, y, m, r, labels)
+
+
+def _suffix(variant: str) -> str:
+    return "" if variant == "spot" else f" (variant {variant})"
+
+
+def _claim1(claim: str, key: str, variant: str, oracle: bool = False) -> list[Claim]:
+    """Claim 1 among the runs of one fidelity variant; with ``oracle``, SPOT vs Oracle beside it as a
+    reference (not a claim: the preference methods against IQL on the true reward)."""
+    spot, where = _variant(variant), _suffix(variant)
+    rows: list[Claim] = [
+        (
+            claim,
+            key,
+            f"SPOT ≥ {m.upper()} on average (Table 1){where}",
+            f"spot vs {m}",
+            _versus(spot, _in_variant(_method(m), variant), ("spot", m)),
+        )
+        for m in ("pt", "mr")
+    ]
+    if oracle:
+        rows.append(
+            (
+                claim,
+                key,
+                f"reference: SPOT vs Oracle (IQL on the true reward){where}",
+                "spot vs oracle",
+                _versus(spot, _in_variant(_method("oracle"), variant), ("spot", "oracle")),
+            )
+        )
+    return rows
+
+
+def _controls(claim: str, key: str, variant: str) -> list[Claim]:
+    """The two controls among the runs of one fidelity variant, and the bonus alone as a reference
+    (not a claim: the constant control is PT's reward plus the bonus)."""
+    spot, where = _variant(variant), _suffix(variant)
+    random_sg, constant = _in_variant(_RANDOM_SUBGOALS, variant), _in_variant(_CONSTANT_BONUS, variant)
+    return [
+        (
+            claim,
+            key,
+            f"control: attention subgoals beat random-state subgoals{where}",
+            "spot vs random subgoals",
+            _versus(spot, random_sg, ("spot", "random subgoals")),
+        ),
+        (
+            claim,
+            key,
+            f"control: SPOT beats a constant bonus of the same mean{where}",
+            "spot vs constant bonus",
+            _versus(spot, constant, ("spot", "constant bonus")),
+        ),
+        (
+            claim,
+            key,
+            f"reference: PT's reward plus the constant bonus vs PT{where}",
+            "constant bonus vs pt",
+            _versus(constant, _in_variant(_method("pt"), variant), ("constant bonus", "pt")),
+        ),
+    ]
+
+
+def _ablations(claim2: str, claim5: str, key: str, variant: str) -> list[Claim]:
+    """Claims 2 and 5 among the runs of one fidelity variant: SPOT proper (top group, its CVAE loss)
+    against the bottom-10 % group and against the CVAE on MSE alone, each changing only that key."""
+    spot, where = _variant(variant), _suffix(variant)
+    plain = _both(_method("spot"), _not(_either(_CONTROL, _other_shaping)))
+    bottom = _in_variant(_both(plain, _both(_BOTTOM_GROUP, _not(_MSE_CVAE))), variant)
+    mse = _in_variant(_both(plain, _both(_MSE_CVAE, _not(_ABLATED_GROUP))), variant)
+    return [
+        (
+            claim2,
+            key,
+            f"top-10 % subgoals beat bottom-10 % (Table 2){where}",
+            "group top vs bottom",
+            _versus(spot, bottom, ("top", "bottom")),
+        ),
+        (
+            claim5,
+            key,
+            f"MSE + cosine beats MSE for the CVAE (Table 7){where}",
+            "mse_cos vs mse",
+            _versus(spot, mse, ("mse_cos", "mse")),
+        ),
+    ]
+
+
+# (claim id shown, key into EXPERIMENTS, text, comparison, how)
+CLAIMS: tuple[Claim, ...] = (
+    *_claim1("1", "1", "spot"),
+    (
+        "2",
+        "2",
+        "top-10 % subgoals beat bottom-10 % (Table 2)",
+        "group top vs bottom",
+        _versus(_param("subgoal.group", "top"), _param("subgoal.group", "bottom"), ("top", "bottom")),
+    ),
+    ("3", "3", "cosine shaping at λ = 1 is best (Table 3)", "cosine λ=1 vs runner-up", _table3()),
+    (
+        "4",
+        "4",
+        "SPOT keeps its score with fewer queries, PT does not (Table 4)",
+        "(spot few − most) − (pt few − most)",
+        _claim4,
+    ),
+    (
+        "5",
+        "5",
+        "MSE + cosine beats MSE for the CVAE (Table 7)",
+        "mse_cos vs mse",
+        _versus(_param("cvae.loss", "mse_cos"), _param("cvae.loss", "mse"), ("mse_cos", "mse")),
+    ),
+    *_controls("C", "C", "spot"),
+    (
+        "F",
+        "F",
+        "fidelity: SPOT as the authors' code runs it vs as the paper's text says",
+        "variant authors vs paper",
+        _versus(_variant("authors"), _variant("paper"), ("authors", "paper")),
+    ),
+    (
+        "F",
+        "F",
+        "fidelity: SPOT as the paper's text says vs this package's defaults",
+        "variant paper vs spot",
+        _versus(_variant("paper"), _variant("spot"), ("paper", "spot")),
+    ),
+    *_claim1("1P", "P", "paper", oracle=True),
+    *_controls("CP", "P", "paper"),
+    *_ablations("2P", "5P", "P", "paper"),
+    (
+        "4P",
+        "P",
+        "SPOT keeps its score with fewer queries, PT does not (Table 4) (variant paper)",
+        "(spot few − most) − (pt few − most)",
+        _table4(_either(_variant("paper"), _in_variant(_method("pt"), "paper"))),
+    ),
+    (
+        "3P",
+        "P",
+        "cosine shaping at λ = 1 is best (Table 3) (variant paper)",
+        "cosine λ=1 vs runner-up",
+        _table3(_in_variant(_both(_method("spot"), _not(_either(_CONTROL, _ABLATED))), "paper")),
+    ),
+)
+
+
+def build(
+    df: pd.DataFrame, experiments: Mapping[str, Sequence[str]] | None = None, high: float = HIGH_MODE
+) -> list[Row]:
+    """Every claim's rows for the last and the best score, and claim 6 for the OOD error; ``high``
+    is the score that counts an evaluation as in the high mode (runs with exported curves)."""
+    exps = {**EXPERIMENTS, **(experiments or {})}
+    rows = []
+    for stat, metric in METRICS.items():
+        for claim, key, text, comparison, fn in CLAIMS:
+            name, sub = _experiment(df, exps[key])
+            rows.append(fn(sub, metric, Row(claim, text, comparison, name, stat, high_mode=high)))
+    name, sub = _experiment(df, exps["6"])
+    row = Row("6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", name, "ood")
+    rows.append(compare(sub, _method("pt"), _SPOT, OOD_METRIC, row, ("pt", "spot")))
+    return rows
+
+
+def aggregate(df: pd.DataFrame, metric: str = METRICS["last"], reference: str = "spot") -> pd.DataFrame:
+    """Per method over the datasets every method has: IQM [CI] and P(reference > method) [CI]."""
+    done = finished(df)
+    per = {m: _by_dataset(g, metric) for m, g in done.groupby("method")}
+    if not per:
+        raise SpotError("no finished runs to aggregate")
+    shared = sorted(set.intersection(*(set(v) for v in per.values())))
+    out = []
+    for m, by in sorted(per.items()):
+        strata = [by[d] for d in shared]
+        iqm = stats.estimate(strata, stats.iqm) if shared else None
+        poi = None
+        if reference in per and m != reference and shared:
+            poi = stats.estimate([*(per[reference][d] for d in shared), *strata], stats.probability_of_improvement)
+        out.append(
+            {
+                "method": m,
+                "datasets": len(shared),
+                "runs": sum(map(len, strata)),
+                "iqm": iqm.text() if iqm else "",
+                f"P({reference} > method)": poi.text(2) if poi else "",
+            }
+        )
+    return pd.DataFrame(out)
+
+
+# --------------------------------------------------------------------------- dose and response
+ADDED = ("metrics.shaping/r_final_mean", "metrics.shaping/r_model_mean")  # their difference: the term added
+
+
+@dataclass
+class Dose:
+    """The term added to the learned reward per step against the final score, over the runs of
+    SPOT and its variants and PT (whose added term is 0) under one fidelity variant, on one dataset."""
+
+    experiment: str
+    variant: str
+    dataset: str
+    arms: list[dict] = field(default_factory=list)  # label, runs, added, score (stats.cell), high
+    rho: stats.Estimate | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _arm_label(run: pd.Series) -> str:
+    """A short name for the one setting that makes a SPOT-family run's arm (``PT`` for PT)."""
+    if run["method"] == "pt":
+        return "PT"
+
+    def value(key: str, default: str) -> str:  # runs logged before a key have it missing (NaN)
+        v = run.get(key)
+        return default if v is None or pd.isna(v) else str(v)
+
+    kind, weight = value("params.shaping.kind", "cosine"), float(value("params.shaping.weight", "1.0"))
+    parts = [f"{kind} λ={weight:g}" if kind != "constant" else "constant bonus"]
+    extra = {
+        "params.subgoal.source": ("random", "random subgoals"),
+        "params.subgoal.group": ("bottom", "bottom group"),
+        "params.cvae.loss": ("mse", "CVAE mse"),
+    }
+    parts += [text for key, (v, text) in extra.items() if value(key, "") == v]
+    return "SPOT, " + ", ".join(parts)
+
+
+def dose_response(
+    df: pd.DataFrame, experiments: Sequence[str], variant: str = "paper", high: float = HIGH_MODE
+) -> list[Dose]:
+    """Per dataset (scores of different datasets are never ranked together) and per arm, the mean
+    term added per step (``shaping/r_final_mean − shaping/r_model_mean``) and the final score; over
+    the dataset's runs, Spearman's ρ between the two with its paired-bootstrap CI. ρ > 0 (CI above
+    0) says the score rises with the size of the added term, whatever the term is made of: the
+    survival-bonus reading of rows CP. A description of the runs, not a claim of the paper."""
+    name, sub = _experiment(df, experiments)
+    done = finished(sub)
+    done = done[_in_variant(_either(_method("spot"), _method("pt")), variant)(done)] if len(done) else done
+    if done.empty:
+        return []
+    return [_dose(g, name, variant, str(ds), high) for ds, g in done.groupby(_dataset_column(done), sort=True)]
+
+
+def _dose(done: pd.DataFrame, experiment: str, variant: str, dataset: str, high: float) -> Dose:
+    """:func:`dose_response` on one dataset's finished runs."""
+    dose = Dose(experiment, variant, dataset)
+    added = done[ADDED[0]] - done[ADDED[1]] if all(c in done for c in ADDED) else pd.Series(np.nan, done.index)
+    score = pd.to_numeric(done[METRICS["last"]], errors="coerce") if METRICS["last"] in done else np.nan
+    done = done.assign(added=added, score=score)
+    if lost := len(done) - len(done.dropna(subset=["added", "score"])):
+        dose.notes.append(f"{lost} finished runs without the shaping metrics or a final score left out")
+    done = done.dropna(subset=["added", "score"])
+    if done.empty:
+        return dose
+    done = done.assign(arm=done.apply(_arm_label, axis=1))
+    dose.notes += _digest_spread(done)
+    for label, g in done.groupby("arm"):
+        dose.arms.append(
+            {
+                "label": label,
+                "runs": len(g),
+                "added": float(g["added"].mean()),
+                "score": stats.cell(g["score"].to_numpy(np.float64)),
+                "high": high_mode(g, high),
+            }
+        )
+    dose.arms.sort(key=lambda a: a["added"])
+    dose.rho = stats.rank_correlation(done["added"].to_numpy(), done["score"].to_numpy())
+    return dose
+
+
+def format_dose(dose: Dose) -> list[str]:
+    """Lines of the dose-and-response section (none without runs)."""
+    if not dose.arms:
+        return []
+    lines = [
+        f"### The term added to the reward per step vs the final score on {dose.dataset} "
+        f"(variant {dose.variant}, {dose.experiment})",
+        "",
+        "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold |",
+        "|---|---|---|---|---|",
+    ]
+    for a in dose.arms:
+        c = a["score"]
+        ci = f"[{c['ci_low']:.1f}, {c['ci_high']:.1f}]" if np.isfinite(c["ci_low"]) else "(CI n/a)"
+        high = a["high"].text() if a["high"] else "–"
+        sd = f" ± {c['std']:.1f}" if np.isfinite(c["std"]) else ""  # one run has no std
+        lines.append(f"| {a['label']} | {a['runs']} | {a['added']:.3f} | {c['mean']:.1f}{sd} {ci} | {high} |")
+    assert dose.rho is not None
+    lines += [
+        "",
+        f"Spearman's ρ between the added term and the final score over the {dose.rho.n} runs: "
+        f"{dose.rho.text(2)} (95% paired bootstrap): {stats.verdict(dose.rho)} that the score rises with "
+        "the added term (a description of these runs, not a claim of the paper).",
+    ]
+    return [*lines, *[f"- {n}" for n in dose.notes], ""]
+
+
+# --------------------------------------------------------------------------- output
+def _n(row: Row) -> str:
+    return f"{row.n_x} vs {row.n_y} runs, {len(row.datasets)} datasets" if row.effect else "–"
+
+
+def format_high(rows: Sequence[Row]) -> list[str]:
+    """Lines of the high-mode section: per comparison (of the last-score rows) with curves for both
+    arms, how many periodic evaluations reached the threshold. A description, not a test."""
+    sel = [r for r in rows if r.high]
+    if not sel:
+        return []
+    lines = [
+        f"### Evaluations scoring ≥ {sel[0].high_mode:g} (the high mode), from the runs' evaluation curves",
+        "",
+        "| # | comparison | x: evaluations ≥ threshold | y: evaluations ≥ threshold |",
+        "|---|---|---|---|",
+    ]
+    for r in sel:
+        assert r.high is not None
+        lines.append(f"| {r.claim} | {r.comparison} | {r.high[0].text()} | {r.high[1].text()} |")
+    return [*lines, ""]
+
+
+def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
+    """The report as Markdown: one table per statistic, the high-mode counts, ``extra`` lines (the
+    dose-and-response section), then the notes."""
+    titles = {
+        "last": "Last evaluation (`eval/score_final`): verdicts",
+        "best": "Best evaluation (`eval/score_best`), for comparison",
+        "ood": "Fig. 2: out-of-distribution extrapolation error (last)",
+    }
+    parts = []
+    for stat, title in titles.items():
+        sel = [r for r in rows if r.stat == stat]
+        if not sel:
+            continue
+        parts += [
+            f"### {title}",
+            "",
+            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | means x / y | n | verdict |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in sel:
+            eff = r.effect.text(3 if stat == "ood" else 1) if r.effect else "–"
+            poi = r.poi.text(2) if r.poi else "–"
+            digits = 3 if stat == "ood" else 1
+            means = f"{r.means[0]:.{digits}f} / {r.means[1]:.{digits}f}" if r.means else "–"
+            parts.append(
+                f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {means} | {_n(r)} "
+                f"| {r.verdict} |"
+            )
+        parts.append("")
+    parts += format_high(rows)
+    parts += extra
+    notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})
+    if notes:
+        parts += ["Notes:", *[f"- {n}" for n in notes]]
+    return "\n".join(parts).rstrip() + "\n"

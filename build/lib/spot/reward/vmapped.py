@@ -1,0 +1,140 @@
+"""Reward models of several seeds trained as one program (``seed_mode: vmap``).
+
+:func:`train_reward_models` is :func:`spot.reward.train.train_reward_model` for ``S`` seeds whose
+preference pairs have one shape (the seeds of one config): the update, the chunking, the held-out
+evaluation and the best-checkpoint rule are that module's, vmapped over a leading seed axis. It
+lives in its own module so that the stage cache's code version of the one-seed reward stage (which
+covers :mod:`spot.reward.train`) does not change with it. The result equals one-seed training up to
+rounding (``tests/test_reward.py``), amplified by Adam in the directions the preference loss
+cannot see; so a vmap trial stores it under keys of its own (``spot.multiseed.KEY_EXTRA``).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from spot import NonFiniteError, SpotError, loop
+from spot.config import RewardConfig
+from spot.nets import Params
+from spot.reward.models import RewardModel
+from spot.reward.train import (
+    PrefPairs,
+    RewardState,
+    _checked_pairs,
+    _history,
+    _num_pairs,
+    init_state,
+    make_evaluate,
+    make_update,
+    training_steps,
+)
+
+
+def train_reward_models(
+    model: RewardModel,
+    keys: list[jax.Array],
+    train_batches: list[Mapping[str, np.ndarray]],
+    eval_batches: list[Mapping[str, np.ndarray] | None],
+    reward_cfg: RewardConfig,
+    progress: bool = True,
+    micro_batch: int = 64,
+) -> list[tuple[Params, dict[str, Any]]]:
+    """:func:`train_reward_model` for ``S`` seeds at once (``seed_mode: vmap``): one
+    ``jit(vmap(chunk))`` over a leading seed axis, each seed with its own key (initial parameters,
+    minibatches, dropout), its own training and held-out pairs and its own best checkpoint.
+
+    Every seed's pairs must have the same shapes (the same query counts and segment lengths: seeds
+    of one config), else SpotError. Returns one ``(params, history)`` per seed, equal to what
+    ``train_reward_model(model, keys[s], train_batches[s], eval_batches[s], ...)`` returns, up to
+    the rounding of batched matmuls; ``compile_s`` and ``train_s`` are the shared program's (the
+    wall time of all seeds together). No companion (the online CVAE trains one seed at a time)."""
+    checked = [_checked_pairs(model, t, e) for t, e in zip(train_batches, eval_batches, strict=True)]
+    _check_same_shapes(checked)
+    train = _stack([c[0] for c in checked])
+    held_out, eval_on = [c[1] for c in checked], checked[0][2]
+    num_pairs = _num_pairs(checked[0][0])
+    steps = training_steps(reward_cfg, num_pairs)
+    split = [jax.random.split(k) for k in keys]
+    obs_dim, act_dim = train.obs_1.shape[-1], train.act_1.shape[-1]
+    state = _stack([init_state(model, init_key, obs_dim, act_dim, steps) for init_key, _ in split])
+    train_keys = jnp.stack([train_key for _, train_key in split])
+    batch_size = min(reward_cfg.batch_size, num_pairs)
+    length = loop.chunk_length(steps, reward_cfg.eval_every)
+    padded = [loop.pad_minibatches(h, min(reward_cfg.batch_size, _num_pairs(h))) for h in held_out]
+    eval_data, eval_weight = jax.device_put((_stack([p[0] for p in padded]), np.stack([p[1] for p in padded])))
+    train = jax.device_put(train)
+    chunk = _vmapped_train_chunk(model, batch_size, length, steps, micro_batch)
+    evaluate = _vmapped_evaluate(model)
+    compile_s = loop.compile_seconds(chunk, state, length, train, train_keys) + loop.compile_seconds(
+        evaluate, state.params, eval_data, eval_weight
+    )
+    desc = f"reward ({model.kind}, {len(keys)} seeds vmapped)" if progress else None
+    runs = _run_seeds(
+        chunk, state, (train, train_keys), lambda st: evaluate(st.params, eval_data, eval_weight), steps, length, desc
+    )
+    return [(jax.device_put(r.best_params), _history(r, batch_size, eval_on, compile_s, steps)) for r in runs]
+
+
+def _stack(trees: list[Any]) -> Any:
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *trees)
+
+
+def _check_same_shapes(checked: list[tuple[PrefPairs, PrefPairs, str]]) -> None:
+    """Raise SpotError unless every seed's training and held-out pairs have seed 0's shapes."""
+    shapes = [(jax.tree.map(np.shape, tr), jax.tree.map(np.shape, ho), on) for tr, ho, on in checked]
+    for s, got in enumerate(shapes[1:], start=1):
+        if got != shapes[0]:
+            raise SpotError(
+                f"reward models vmapped over seeds: seed {s}'s preference pairs differ in shape from seed 0's "
+                f"({got} vs {shapes[0]}); train them one seed at a time"
+            )
+
+
+@functools.lru_cache(maxsize=8)
+def _vmapped_train_chunk(model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int) -> loop.Chunk:
+    return loop.make_chunk(make_update(model, batch_size, steps, micro_batch), length, "stack", vmap_axes=(0, 0, 0))
+
+
+@functools.lru_cache(maxsize=8)
+def _vmapped_evaluate(model: RewardModel) -> Callable:
+    return jax.jit(jax.vmap(make_evaluate(model)))
+
+
+def _run_seeds(
+    chunk: loop.Chunk, state: RewardState, args: tuple, evaluate: Callable, steps: int, length: int, desc: str | None
+) -> list[loop.Run]:
+    """:func:`spot.loop.run` for a state stacked over seeds: one row per chunk and seed (the NaN/inf
+    checks per seed), each seed's best held-out checkpoint copied to the host."""
+    from tqdm.auto import tqdm
+
+    n_seeds = int(np.shape(jax.tree.leaves(state)[0])[0])
+    runs = [loop.Run(None) for _ in range(n_seeds)]
+    best = [np.inf] * n_seeds
+    bar = tqdm(total=steps, desc=desc, disable=desc is None, leave=False)
+    done, t0 = 0, time.perf_counter()
+    for n in loop.chunk_sizes(steps, length):
+        state, metrics = chunk(state, n, *args)
+        host = jax.device_get(metrics)
+        eval_loss, eval_acc = (np.asarray(x) for x in jax.device_get(evaluate(state)))
+        for s, r in enumerate(runs):
+            row = loop._chunk_row({k: v[s] for k, v in host.items()}, done, n, {"loss": "reward/train_loss"})
+            row = {"step": done + n, **row, "eval_loss": float(eval_loss[s]), "eval_acc": float(eval_acc[s])}
+            if not np.isfinite(row["eval_loss"]):
+                raise NonFiniteError(done + n, "reward/eval_loss", row["eval_loss"])
+            if row["eval_loss"] < best[s]:
+                best[s], r.best = row["eval_loss"], row
+                r.best_params = jax.tree.map(lambda a, s=s: np.array(a[s], copy=True), state.params)
+            r.rows.append(row)
+        done += n
+        bar.update(n)
+    bar.close()
+    for r in runs:
+        r.loop_s = time.perf_counter() - t0
+    return runs

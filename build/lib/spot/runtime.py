@@ -1,0 +1,156 @@
+"""Process settings spot needs, applied by one explicit call: :func:`configure`.
+
+Importing ``spot`` changes nothing in the process. Entry points call :func:`configure` first,
+before anything starts a jax backend or imports mujoco: the ``spot`` command (:func:`spot.cli.main`),
+each sweep trial process, the test suite's ``conftest.py`` and library users who train in-process
+(``import spot.runtime; spot.runtime.configure()``). It sets two environment variables:
+
+* ``XLA_FLAGS`` gets :data:`YNN_FLAG` appended: jaxlib 0.10.2 on CPU crashes in transformer
+  training at batch 256 with ``YNNPACK operation failed`` unless the YNN reduce fusion is off
+  (docs/install.md). XLA reads the variable when the first backend starts, so a call after that
+  raises :class:`RuntimeError` unless the flag is already set.
+* ``MUJOCO_GL`` defaults to ``egl`` (headless rendering with Mesa's software driver; robosuite
+  makes the same choice on Linux). MuJoCo reads it when first imported; a value already set is kept.
+
+``SPOT_FAST_COMPILE=1`` appends :data:`FAST_COMPILE_FLAGS` to ``XLA_FLAGS``: XLA's backend
+optimisations off and LLVM's expensive passes skipped. A tiny SPOT run's ~75 programs then compile
+in about 14 s instead of 30 (cold cache, 2 CPU cores), but the programs run several times slower
+(IQL at budget small: 300 instead of 1,000 updates/s) and round differently, so it is for smoke
+runs (a sweep file's ``fast_compile: true``), never for results; the flags are in every run's
+``environment.json`` and in the compilation cache's key. docs/benchmarks.md has the figures.
+
+It also turns on JAX's persistent compilation cache (:func:`compilation_cache_settings`), so that
+the trials of a sweep, the commands run one after another and the test suite's subprocesses
+compile each program once per machine instead of once per process:
+
+* ``JAX_COMPILATION_CACHE_DIR`` = ``$SPOT_CACHE_DIR/jax/jax-<jax version>`` (``SPOT_CACHE_DIR``
+  defaults to ``~/.cache/spot/stages``, the stage cache's folder);
+* ``JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS`` = :data:`MIN_COMPILE_S`, 0: every program
+  (JAX's default, 1 s, would leave out most of a small run's programs, which compile in 0.05-1 s
+  on CPU; a tiny SPOT run in a new process compiles ~75 programs, 2.5 s with all of them cached
+  against 4.6 s with those under 0.2 s left out, docs/benchmarks.md);
+* ``JAX_COMPILATION_CACHE_MAX_SIZE`` = :data:`MAX_SIZE_BYTES` (2 GiB): a bound on the folder
+  (least recently used entries are deleted) and, as important, it makes jax read and write
+  entries under a file lock (``filelock``, which Ray requires); without a bound jax writes an
+  entry in place, unlocked, so a trial could read another's half-written entry.
+
+jax reads them when it is imported; where jax is already imported, ``configure()`` sets them with
+``jax.config.update`` as well. A value the user set (any of the three) is kept. ``SPOT_JAX_CACHE=0``
+turns spot's setting off (jax's own default: no persistent cache unless ``JAX_COMPILATION_CACHE_DIR``
+is set). The cache is safe to share: jax's key (``jax._src.cache_key.get`` in jax 0.10.2) hashes
+the program (StableHLO), the jaxlib version, the backend's platform and platform version, the XLA
+flags (``XLA_FLAGS`` minus dump/debug-only flags), the compile options and the device kind; the
+jax version, which jax's key leaves out, is in the folder name.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+from spot import SpotError
+
+YNN_FLAG = "--xla_cpu_experimental_ynn_fusion_type=-LIBRARY_FUSION_TYPE_REDUCE"
+FAST_COMPILE_SWITCH = "SPOT_FAST_COMPILE"
+FAST_COMPILE_FLAGS = ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true")
+MUJOCO_GL_DEFAULT = "egl"
+JAX_CACHE_SWITCH = "SPOT_JAX_CACHE"
+MIN_COMPILE_S = "0"
+MAX_SIZE_BYTES = str(2 * 1024**3)
+_CACHE_VARS = {
+    "JAX_COMPILATION_CACHE_DIR": ("jax_compilation_cache_dir", str),
+    "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": ("jax_persistent_cache_min_compile_time_secs", float),
+    "JAX_COMPILATION_CACHE_MAX_SIZE": ("jax_compilation_cache_max_size", int),
+}
+
+
+def jax_cache_dir() -> Path:
+    """``$SPOT_CACHE_DIR/jax/jax-<version>`` (``SPOT_CACHE_DIR`` defaults to ``~/.cache/spot/stages``)."""
+    from importlib.metadata import version
+
+    from spot import cache
+
+    return cache.cache_dir() / "jax" / f"jax-{version('jax')}"
+
+
+def compilation_cache_settings() -> dict[str, str]:
+    """The persistent-compilation-cache variables :func:`configure` sets (module docstring); empty
+    when ``SPOT_JAX_CACHE`` is ``0``/``false``/``no``/``off``. Values the user set win."""
+    if not _switch(JAX_CACHE_SWITCH, "1"):
+        return {}
+    defaults = {
+        "JAX_COMPILATION_CACHE_DIR": str(jax_cache_dir()),
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": MIN_COMPILE_S,
+        "JAX_COMPILATION_CACHE_MAX_SIZE": MAX_SIZE_BYTES,
+    }
+    return {k: os.environ.get(k) or v for k, v in defaults.items()}
+
+
+def _switch(name: str, default: str) -> bool:
+    value = os.environ.get(name, default).strip().lower()
+    if value in ("0", "false", "no", "off"):
+        return False
+    if value not in ("1", "true", "yes", "on"):
+        raise SpotError(f"{name}={os.environ[name]!r}: expected 1 or 0 (on or off)")
+    return True
+
+
+def fast_compile() -> bool:
+    """Whether ``SPOT_FAST_COMPILE`` asks for :data:`FAST_COMPILE_FLAGS` (module docstring)."""
+    return _switch(FAST_COMPILE_SWITCH, "0")
+
+
+def _jax_backend_started() -> bool:
+    if "jax" not in sys.modules:
+        return False
+    from jax._src import xla_bridge
+
+    return xla_bridge.backends_are_initialized()
+
+
+def configure() -> dict[str, str]:
+    """Set ``XLA_FLAGS``, ``MUJOCO_GL`` and JAX's compilation cache for spot (see the module
+    docstring); idempotent.
+
+    Returns:
+      The variables' values after the call (the cache's three only where it is on).
+
+    Raises:
+      SpotError: ``SPOT_JAX_CACHE`` or ``SPOT_FAST_COMPILE`` is neither on nor off.
+      RuntimeError: the YNN flag (or a fast-compile flag asked for) is missing and a jax backend
+        has already started (too late for the flag to take effect; call ``configure()`` earlier).
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    wanted = [YNN_FLAG, *(FAST_COMPILE_FLAGS if fast_compile() else ())]
+    missing = [f for f in wanted if f not in flags.split()]
+    if missing:
+        if _jax_backend_started():
+            raise RuntimeError(
+                "spot.runtime.configure() was called after a jax backend started; call it "
+                "before any jax computation so that XLA_FLAGS takes effect"
+            )
+        os.environ["XLA_FLAGS"] = " ".join([flags, *missing]).strip()
+    if "mujoco" not in sys.modules:
+        os.environ.setdefault("MUJOCO_GL", MUJOCO_GL_DEFAULT)
+    cache_vars = compilation_cache_settings()
+    os.environ.update(cache_vars)
+    if cache_vars and "jax" in sys.modules:  # jax read its config from the environment when imported
+        import jax
+
+        for var, (option, kind) in _CACHE_VARS.items():
+            jax.config.update(option, kind(cache_vars[var]))
+    return {"XLA_FLAGS": os.environ["XLA_FLAGS"], "MUJOCO_GL": os.environ.get("MUJOCO_GL", ""), **cache_vars}
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` may still run on this host: False only when no such process exists.
+    Another user's process (``PermissionError``) and a number that is not a pid here (too large)
+    count as alive, so that whoever asks leaves their files and runs alone."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True
+    return True

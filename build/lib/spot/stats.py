@@ -1,0 +1,188 @@
+"""Interval estimates for scores over seeds and datasets, the way reviewers of RL papers ask for them.
+
+Agarwal et al. (2021, "Deep RL at the edge of the statistical precipice") recommend, per method
+across a benchmark's tasks, the interquartile mean (IQM) and the probability of improvement, each
+with a 95 % **stratified bootstrap** confidence interval: the runs of every task (dataset) are
+resampled with replacement independently, so each resample keeps every task with its own number
+of seeds. Their package ``rliable`` does not import beside this project's pins (``arch`` < 8, which
+it requires, fails on pandas 3), so the resampling is SciPy's :func:`scipy.stats.bootstrap`, which
+resamples every sample it is given independently: given the per-task arrays as separate samples it
+is exactly the stratified bootstrap. CIs are percentile intervals.
+
+Every function takes ``strata``: a sequence of 1-D arrays, one per task, each with that task's
+per-seed scores. A CI needs at least two values in every stratum; otherwise it is ``(nan, nan)``
+and the verdict says "too few seeds".
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats as sps
+
+CONFIDENCE = 0.95
+N_RESAMPLES = 5000
+SUPPORTED, NOT_SUPPORTED, INCONCLUSIVE, TOO_FEW = ("supported", "not supported", "inconclusive", "too few seeds")
+
+
+def _arrays(strata: Sequence[Sequence[float]]) -> list[np.ndarray]:
+    return [np.asarray(s, dtype=np.float64).ravel() for s in strata]
+
+
+def _bootstrap(
+    samples: Sequence[np.ndarray],
+    statistic: Callable[..., np.ndarray],
+    *,
+    paired: bool,
+    vectorized: bool,
+    confidence: float = CONFIDENCE,
+    n_resamples: int = N_RESAMPLES,
+    seed: int = 0,
+) -> Any:
+    """SciPy's bootstrap with percentile intervals, seeded: independent resamples of each sample,
+    or (``paired``) of the samples' positions together."""
+    return sps.bootstrap(
+        tuple(samples),
+        statistic,
+        n_resamples=n_resamples,
+        confidence_level=confidence,
+        method="percentile",
+        vectorized=vectorized,
+        paired=paired,
+        rng=np.random.default_rng(seed),
+    )
+
+
+def bootstrap_ci(
+    strata: Sequence[Sequence[float]],
+    statistic: Callable[..., np.ndarray],
+    *,
+    confidence: float = CONFIDENCE,
+    n_resamples: int = N_RESAMPLES,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Percentile CI of ``statistic(*strata, axis=-1)`` under the stratified bootstrap.
+
+    ``statistic`` must be vectorised: it receives arrays whose last axis holds one resample of
+    each stratum. Returns ``(nan, nan)`` when a stratum has fewer than two values.
+    """
+    arrays = _arrays(strata)
+    if not arrays or min(len(a) for a in arrays) < 2:
+        return float("nan"), float("nan")
+    if all(np.ptp(a) == 0 for a in arrays):  # every resample gives the same value
+        v = float(statistic(*arrays, axis=-1))
+        return v, v
+    res = _bootstrap(
+        arrays, statistic, paired=False, vectorized=True, confidence=confidence, n_resamples=n_resamples, seed=seed
+    )
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+# --------------------------------------------------------------------------- statistics
+def mean_of_means(*strata: np.ndarray, axis: int = -1) -> np.ndarray:
+    """The mean over strata of each stratum's mean (every dataset weighs the same)."""
+    return np.mean([np.mean(s, axis=axis) for s in strata], axis=0)
+
+
+def iqm(*strata: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean of all runs pooled over strata (the 25 % trimmed mean)."""
+    return sps.trim_mean(np.concatenate(strata, axis=axis), 0.25, axis=axis)
+
+
+def _split(strata: Sequence[np.ndarray]) -> tuple[Sequence[np.ndarray], Sequence[np.ndarray]]:
+    if len(strata) % 2:
+        raise ValueError("paired statistics take the x strata followed by as many y strata")
+    half = len(strata) // 2
+    return strata[:half], strata[half:]
+
+
+def mean_difference(*strata: np.ndarray, axis: int = -1) -> np.ndarray:
+    """``strata = (x_1..x_M, y_1..y_M)``: mean over tasks of ``mean(x_m) - mean(y_m)``."""
+    xs, ys = _split(strata)
+    return np.mean([np.mean(x, axis=axis) - np.mean(y, axis=axis) for x, y in zip(xs, ys, strict=True)], axis=0)
+
+
+def probability_of_improvement(*strata: np.ndarray, axis: int = -1) -> np.ndarray:
+    """``strata = (x_1..x_M, y_1..y_M)``: mean over tasks of P(X > Y) + ½ P(X = Y).
+
+    Per task this is the Mann-Whitney U statistic divided by ``n_x n_y``.
+    """
+    xs, ys = _split(strata)
+    per_task = []
+    for x, y in zip(xs, ys, strict=True):
+        x = np.moveaxis(np.asarray(x), axis, -1)[..., :, None]
+        y = np.moveaxis(np.asarray(y), axis, -1)[..., None, :]
+        per_task.append(((x > y) + 0.5 * (x == y)).mean(axis=(-2, -1)))
+    return np.mean(per_task, axis=0)
+
+
+# --------------------------------------------------------------------------- summaries
+@dataclass(frozen=True)
+class Estimate:
+    """A point estimate with its 95 % CI and the number of values behind it."""
+
+    value: float
+    low: float
+    high: float
+    n: int
+
+    def text(self, digits: int = 1) -> str:
+        if np.isnan(self.low):
+            return f"{self.value:.{digits}f} (CI n/a)"
+        return f"{self.value:.{digits}f} [{self.low:.{digits}f}, {self.high:.{digits}f}]"
+
+
+def cell(values: Sequence[float], *, seed: int = 0) -> dict[str, float]:
+    """One table cell: ``n``, ``mean``, sample ``std`` (ddof 1) and the mean's bootstrap CI."""
+    x = np.asarray(values, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    low, high = bootstrap_ci([x], mean_of_means, seed=seed)
+    return {
+        "n": len(x),
+        "mean": float(x.mean()) if len(x) else float("nan"),
+        "std": float(x.std(ddof=1)) if len(x) > 1 else float("nan"),
+        "ci_low": low,
+        "ci_high": high,
+    }
+
+
+def estimate(strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *, seed: int = 0) -> Estimate:
+    """``statistic`` on ``strata`` with its stratified-bootstrap CI."""
+    arrays = _arrays(strata)
+    low, high = bootstrap_ci(arrays, statistic, seed=seed)
+    return Estimate(float(statistic(*arrays, axis=-1)), low, high, sum(len(a) for a in arrays))
+
+
+def verdict(est: Estimate, null: float = 0.0) -> str:
+    """``supported`` if the CI lies above ``null``, ``not supported`` if below, else inconclusive."""
+    if np.isnan(est.low):
+        return TOO_FEW
+    if est.low > null:
+        return SUPPORTED
+    if est.high < null:
+        return NOT_SUPPORTED
+    return INCONCLUSIVE
+
+
+def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -> Estimate:
+    """Spearman's rank correlation of paired values with a 95 % percentile CI from SciPy's paired
+    bootstrap (the pairs are resampled together). Resamples whose x or y values are all equal have
+    no correlation and are left out of the percentiles. The CI is ``(nan, nan)`` below 4 pairs."""
+    a, b = _arrays([x, y])
+    if len(a) != len(b):
+        raise ValueError(f"rank_correlation: {len(a)} x values but {len(b)} y values")
+    if len(a) < 2:
+        return Estimate(float("nan"), float("nan"), float("nan"), len(a))
+    value = float(sps.spearmanr(a, b).statistic)
+    if len(a) < 4:
+        return Estimate(value, float("nan"), float("nan"), len(a))
+    with warnings.catch_warnings():  # the constant resamples (their rho is nan, left out below)
+        warnings.simplefilter("ignore", (sps.ConstantInputWarning, sps.DegenerateDataWarning, RuntimeWarning))
+        res = _bootstrap((a, b), lambda u, v: sps.spearmanr(u, v).statistic, paired=True, vectorized=False, seed=seed)
+    tail = 100 * (1 - CONFIDENCE) / 2
+    low, high = np.nanpercentile(res.bootstrap_distribution, [tail, 100 - tail])
+    return Estimate(value, float(low), float(high), len(a))

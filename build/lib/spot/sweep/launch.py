@@ -1,0 +1,1026 @@
+"""The driver of a launch (``spot sweep FILE``): store, Ray, parent run, Tune, summary.
+
+:func:`run_sweep` validates the file, builds the datasets the runs need, serves a SQLite store
+through a loopback ``mlflow server`` (:mod:`spot.mlflow_server`) unless given a server's URI,
+starts Ray, creates the experiment and the parent run, runs one Tune experiment over
+:func:`spot.sweep.trial._trainable`, closes the runs it left RUNNING, and logs and prints the
+summary. ``--resume`` restores the Ray experiment recorded in ``<storage>/<experiment>.json``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import secrets
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spot import SpotError
+from spot import config as config_lib
+from spot.sweep.spec import Sweep, load, run_key, tag_value
+from spot.sweep.summary import Row, breakdown_text, format_summary, log_fit_cpu, paper_table, summarize
+from spot.sweep.trial import RunFn, SweepContext, _trainable
+
+DEFAULT_STORAGE = Path("spot_runs") / "ray"
+
+
+def prebuild_datasets(sweep: Sweep) -> list[Path]:
+    """Build every registry dataset the sweep's runs need, here on the driver, before trials start.
+
+    A build uses all the driver's cores, where inside a trial it would be pinned to the trial's
+    CPUs while the other trials wait on its lock. Files given as paths are left alone. With a
+    store (:mod:`spot.store`) each build is uploaded, and trials on other nodes download it; on a
+    cluster without one whose nodes do not share ``$SPOT_DATA_DIR`` the trials build what they miss.
+    """
+    from spot.data import registry
+
+    wanted = []
+    for trial, seed in sweep.runs():
+        cfg = config_lib.resolve(trial.overrides, {"seed": seed})
+        key = (cfg.data.name, cfg.data.size, cfg.data.build_seed)
+        if cfg.data.source != "file" and not Path(cfg.data.name).exists() and key not in wanted:
+            wanted.append(key)
+    paths = []
+    for name, size, seed in wanted:
+        print(f"dataset {name} (size {size}, seed {seed}): building if not cached", flush=True)
+        paths.append(registry.build(name, size, seed))
+    return paths
+
+
+# --------------------------------------------------------------------------- store and Ray
+@dataclass(frozen=True)
+class _Store:
+    """The launch's store: ``uri()`` (a served store's port may change while it starts, see
+    :meth:`spot.mlflow_server.MlflowServer.wait_ready`), how to open it, and its server's
+    ``wait_ready``/``stop``."""
+
+    get_uri: Callable[[], str]
+    how_to_open: str
+    wait_ready: Callable[[], None]
+    stop: Callable[[], None] = lambda: None
+    link_base: str = ""  # where the UI answers, for the link to the sweep's runs table
+
+    @property
+    def uri(self) -> str:
+        return self.get_uri()
+
+
+LOOPBACK = "127.0.0.1"
+_SWEEP_SCHEMES = ("sqlite", "http", "https", "postgresql", "mysql", "mssql", "databricks", "databricks-uc")
+
+
+def _check_tracking_uri(uri: str) -> str:
+    """``uri`` if a sweep can log there (``""``: the default store); SpotError otherwise."""
+    from spot import mlflow_server, tracking
+
+    if uri and mlflow_server.is_local_store(uri) and not uri.startswith("sqlite:"):
+        raise SpotError(
+            f"tracking URI '{uri}': file stores cannot take concurrent trials; give "
+            "sqlite:///path.db (spot serves it) or http(s)://host:port of a tracking server"
+        )
+    scheme = uri.split("://", 1)[0].split("+", 1)[0].lower() if "://" in uri else ""
+    if uri and (scheme not in _SWEEP_SCHEMES or (scheme == "sqlite" and tracking.sqlite_path(uri) is None)):
+        raise SpotError(
+            f"tracking URI '{uri}': a sweep logs to sqlite:///path.db (spot serves it), an "
+            "http(s)://host:port tracking server, or a database MLflow supports "
+            "(postgresql://, mysql://, mssql://) or databricks://"
+        )
+    return uri
+
+
+def _check_tracking_host(host: str | None, address: str | None, tracking_uri: str | None) -> None:
+    """``--tracking-host`` is for the server spot starts for a cluster sweep."""
+    from spot import tracking
+
+    if host is None:
+        return
+    if not address:
+        raise SpotError(
+            f"--tracking-host {host}: only for a cluster sweep (--address); a local sweep's server stays on loopback"
+        )
+    uri = tracking.given_uri(tracking_uri)
+    if uri and not uri.startswith("sqlite:"):
+        raise SpotError(
+            f"--tracking-host {host}: spot starts no server for --tracking-uri {uri}; give one or the other"
+        )
+    if not host.strip() or any(c in host for c in "/ :[]"):
+        raise SpotError(f"--tracking-host {host!r}: expected an IPv4 address or host name, e.g. 0.0.0.0")
+
+
+def _advertised_host(host: str, address: str | None) -> str:
+    """The address trials reach a server bound to ``host`` at: ``host`` itself, or for ``0.0.0.0``
+    this machine's address on the route to the Ray head (``address``)."""
+    if host != "0.0.0.0":
+        return host
+    peer, sep, port = (address or "").rpartition(":")
+    with contextlib.suppress(OSError):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:  # no packet is sent
+            s.connect((peer if sep and port.isdigit() else "10.255.255.255", int(port) if port.isdigit() else 1))
+            return s.getsockname()[0]
+    return socket.gethostbyname(socket.gethostname())
+
+
+@contextlib.contextmanager
+def _tracking_store(
+    uri: str | None, root: Path, host: str | None = None, address: str | None = None
+) -> Iterator[_Store]:
+    """The tracking store of a launch; a SQLite store is served by a loopback server (bound to
+    ``host`` instead, for a cluster sweep's ``--tracking-host``).
+
+    The server starts here but is only waited for by ``wait_ready()``, so that Ray can start
+    meanwhile.
+    """
+    from spot import mlflow_server, tracking
+
+    uri = _check_tracking_uri(tracking.given_uri(uri))
+    if uri and not uri.startswith("sqlite:"):
+        if uri.startswith(("http://", "https://")):
+            mlflow_server.check_reachable(uri)  # before Ray starts: a clear error within seconds
+        link = uri if uri.startswith(("http://", "https://")) else ""
+        yield _Store(lambda: uri, f"MLflow: {uri}", lambda: None, link_base=link)
+        return
+    db = tracking.sqlite_path(uri) if uri else root / "mlflow.db"
+    db.parent.mkdir(parents=True, exist_ok=True)
+    backend = mlflow_server.sqlite_uri(db)
+    artifacts = db.resolve().parent / "artifacts"
+    bind = host or LOOPBACK
+    server = mlflow_server.MlflowServer(
+        backend,
+        artifacts,
+        log_path=db.resolve().parent / "mlflow-server.log",
+        host=bind,
+        advertise=_advertised_host(bind, address),
+    )
+    print(f"starting mlflow server on {server.uri} (store {backend})", flush=True)
+    if bind != LOOPBACK:
+        print(
+            f"WARNING: the MLflow server listens on {bind}:{server.port}, not on loopback (--tracking-host): "
+            "anyone who can reach that port can read, change and delete the runs and artifacts (MLflow's "
+            "server has no authentication). Keep it on a private network, firewalled to the cluster's "
+            "nodes (docs/sweeps.md, 'Multi-node sweeps').",
+            file=sys.stderr,
+            flush=True,
+        )
+    server.start(wait=False)
+    try:
+        yield _Store(
+            lambda: server.uri,
+            f"open the runs with: {tracking.ui.ui_command(backend, artifacts)}",
+            server.wait_ready,
+            server.stop,
+            link_base=tracking.ui.DEFAULT_URL,
+        )
+    finally:
+        server.stop()
+
+
+def _local_ray_env() -> dict[str, str]:
+    """Environment of a local Ray cluster bound to loopback, with token authentication.
+
+    Ray 2.60 replaces a loopback ``_node_ip_address`` by the host's routable address (and its
+    servers then listen on every interface) unless ``RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER=0``, which
+    makes the node address 127.0.0.1: GCS, raylet, object manager, workers, the runtime-env agent
+    and the autoscaler monitor then listen on loopback only. Token authentication
+    (``RAY_AUTH_MODE=token``) with a fresh random token per launch, passed in the environment (so
+    nothing is written to ``~/.ray``), keeps other local users off the cluster too; a
+    ``RAY_AUTH_MODE`` or token the user set is kept.
+    """
+    env = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0"}
+    if "RAY_AUTH_MODE" not in os.environ:
+        env["RAY_AUTH_MODE"] = "token"
+        if not (os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")):
+            env["RAY_AUTH_TOKEN"] = secrets.token_hex(32)
+    return env
+
+
+def _init_ray(address: str | None) -> bool:
+    """Start local Ray on loopback (all CPUs, no dashboard) or connect to ``address``; False if Ray
+    is already up in this process."""
+    if not address:
+        os.environ.update(_local_ray_env())  # before Ray starts: its processes inherit it
+    import ray
+
+    if ray.is_initialized():
+        return False
+    env_vars = {
+        "RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
+        "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
+    }  # no "View run" lines in the progress view
+    from spot import store as store_lib
+
+    shared = {k: os.environ[k] for k in (store_lib.ENV_URI, store_lib.ENV_OPTIONS) if k in os.environ}
+    env_vars.update(shared)  # every node reads and writes the same store
+    if not (address and shared):  # with a shared store, each node of a cluster keeps its own local dirs
+        env_vars.update({k: os.environ[k] for k in ("SPOT_DATA_DIR", "SPOT_CACHE_DIR") if k in os.environ})
+    if address:
+        _check_ray_address(address)
+        try:
+            ray.init(address=address, runtime_env={"env_vars": env_vars}, logging_level=logging.WARNING)
+        except (ConnectionError, RuntimeError, ValueError) as e:
+            raise SpotError(f"cannot connect to the Ray cluster at --address {address}: {e}") from e
+        return True
+    from ray._private import ray_constants, services
+
+    # The constant is read when ray is imported; a process that imported ray before the
+    # environment was set still gets the loopback node address.
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    ray.init(
+        num_cpus=os.cpu_count(),
+        include_dashboard=False,
+        _node_ip_address=LOOPBACK,
+        runtime_env={"env_vars": env_vars},
+        logging_level=logging.WARNING,
+    )
+    node_ip = services.get_node_ip_address()
+    if node_ip != LOOPBACK:
+        ray.shutdown()
+        raise SpotError(
+            f"local Ray came up on {node_ip}, not on loopback; refusing to run a sweep on a "
+            "cluster other hosts can reach (see docs/sweeps.md, 'What is exposed')"
+        )
+    return True
+
+
+def _check_ray_address(address: str) -> None:
+    """A ``host:port`` address must accept a TCP connection within 5 s (``ray.init`` would retry
+    for minutes); ``auto`` and ``ray://`` addresses are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if "://" in address or not sep or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()
+    except OSError as e:
+        raise SpotError(
+            f"nothing answers at the Ray address {address} ({e.strerror or e}); start the cluster, "
+            "or check --address / RAY_ADDRESS"
+        ) from None
+
+
+def _check_gpus(sweep: Sweep) -> None:
+    """Stop before any run is opened if trials ask for more GPUs or CPUs than the Ray cluster has
+    (Tune would otherwise wait for them forever)."""
+    import ray
+
+    have = ray.cluster_resources()
+    if sweep.resources["gpu"] > 0 and float(have.get("GPU", 0.0)) == 0:
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.gpu = {sweep.resources['gpu']:g} per trial, but the Ray "
+            "cluster has no GPU; set resources: {gpu: 0} (--smoke uses no GPU unless its block asks), or "
+            "give --address of a cluster with GPUs"
+        )
+    nodes_cpus = [float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes() if n.get("Alive")]
+    most = max(nodes_cpus, default=float(have.get("CPU", 0.0)))
+    if sweep.resources["cpu"] > most:
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the largest "
+            f"node of the Ray cluster has {most:g} CPUs; ask for at most {most:g}"
+        )
+
+
+# --------------------------------------------------------------------------- Tune
+def _reporter_class() -> type:
+    from ray import tune
+
+    class Reporter(tune.CLIReporter):
+        """Tune's status table without the ``Result logdir`` line it repeats in every report (the
+        launch prints its storage folder once, at the start)."""
+
+        def report(self, trials: Any, done: bool, *sys_info: str) -> None:
+            text = self._progress_str(trials, done, *sys_info)
+            self._print("\n".join(ln for ln in text.splitlines() if not ln.startswith("Result logdir:")))
+
+    return Reporter
+
+
+def _Reporter(**kwargs: Any) -> Any:  # noqa: N802 (a class, built on first use so Ray imports lazily)
+    return _reporter_class()(**kwargs)
+
+
+def _trial_dirname(trial: Any) -> str:
+    return str(trial.trial_id)
+
+
+def _trial_name(trial: Any) -> str:
+    """A readable trial name for Tune's output: ``method=spot,seed=0`` (axes, then seeds)."""
+    cfg = trial.config.get("trial", {}) if isinstance(trial.config, dict) else {}
+    parts = [f"{k}={v}" for k, v in cfg.get("axes", {}).items()]
+    seeds = cfg.get("seeds", [])
+    parts.append(f"seed={seeds[0]}" if len(seeds) == 1 else f"seeds={','.join(map(str, seeds))}")
+    return ",".join(parts)
+
+
+def _tuner(
+    sweep: Sweep, trainable: Any, exp_dir: Path, *, resume: bool, retry_errored: bool, max_concurrent: int | None
+) -> Any:
+    """A new Tune experiment over the sweep's trials, or the restored one with ``resume``."""
+    from ray import tune
+
+    param_space = {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
+    if resume and tune.Tuner.can_restore(str(exp_dir)):
+        died, raised = _errored_trials(exp_dir)
+        if died and not retry_errored:
+            # Trials whose process was killed with the launch (a SIGTERM to the process group can
+            # reach a worker before the driver) were cut off, not failed: they run again. Tune
+            # restarts errored trials all together, so failed ones then run again too.
+            print(
+                f"note: {died} trial(s) whose process died with the interrupted launch run again"
+                + (f", and with them {raised} failed trial(s) (as with --retry-errored)" if raised else ""),
+                flush=True,
+            )
+        return tune.Tuner.restore(
+            str(exp_dir),
+            trainable=trainable,
+            param_space=param_space,
+            resume_unfinished=True,
+            resume_errored=False,
+            restart_errored=retry_errored or died > 0,
+        )
+    reporter = _Reporter(
+        parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
+        metric_columns={"iql_step": "step", "score": "score", "score_final": "final", "seed": "seed"},
+        max_report_frequency=30,
+        sort_by_metric=False,
+    )
+    return tune.Tuner(
+        trainable,
+        param_space=param_space,
+        tune_config=tune.TuneConfig(
+            max_concurrent_trials=max_concurrent,
+            reuse_actors=True,  # the trials ask for the same resources: the next trial reuses an actor's process
+            trial_dirname_creator=_trial_dirname,
+            trial_name_creator=_trial_name,
+        ),
+        run_config=tune.RunConfig(
+            name=exp_dir.name,
+            storage_path=str(exp_dir.parent),
+            progress_reporter=reporter,
+            verbose=1,
+            failure_config=tune.FailureConfig(max_failures=0, fail_fast=False),
+        ),
+    )
+
+
+def _analysis_trials(exp_dir: Path) -> list[Any]:
+    """The trials of the Tune experiment in ``exp_dir`` as saved."""
+    from ray import tune
+
+    # ExperimentAnalysis, not the ResultGrid: a Result of a restored trial that never reported lacks
+    # its config. Its warnings about trials that never started ("no metrics") are noise here.
+    quiet = logging.getLogger("ray.tune.analysis.experiment_analysis")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        return list(tune.ExperimentAnalysis(str(exp_dir)).trials)
+    finally:
+        quiet.setLevel(level)
+
+
+def _errored_trials(exp_dir: Path) -> tuple[int, int]:
+    """``(died, raised)``: errored trials whose process died (Ray's actor/worker/node death errors),
+    and errored trials whose own code raised."""
+    from ray import exceptions
+
+    kinds = tuple(
+        getattr(exceptions, name)
+        for name in ("RayActorError", "WorkerCrashedError", "NodeDiedError", "LocalRayletDiedError")
+        if hasattr(exceptions, name)
+    )
+    died = raised = 0
+    for trial in _analysis_trials(exp_dir):
+        if trial.status != "ERROR":
+            continue
+        error = trial.get_pickled_error() or trial.get_error()
+        text = str(error)
+        if isinstance(error, kinds) or "ActorDiedError" in text or "The actor died" in text:
+            died += 1
+        else:
+            raised += 1
+    return died, raised
+
+
+def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
+    """``{run_key: error}`` for each seed of the errored trials, and whether some trial is unfinished."""
+    trials = _analysis_trials(exp_dir)
+    errors: dict[str, str] = {}
+    for trial in trials:
+        error = (trial.get_pickled_error() or trial.get_error()) if trial.status == "ERROR" else None
+        if error is not None:
+            lines = [ln for ln in str(error).splitlines() if ln.strip()]
+            for seed in trial.config["trial"]["seeds"]:
+                errors[run_key(trial.config["trial"]["overrides"], seed)] = lines[-1] if lines else repr(error)
+    return errors, any(t.status not in ("TERMINATED", "ERROR") for t in trials)
+
+
+def _fit(
+    sweep: Sweep,
+    ctx: SweepContext,
+    exp_dir: Path,
+    *,
+    resume: bool,
+    retry_errored: bool,
+    max_concurrent: int | None,
+    run_fn: RunFn | None,
+) -> tuple[dict[str, str], bool]:
+    """Run (or restore) the Tune experiment.
+
+    Returns ``{run_key: error}`` for each seed of errored trials, and whether the launch was
+    interrupted (Ctrl-C: Tune stops and returns with trials left unfinished).
+    """
+    from ray import tune
+
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # use the CLIReporter of _tuner
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
+    trainable = tune.with_resources(
+        tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
+        {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]},
+    )
+    from mlflow.tracking import MlflowClient
+
+    from spot import phases
+
+    with phases.CpuMeter() as cpu:  # the sweep's CPU utilisation, printed at the end
+        _tuner(
+            sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent
+        ).fit()
+    with contextlib.suppress(Exception):  # a measurement: never the reason a launch fails
+        log_fit_cpu(MlflowClient(ctx.tracking_uri), ctx.parent_run_id, cpu)
+    return _trial_errors(exp_dir)
+
+
+# --------------------------------------------------------------------------- the launch's records
+def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) -> dict[str, Any]:
+    """The launch record: a new sweep id, or the one being resumed (checked to expand the same)."""
+    if not resume:
+        return {
+            "sweep_id": f"{sweep.experiment}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}",
+            "spec_hash": sweep.spec_hash(),
+            "file": str(Path(path).resolve()),
+        }
+    if not state_file.is_file():
+        raise SpotError(
+            f"nothing to resume: no launch of sweep '{sweep.experiment}' under {state_file.parent}; "
+            "start it without --resume"
+        )
+    try:
+        state = json.loads(state_file.read_text())
+        if not (
+            isinstance(state, dict)
+            and all(isinstance(state.get(k), str) and state[k] for k in ("sweep_id", "spec_hash", "parent_run_id"))
+        ):
+            raise ValueError("expected an object with sweep_id, spec_hash and parent_run_id")
+    except (ValueError, UnicodeDecodeError) as e:
+        raise SpotError(
+            f"launch record {state_file} is damaged ({e}); it cannot be resumed: start a new launch without --resume"
+        ) from None
+    if state["spec_hash"] != sweep.spec_hash():
+        raise SpotError(
+            f"sweep file '{path}' expands to other trials than the launch {state['sweep_id']} "
+            "being resumed; Ray cannot change a sweep's trials: start a new launch without --resume"
+        )
+    return state
+
+
+def _open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, Any], *, resume: bool) -> str:
+    """Create the launch's parent run (recorded in ``state``), or reopen it on resume."""
+    from spot import tracking
+    from spot.tracking.processes import process_tags
+
+    if resume:
+        parent_id = state["parent_run_id"]
+        n = tracking.close_orphans(
+            client,
+            experiment_id,
+            {"sweep_id": state["sweep_id"]},
+            "process ended during an interrupted launch",
+            keep=(parent_id,),
+        )
+        print(
+            f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED", flush=True
+        )
+        client.update_run(parent_id, status="RUNNING")
+        client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
+        for key, value in process_tags().items():  # this driver owns the reopened run now
+            client.set_tag(parent_id, key, value)
+        return parent_id
+    parent = client.create_run(
+        experiment_id,
+        run_name=f"sweep {state['sweep_id']}",
+        tags={
+            "sweep_id": state["sweep_id"],
+            "sweep_name": sweep.name,
+            "spot.role": "sweep",
+            "smoke": str(sweep.smoke),
+            "sweep_file": str(sweep.path.resolve()),
+            "git_commit": tracking.git_commit(),
+            **process_tags(),
+        },
+    )
+    parent_id = parent.info.run_id
+    client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")
+    client.log_dict(parent_id, [t.to_config() for t in sweep.trials()], "trials.json")
+    client.log_batch(parent_id, params=_parent_params(sweep))
+    state["parent_run_id"] = parent_id
+    return parent_id
+
+
+def _parent_params(sweep: Sweep) -> list[Any]:
+    from mlflow.entities import Param
+
+    params = {
+        "sweep.trials": len(sweep.trials()),
+        "sweep.runs": len(sweep.runs()),
+        "sweep.seeds": list(sweep.seeds),
+        "sweep.seed_mode": sweep.seed_mode,
+        "sweep.cpu": sweep.resources["cpu"],
+        "sweep.gpu": sweep.resources["gpu"],
+        **{f"grid.{k}": v for k, v in sweep.grid.items()},
+        **{f"zip.{k}": v for k, v in sweep.zip.items()},
+        **{f"base.{k}": v for k, v in sweep.base.items()},
+    }
+    return [Param(k, tag_value(v)[:6000]) for k, v in params.items()]
+
+
+def _close_parent(client: Any, ctx: SweepContext, rows: list[Row], table: str, *, interrupted: bool) -> None:
+    """Log the summary to the parent run and end it: FINISHED if every run finished, KILLED if
+    interrupted, else FAILED."""
+    from mlflow.entities import Metric
+
+    n_done = sum(r.status == "FINISHED" for r in rows)
+    now = int(time.time() * 1000)
+    client.log_batch(
+        ctx.parent_run_id,
+        metrics=[
+            Metric(k, v, now, 0)
+            for k, v in (
+                ("sweep/runs_total", len(rows)),
+                ("sweep/runs_finished", n_done),
+                ("sweep/runs_failed", len(rows) - n_done),
+            )
+        ],
+    )
+    client.log_text(ctx.parent_run_id, table + "\n", "summary.txt")
+    client.set_terminated(
+        ctx.parent_run_id, "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED"
+    )
+
+
+# --------------------------------------------------------------------------- signals
+class Interrupted(Exception):  # noqa: N818 - a stop, not an error
+    """The launch was stopped by SIGTERM or SIGINT; its runs are closed (KILLED) and Ray is shut down.
+
+    ``exit_code`` is the shell's convention, 128 + the signal number (143 for SIGTERM, 130 for SIGINT).
+    """
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        self.exit_code = 128 + signum
+        super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
+
+
+@contextlib.contextmanager
+def _on_sigterm(stop: Callable[[], None]) -> Iterator[None]:
+    """Within the block, SIGTERM runs ``stop()`` and ends the process with exit code 143.
+
+    A SIGTERM to the sweep's process group (``timeout``, a batch scheduler) reaches Ray's GCS,
+    raylet and workers too, and Tune's own cleanup would then wait forever on the dead cluster;
+    so the driver does not unwind through Tune: ``stop()`` kills what is left of Ray, closes the
+    runs in MLflow (the server runs in its own session and survives the signal) and stops the
+    server, and the process exits at once. Further SIGTERMs are ignored meanwhile. Ray's driver
+    handler (installed by ``ray.init``) is restored after the block.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def handler(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        try:
+            stop()
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _kill_local_ray() -> None:
+    """Stop the processes of the local Ray node this driver started, without talking to them (the
+    GCS may already be gone, and ``ray.shutdown()`` would wait for it)."""
+    import ray
+
+    node = getattr(ray._private.worker, "_global_node", None)
+    if node is not None:
+        with contextlib.suppress(Exception):
+            node.kill_all_processes(check_alive=False, allow_graceful=True)
+
+
+# --------------------------------------------------------------------------- the launch
+def _open_launch(
+    sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool, resume_command: str
+) -> tuple[Any, SweepContext]:
+    """The store ready, the experiment, the parent run and the launch record: ``(client, ctx)``."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+    from spot.tracking.processes import close_dead_runs
+
+    sweep_id = state["sweep_id"]
+    _check_gpus(sweep)
+    store.wait_ready()
+    client = MlflowClient(store.uri)
+    exp_id = tracking.experiment_id(sweep.experiment, store.uri)
+    close_dead_runs(client, [exp_id])
+    parent_id = _open_parent(client, exp_id, sweep, state, resume=resume)
+    ctx = SweepContext(
+        sweep_id,
+        sweep.name,
+        sweep.experiment,
+        exp_id,
+        parent_id,
+        store.uri,
+        sweep.axis_keys,
+        fast_compile=sweep.fast_compile,
+    )
+    if not resume:
+        tmp = state_file.with_name(f"{state_file.name}.tmp-{os.getpid()}")
+        tmp.write_text(json.dumps(state, indent=2))
+        tmp.replace(state_file)  # whole or not at all
+    print(
+        f"MLflow experiment '{sweep.experiment}' (id {exp_id}) at {store.uri}; parent run {parent_id}\n"
+        f"Ray storage {state_file.parent / sweep_id}; if interrupted: {resume_command}",
+        flush=True,
+    )
+    return client, ctx
+
+
+def _close_launch(uri: str, ctx: SweepContext, reason: str, resume_command: str) -> None:
+    """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+
+    mine = MlflowClient(uri)  # not the main thread's client: a signal may interrupt it
+    tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": ctx.sweep_id}, reason, keep=(ctx.parent_run_id,))
+    mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
+    mine.set_terminated(ctx.parent_run_id, "KILLED")
+    print(
+        f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
+        f"to continue: {resume_command}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def _run_launch(
+    sweep: Sweep,
+    store: _Store,
+    state: dict[str, Any],
+    state_file: Path,
+    *,
+    resume: bool,
+    retry_errored: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    run_fn: RunFn | None,
+    resume_command: str,
+) -> tuple[Any, SweepContext, dict[str, str], bool]:
+    """Ray, the parent run and the Tune experiment; returns ``(client, ctx, ray errors, interrupted)``.
+
+    Once the parent run exists, however the launch ends, the runs its trials left RUNNING are
+    closed (KILLED) before this returns or raises.
+    """
+
+    from spot import tracking
+
+    sweep_id = state["sweep_id"]
+    started_ray = _init_ray(address)  # a SIGTERM while Ray starts takes Ray's own handler (exit)
+    client = ctx = None
+
+    def close(reason: str) -> None:
+        if ctx is not None:
+            _close_launch(store.uri, ctx, reason, resume_command)
+
+    def on_sigterm() -> None:
+        print("SIGTERM: stopping Ray, closing the runs", file=sys.stderr, flush=True)
+        if started_ray:
+            _kill_local_ray()
+        try:
+            close("launch stopped by SIGTERM")
+        finally:
+            store.stop()
+
+    reason = "launch crashed"
+    with _on_sigterm(on_sigterm):
+        try:
+            if run_fn is None:  # after Ray's processes are started: forking them once JAX runs here warns
+                prebuild_datasets(sweep)
+            client, ctx = _open_launch(sweep, store, state, state_file, resume=resume, resume_command=resume_command)
+            errors, interrupted = _fit(
+                sweep,
+                ctx,
+                state_file.parent / sweep_id,
+                resume=resume,
+                retry_errored=retry_errored,
+                max_concurrent=max_concurrent,
+                run_fn=run_fn,
+            )
+            reason = ""
+        except KeyboardInterrupt:
+            reason = "launch stopped by SIGINT"
+            raise
+        finally:
+            if started_ray:
+                import ray
+
+                ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
+            if reason:
+                close(reason)
+        tracking.close_orphans(
+            client,
+            ctx.experiment_id,
+            {"sweep_id": sweep_id},
+            "launch interrupted" if interrupted else "trial process ended without closing its run",
+            keep=(ctx.parent_run_id,),
+        )
+    return client, ctx, errors, interrupted
+
+
+def run_sweep(
+    path: str | Path,
+    *,
+    smoke: bool = False,
+    resume: bool = False,
+    retry_errored: bool = False,
+    address: str | None = None,
+    max_concurrent: int | None = None,
+    tracking_uri: str | None = None,
+    storage: str | Path = DEFAULT_STORAGE,
+    workdir: str | Path | None = None,
+    run_fn: RunFn | None = None,
+    store: str | None = None,
+    tracking_host: str | None = None,
+) -> list[Row]:
+    """Run a sweep file end to end (``spot sweep``); return the summary rows.
+
+    Args:
+      path: sweep YAML file.
+      smoke: apply the file's ``smoke:`` block (experiment ``<name>-smoke``).
+      resume: continue the last launch of this sweep (same sweep id, same parent run).
+      retry_errored: with ``resume``, run errored trials again (their FAILED runs stay).
+      address: Ray cluster address; default: a local Ray with all CPUs.
+      max_concurrent: trials at once (default: the file's ``max_concurrent``, else as resources allow).
+      tracking_uri: MLflow URI; default ``$MLFLOW_TRACKING_URI``, else a loopback server on
+        ``<workdir>/spot_runs/mlflow.db``. A ``sqlite:`` URI is served the same way.
+      storage: Ray Tune storage folder (the launch's experiment is ``<storage>/<sweep id>``).
+      workdir: where ``spot_runs/`` goes (default: the current directory).
+      run_fn: the per-seed run function (default :func:`spot.pipeline.run`).
+      store: URI of the store the nodes share datasets and stage entries through (:mod:`spot.store`);
+        default: the file's ``store:``, else ``$SPOT_STORE``, else none (local folders).
+      tracking_host: with ``address`` and no server URI: bind the MLflow server spot starts to this
+        address (e.g. ``0.0.0.0``) so that trials on other nodes reach it; default loopback.
+    """
+    from spot import tracking
+
+    if retry_errored and not resume:
+        raise SpotError("--retry-errored goes with --resume")
+    if max_concurrent is not None and (isinstance(max_concurrent, bool) or max_concurrent < 1):
+        raise SpotError(f"--max-concurrent {max_concurrent}: expected a positive number of trials")
+    sweep = load(path, smoke=smoke)
+    _check_tracking_uri(tracking.given_uri(tracking_uri))  # before anything is written
+    _check_tracking_host(tracking_host, address or os.environ.get("RAY_ADDRESS"), tracking_uri)
+    root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
+    state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
+    with _launch_lock(state_file, sweep.experiment), _shared_store(sweep, store):
+        return _launch(
+            sweep,
+            path,
+            state_file,
+            root,
+            smoke=smoke,
+            resume=resume,
+            retry_errored=retry_errored,
+            address=address,
+            max_concurrent=max_concurrent,
+            tracking_uri=tracking_uri,
+            run_fn=run_fn,
+            tracking_host=tracking_host,
+        )
+
+
+@contextlib.contextmanager
+def _shared_store(sweep: Sweep, uri: str | None) -> Iterator[None]:
+    """``$SPOT_STORE`` (and its options) for the launch: ``uri``, else the file's ``store:``, else as
+    set; the driver builds and uploads datasets there and Ray passes it to every trial."""
+    from spot import store as store_lib
+
+    uri = uri or sweep.store
+    env = store_lib.environment(uri, dict(sweep.store_options)) if uri else {}
+    old = {k: os.environ.get(k) for k in (store_lib.ENV_URI, store_lib.ENV_OPTIONS)}
+    if env:
+        os.environ.pop(store_lib.ENV_OPTIONS, None)
+        os.environ.update(env)
+    named = store_lib.configured()
+    print(
+        f"store: {named[0]} (datasets and stage entries shared by every node)"
+        if named
+        else "store: none (datasets and stage entries in each node's local folders)",
+        flush=True,
+    )
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+@contextlib.contextmanager
+def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``<storage>/<experiment>.lock`` for the launch: a second
+    launch (or ``--resume``) of the same sweep with the same storage refuses while one runs, so
+    no launch overwrites another's record. The lock dies with the process, however it ends."""
+    lock_path = state_file.with_name(f"{experiment}.lock")
+    try:
+        state_file.parent.mkdir(parents=True, exist_ok=True)
+        f = open(lock_path, "a+")
+    except OSError as e:
+        raise SpotError(f"--storage {state_file.parent}: cannot keep the launch record there ({e.strerror})") from None
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            holder = f.read().strip() or "another process"
+            raise SpotError(
+                f"sweep '{experiment}' is already running with storage {state_file.parent} "
+                f"({holder}); wait for it to end, or give this launch another --storage"
+            ) from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"pid {os.getpid()} on {socket.gethostname()}, since {time.strftime('%Y-%m-%d %H:%M:%S')}\n")
+        f.flush()
+        yield
+
+
+def _announce(
+    sweep: Sweep,
+    state: dict[str, Any],
+    state_file: Path,
+    path: str | Path,
+    *,
+    smoke: bool,
+    resume: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    tracking_uri: str | None,
+    tracking_host: str | None = None,
+) -> tuple[str | None, str]:
+    """What the launch is (printed), the Ray address it uses and its resume command; refuses a
+    trial that asks for more CPUs than a local machine has."""
+    from spot import tracking
+
+    if resume:
+        print(
+            f"resuming launch {state['sweep_id']} (parent run {state['parent_run_id']}, record {state_file})",
+            flush=True,
+        )
+    if resume and max_concurrent is not None:
+        print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
+    command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"
+    print(
+        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
+        f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
+        flush=True,
+    )
+    if not address and os.environ.get("RAY_ADDRESS"):
+        address = os.environ["RAY_ADDRESS"]  # Ray's own convention (set inside `ray job submit`)
+        print(
+            f"note: running on the Ray cluster at RAY_ADDRESS={address}; unset RAY_ADDRESS for a local sweep",
+            flush=True,
+        )
+    if address and not tracking.given_uri(tracking_uri) and not tracking_host:
+        print(
+            "note: trials on other nodes cannot reach the loopback MLflow server; pass "
+            "--tracking-uri http://<host>:<port> of a server every node can reach, or --tracking-host "
+            "to expose the one spot starts",
+            flush=True,
+        )
+    if not address and sweep.resources["cpu"] > (os.cpu_count() or 1):  # before datasets are built
+        raise SpotError(
+            f"sweep file '{sweep.path}': resources.cpu = {sweep.resources['cpu']:g} per trial, but the "
+            f"largest node of the Ray cluster has {os.cpu_count()} CPUs; ask for at most {os.cpu_count()}"
+        )
+    return address, command
+
+
+def _launch(
+    sweep: Sweep,
+    path: str | Path,
+    state_file: Path,
+    root: Path,
+    *,
+    smoke: bool,
+    resume: bool,
+    retry_errored: bool,
+    address: str | None,
+    max_concurrent: int | None,
+    tracking_uri: str | None,
+    run_fn: RunFn | None,
+    tracking_host: str | None = None,
+) -> list[Row]:
+    """:func:`run_sweep` once the launch holds its lock."""
+
+    state = _state(sweep, path, state_file, resume=resume)
+    address, command = _announce(
+        sweep,
+        state,
+        state_file,
+        path,
+        smoke=smoke,
+        resume=resume,
+        address=address,
+        max_concurrent=max_concurrent,
+        tracking_uri=tracking_uri,
+        tracking_host=tracking_host,
+    )
+    # a served store starts while Ray and datasets do
+    with _tracking_store(tracking_uri, root, tracking_host, address) as store:
+        client, ctx, errors, interrupted = _run_launch(
+            sweep,
+            store,
+            state,
+            state_file,
+            resume=resume,
+            retry_errored=retry_errored,
+            address=address,
+            max_concurrent=max_concurrent or sweep.max_concurrent,
+            run_fn=run_fn,
+            resume_command=command,
+        )
+
+        def on_sigterm() -> None:  # Ray is down already: end the parent run and the server
+            from mlflow.tracking import MlflowClient
+
+            mine = MlflowClient(store.uri)
+            if mine.get_run(ctx.parent_run_id).info.status == "RUNNING":
+                mine.set_tag(ctx.parent_run_id, "failure_reason", "launch stopped by SIGTERM")
+                mine.set_terminated(ctx.parent_run_id, "KILLED")
+            store.stop()
+
+        with _on_sigterm(on_sigterm):
+            rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
+            table = format_summary(rows, sweep.axis_keys)
+            timing = breakdown_text(client, ctx.parent_run_id, rows, sweep.axis_keys)
+            _close_parent(client, ctx, rows, table, interrupted=interrupted)
+        n_done = sum(r.status == "FINISHED" for r in rows)
+        paper = paper_table(sweep, store.uri, ctx.sweep_id, state_file.parent) if sweep.table and n_done else ""
+    _print_outcome(sweep, store, ctx, rows, table, timing, paper, command)
+    if interrupted:  # Tune stopped on Ctrl-C (SIGINT) and returned with trials unfinished
+        raise Interrupted(signal.SIGINT)
+    return rows
+
+
+def _print_outcome(
+    sweep: Sweep, store: Any, ctx: Any, rows: list[Row], table: str, timing: str, paper: str, command: str
+) -> None:
+    """The end of a launch's output: the summary table, how to open the runs, what is missing."""
+    from spot import tracking
+
+    n_done = sum(r.status == "FINISHED" for r in rows)
+    link = (
+        f"\nthen open the sweep's runs: {tracking.ui.sweep_url(ctx.experiment_id, ctx.sweep_id, store.link_base)}"
+        if store.link_base
+        else ""
+    )
+    missing = (
+        ""
+        if n_done == len(rows)
+        else (f"\nto run what is missing: {command} (add --retry-errored to run failed trials again)")
+    )
+    print(
+        f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
+        f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{link}{missing}",
+        flush=True,
+    )
+    if timing:
+        print(f"\n{timing}", flush=True)
+    if paper:
+        print(f"\n{paper}", flush=True)

@@ -1,0 +1,449 @@
+"""One trial, inside its Ray worker process: CPU slots and XLA settings, then each seed's run.
+
+:func:`_trainable` is the Ray Tune function trainable. It claims the trial's CPUs
+(:func:`cpu_slots`), makes spot's process settings (:func:`spot.runtime.configure`) and sets
+XLA/JAX for the trial's share of the node (:func:`configure_process`), before anything imports
+jax, and calls :func:`run_trial`, which looks each seed up in MLflow (a FINISHED run with the
+sweep id and trial key is reported instead of running again), runs the others with
+:func:`spot.pipeline.run` one after another, or together with :func:`spot.multiseed.run` (IQL
+vmapped over the seeds) for a ``seed_mode: vmap`` trial, and records a FAILED run for a seed that
+failed before the pipeline opened its own. Nothing here imports jax at module level.
+
+Tune reuses a trial's actor process for the next trial (``reuse_actors=True``: every trial of a
+sweep asks for the same resources), so the imports, the XLA client, jit's in-memory caches and the
+opened dataset carry over; the process settings are made once per process (:func:`_configure_once`).
+
+Each trial is timed by phase (:mod:`spot.phases`: start-up, dataset, compile, train, evaluate,
+tracking, other) and the breakdown is logged to every run the trial ran as ``time/trial_<phase>_s``,
+``time/trial_wall_s``, ``time/trial_cpu_s`` (CPU seconds of the trial's process, all threads),
+``time/trial_cpus`` (the CPUs it had) and the tags ``trial_device`` (``jax.devices()``) and
+``trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
+``spot bench sweep`` each trial's row (:func:`spot.sweep.summary.format_breakdown`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import resource
+import sys
+import tempfile
+import time
+import uuid
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from spot import config as config_lib
+from spot.sweep.spec import config_key, run_key, tag_value
+
+RunFn = Callable[..., dict[str, Any]]
+Report = Callable[[dict[str, Any]], None]
+
+
+@dataclass(frozen=True)
+class SweepContext:
+    """What every trial of one launch needs besides its own overrides (small; passed through Ray)."""
+
+    sweep_id: str
+    sweep_name: str
+    experiment_name: str
+    experiment_id: str
+    parent_run_id: str
+    tracking_uri: str
+    axis_keys: tuple[str, ...]
+    fast_compile: bool = False  # the sweep file's fast_compile: SPOT_FAST_COMPILE=1 in the trial processes
+    created_at: float = field(default_factory=time.time)  # when the driver set the launch up (start-up's origin)
+
+
+# --------------------------------------------------------------------------- process setup
+def _claim(folder: Path, cpus: list[int], n: int) -> list[tuple[int, Any]]:
+    """Lock files of up to ``n`` free CPU slots among ``cpus`` (the open files hold the locks)."""
+    held: list[tuple[int, Any]] = []
+    for cpu in cpus:
+        if len(held) == n:
+            break
+        f = open(folder / f"cpu{cpu}", "a")  # held (locked) for the trial's lifetime
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.close()
+            continue
+        held.append((cpu, f))
+    return held
+
+
+@contextlib.contextmanager
+def cpu_slots(n: int) -> Iterator[list[int]]:
+    """Claim ``n`` CPUs of this node for the trial and pin the whole process to them.
+
+    Slots are ``flock``s on files in ``$TMPDIR/spot-cpu-slots`` (released at the end of the block
+    or when the process dies, however it dies), so concurrent trials on one node get disjoint
+    CPUs. XLA sizes its CPU thread pools from the affinity mask, which makes this the thread-count
+    setting that works (an ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by
+    jaxlib 0.10). If ``n`` slots are not free (fractional CPUs, a trial as large as the node),
+    nothing is claimed or pinned. Yields the pinned CPUs (empty if none); the process's threads
+    get the CPUs they had back at the end (a reused actor runs the next trial in them).
+    """
+    allowed = sorted(os.sched_getaffinity(0))
+    folder = Path(tempfile.gettempdir()) / "spot-cpu-slots"
+    folder.mkdir(exist_ok=True)
+    held: list[tuple[int, Any]] = []
+    try:
+        held = _claim(folder, allowed, n)
+        if len(held) < n or n >= len(allowed):
+            for _, f in held:
+                f.close()
+            held = []
+        cpus = [c for c, _ in held]
+        if cpus:
+            for tid in os.listdir("/proc/self/task"):
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(int(tid), cpus)
+        yield cpus
+    finally:
+        if held:  # unpinned again: a reused actor's next trial claims its own CPUs
+            for tid in os.listdir("/proc/self/task"):
+                with contextlib.suppress(OSError):
+                    os.sched_setaffinity(int(tid), allowed)
+        for _, f in held:
+            f.close()
+
+
+def configure_process(cpus: int, gpus: float) -> None:
+    """XLA and JAX settings for a trial's share of the node; must run before jax is imported.
+
+    One CPU: ``--xla_cpu_multi_thread_eigen=false`` (jax #4290). A fractional GPU: memory fraction
+    ``0.9 * gpu`` (JAX preallocates 75% otherwise, so two trials on one GPU would run out).
+    The persistent compilation cache the node's trials share is set by
+    :func:`spot.runtime.configure`, called just before.
+    """
+    if "jax" in sys.modules:
+        warnings.warn(
+            "jax was imported before the trial configured XLA; XLA_FLAGS and the GPU memory "
+            "fraction of this trial do not apply",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    flags = os.environ.get("XLA_FLAGS", "")
+    if cpus <= 1 and "xla_cpu_multi_thread_eigen" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_cpu_multi_thread_eigen=false".strip()
+    if 0 < gpus < 1:
+        fraction = f"{0.9 * gpus:.3f}"
+        os.environ.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", fraction)
+        os.environ.setdefault("XLA_CLIENT_MEM_FRACTION", fraction)
+
+
+# --------------------------------------------------------------------------- the runs of a trial
+def _finished(run: Any, seed: int) -> dict[str, Any]:
+    m = run.data.metrics
+    return {
+        "seed": seed,
+        "run_id": run.info.run_id,
+        "skipped": 1,
+        "score_final": m.get("eval/score_final"),
+        "score_best": m.get("eval/score_best"),
+    }
+
+
+def _run_seed(
+    client: Any,
+    overrides: dict[str, Any],
+    seed: int,
+    ctx: SweepContext,
+    tags: dict[str, str],
+    report: Report,
+    run_fn: RunFn,
+) -> dict[str, Any]:
+    """Run one seed with ``run_fn``; a failure is recorded as a FAILED run and raised."""
+    from spot import tracking
+
+    cfg = config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name})
+
+    def on_eval(m: dict[str, float]) -> None:
+        report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
+
+    try:
+        out = run_fn(cfg, progress=False, parent_run_id=ctx.parent_run_id, extra_tags=tags, on_eval=on_eval)
+    except Exception as e:
+        tracking.record_failure(client, ctx.experiment_id, cfg, tags, e, parent_run_id=ctx.parent_run_id)
+        raise
+    return {
+        "seed": seed,
+        "run_id": out["run_id"],
+        "skipped": 0,
+        "score_final": out["eval/score_final"],
+        "score_best": out["eval/score_best"],
+        "run_time_s": out.get("time/total_s"),
+    }
+
+
+def _seed_tags(overrides: dict[str, Any], key: str, ctx: SweepContext, trial_id: str) -> dict[str, str]:
+    from spot.tracking.processes import process_tags
+
+    return {
+        "sweep_id": ctx.sweep_id,
+        "sweep_name": ctx.sweep_name,
+        "trial_id": trial_id,
+        "trial_key": key,
+        "config_key": config_key(overrides),
+        "attempt": uuid.uuid4().hex,
+        **{f"axis.{k}": tag_value(overrides[k]) for k in ctx.axis_keys},
+        **process_tags(),  # this worker's host and pid: a later command closes the run if it dies
+    }
+
+
+def _run_vmapped(
+    client: Any,
+    overrides: dict[str, Any],
+    pending: dict[int, dict[str, str]],
+    ctx: SweepContext,
+    report: Report,
+    run_fn: Callable[..., list[dict[str, Any]]],
+) -> list[dict[str, Any]]:
+    """Run the ``pending`` seeds (seed -> tags) together with ``run_fn`` (:func:`spot.multiseed.run`);
+    a failure is recorded as a FAILED run for each seed and raised."""
+    from spot import tracking
+
+    seeds = list(pending)
+    cfgs = [config_lib.resolve(overrides, {"seed": s, "tracking.experiment": ctx.experiment_name}) for s in seeds]
+
+    def on_eval(seed: int) -> Callable[[dict[str, float]], None]:
+        return lambda m: report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
+
+    try:
+        outs = run_fn(
+            cfgs,
+            progress=False,
+            parent_run_id=ctx.parent_run_id,
+            extra_tags=[pending[s] for s in seeds],
+            on_eval=[on_eval(s) for s in seeds],
+        )
+    except Exception as e:
+        for cfg, seed in zip(cfgs, seeds, strict=True):
+            tracking.record_failure(client, ctx.experiment_id, cfg, pending[seed], e, parent_run_id=ctx.parent_run_id)
+        raise
+    return [
+        {
+            "seed": seed,
+            "run_id": out["run_id"],
+            "skipped": 0,
+            "score_final": out["eval/score_final"],
+            "score_best": out["eval/score_best"],
+            "run_time_s": out.get("time/total_s"),
+        }
+        for seed, out in zip(seeds, outs, strict=True)
+    ]
+
+
+def _open_data(overrides: dict[str, Any], seed: int, ctx: SweepContext) -> None:
+    """Open the trial's dataset (:func:`spot.pipeline.open_dataset`, kept open for this process's
+    later runs) as the ``data`` phase; an error is left to the run, which records it."""
+    from spot import phases, pipeline
+
+    with phases.phase("data"), contextlib.suppress(Exception):
+        pipeline.open_dataset(config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name}))
+
+
+def run_trial(
+    overrides: dict[str, Any],
+    seeds: list[int] | tuple[int, ...],
+    ctx: SweepContext,
+    *,
+    trial_id: str,
+    report: Report,
+    run_fn: RunFn | None = None,
+    vmap: bool = False,
+) -> list[dict[str, Any]]:
+    """Run (or find already finished) each seed of one trial; report scores; raise if any seed failed.
+
+    Args:
+      overrides: the trial's flat config overrides (base + axis values), without the seed.
+      seeds: the seeds to run (``seed_mode: sequential`` and ``vmap`` give several).
+      ctx: the launch's sweep context (MLflow experiment, parent run, tracking URI).
+      trial_id: Ray's trial id, logged as the ``trial_id`` tag.
+      report: called with intermediate (``score``) and final (``score_final``) metrics.
+      run_fn: :func:`spot.pipeline.run` unless given (tests pass another); with ``vmap``,
+        :func:`spot.multiseed.run` unless given.
+      vmap: run the seeds not finished yet together, IQL vmapped over them (one MLflow run per
+        seed still); otherwise one after another.
+
+    Returns:
+      One final-metrics dict per seed.
+    """
+    from mlflow.tracking import MlflowClient
+
+    from spot import phases, tracking
+
+    os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
+    client = phases.timed_calls(MlflowClient(ctx.tracking_uri))
+    finals: list[dict[str, Any]] = []
+    failures: list[tuple[int, BaseException]] = []
+    pending: dict[int, dict[str, str]] = {}
+    for seed in seeds:
+        key = run_key(overrides, seed)
+        done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
+        if done is not None:
+            finals.append(_finished(done, seed))
+            report(finals[-1])
+        else:
+            pending[seed] = _seed_tags(overrides, key, ctx, trial_id)
+    if pending and run_fn is None:
+        _open_data(overrides, next(iter(pending)), ctx)
+    if vmap and pending:
+        if run_fn is None:
+            from spot import multiseed
+
+            run_fn = multiseed.run
+        try:
+            with phases.phase("train"):  # the runs: what is not data, compile, evaluate or tracking
+                vmapped = _run_vmapped(client, overrides, pending, ctx, report, run_fn)
+            for final in vmapped:
+                report(final)
+                finals.append(final)
+        except Exception as e:  # noqa: BLE001 - every seed failed with it
+            failures.extend((seed, e) for seed in pending)
+        pending = {}
+    if run_fn is None:
+        from spot import pipeline
+
+        run_fn = pipeline.run
+    for seed, tags in pending.items():
+        try:
+            with phases.phase("train"):
+                final = _run_seed(client, overrides, seed, ctx, tags, report, run_fn)
+        except Exception as e:  # noqa: BLE001 - recorded, reported by Ray after the other seeds ran
+            failures.append((seed, e))
+            continue
+        report(final)
+        finals.append(final)
+    if len(failures) == 1 and len(seeds) == 1:
+        raise failures[0][1]
+    if failures:
+        raise RuntimeError("; ".join(f"seed {s}: {type(e).__name__}: {e}" for s, e in failures))
+    return sorted(finals, key=lambda f: list(seeds).index(f["seed"]))
+
+
+# --------------------------------------------------------------------------- the trainable
+_PROCESS: dict[str, Any] = {"settings": None, "last_end": None}  # this process's trial settings, last trial's end
+
+
+def _configure_once(cpus: int, gpus: float, fast_compile: bool = False) -> None:
+    """spot's and the trial's process settings (:func:`spot.runtime.configure`,
+    :func:`configure_process`), once per process: a reused actor already made them for the same
+    resources and sweep (a sweep's trials all ask for the same), and XLA has read them."""
+    from spot import runtime
+
+    if _PROCESS["settings"] == (cpus, gpus, fast_compile):
+        return
+    if _PROCESS["settings"] is not None and _PROCESS["settings"][2] != fast_compile and "jax" in sys.modules:
+        from spot import SpotError
+
+        raise SpotError(
+            f"fast_compile: this process compiled with fast_compile={_PROCESS['settings'][2]}; XLA's flags "
+            f"cannot change once jax started (a trial of another launch in a reused process?)"
+        )
+    # explicit either way: the sweep file decides, not a SPOT_FAST_COMPILE the driver's shell had
+    os.environ[runtime.FAST_COMPILE_SWITCH] = "1" if fast_compile else "0"
+    runtime.configure()  # spot's XLA flags, MUJOCO_GL and the compilation cache
+    configure_process(cpus, gpus)
+    _PROCESS["settings"] = (cpus, gpus, fast_compile)
+
+
+def _process_started() -> float:
+    """When this process started (``time.time()`` scale), from ``/proc``; 0 where unknown."""
+    try:
+        ticks = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+        boot = next(ln for ln in Path("/proc/stat").read_text().splitlines() if ln.startswith("btime"))
+        return float(boot.split()[1]) + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return 0.0
+
+
+def _startup_s(ctx: SweepContext, called_at: float) -> float:
+    """Seconds before the trial function was called: since the end of the previous trial in this
+    process (a reused actor), else since the process started or the launch was set up, whichever
+    is later (Ray may start worker processes before the launch needs them)."""
+    last = _PROCESS["last_end"]
+    since = last if last is not None else max(_process_started(), ctx.created_at)
+    return max(0.0, called_at - since)
+
+
+def _cpu_s() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _log_breakdown(
+    ctx: SweepContext, finals: list[dict[str, Any]], values: dict[str, float], tags: dict[str, str]
+) -> None:
+    """The trial's breakdown, logged to each run it ran (not to runs found finished)."""
+    from mlflow.entities import Metric, RunTag
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(ctx.tracking_uri)
+    now = int(time.time() * 1000)
+    for final in finals:
+        if not final.get("skipped"):
+            client.log_batch(
+                final["run_id"],
+                metrics=[Metric(k, float(v), now, 0) for k, v in values.items()],
+                tags=[RunTag(k, v) for k, v in tags.items()],
+            )
+
+
+def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:
+    """The Ray Tune function trainable: one trial = ``config['trial']`` (:meth:`Trial.to_config`).
+
+    The process settings are made first (once per process, :func:`_configure_once`): nothing
+    before this line imports jax. The trial is timed by phase (module docstring).
+    """
+    called_at = time.time()
+    from ray import tune
+
+    from spot import phases
+
+    context = tune.get_context()
+    need = context.get_trial_resources().required_resources
+    cpus, gpus = max(1, int(need.get("CPU", 1))), float(need.get("GPU", 0.0))
+    startup, cpu0 = _startup_s(ctx, called_at), _cpu_s()
+    reused = _PROCESS["settings"] is not None
+    try:
+        with phases.measure("other") as clock, cpu_slots(cpus) as pinned:
+            with phases.phase("startup"):
+                _configure_once(cpus, gpus, ctx.fast_compile)
+                if run_fn is None:  # the pipeline's imports, timed as start-up
+                    import jax  # noqa: F401
+                    import mlflow  # noqa: F401
+
+                    from spot import pipeline  # noqa: F401
+                if "jax" in sys.modules:  # (a run_fn given by a test may not use jax at all)
+                    phases.listen_to_compiles()
+            clock.add("startup", startup)
+            finals = run_trial(
+                config["trial"]["overrides"],
+                config["trial"]["seeds"],
+                ctx,
+                trial_id=context.get_trial_id(),
+                report=tune.report,
+                run_fn=run_fn,
+                vmap=bool(config["trial"].get("vmap", False)),
+            )
+            cpu_s, spent = _cpu_s() - cpu0, clock.read()
+            values = {f"time/trial_{k}_s": v for k, v in spent.items()}
+            values.update(
+                {
+                    "time/trial_wall_s": startup + clock.read_wall,
+                    "time/trial_cpu_s": cpu_s,
+                    "time/trial_cpus": float(len(pinned) or len(os.sched_getaffinity(0))),
+                }
+            )
+            values["trial/cpu_util"] = cpu_s / max(clock.read_wall * values["time/trial_cpus"], 1e-9)
+            device = phases.devices() if "jax" in sys.modules else "jax not used"
+            tags = {"trial_device": device, "trial_process": "reused" if reused else "new"}
+        _log_breakdown(ctx, finals, values, tags)
+    finally:
+        _PROCESS["last_end"] = time.time()

@@ -1,0 +1,113 @@
+"""Everything MLflow: where runs go, what every run records, and how runs are found again.
+
+* :mod:`spot.tracking.store`: the one tracking-URI resolver (:func:`resolve_uri`), the local
+  stores, experiments.
+* :mod:`spot.tracking.record`: what a run logs (tags, params, the :class:`Tracker` interface, its
+  MLflow and in-memory implementations, :func:`start_run`).
+* :mod:`spot.tracking.queries`: quoted filter strings, paging through runs, finished-run lookup,
+  failure records, orphan closing, artifacts (used by sweeps, tables and figures).
+* :mod:`spot.tracking.models`: a run's trained models as data-only artifacts with a JSON header
+  (``models/<name>.npz`` + ``.json``), saved and loaded again (``spot eval``, ``spot figures``).
+* :mod:`spot.tracking.ui`: the lean ``mlflow ui`` command and links that open the runs table.
+
+With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under
+``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.mlflow_server`).
+"""
+
+from spot.tracking.models import MODELS_DIR, load_artifact_text, load_model, run_config, save_model
+from spot.tracking.queries import (
+    artifact_uri,
+    close_orphans,
+    download_artifact,
+    finished_run,
+    first_run,
+    local_artifact,
+    quote,
+    record_failure,
+    search_runs,
+    tag_filter,
+)
+from spot.tracking.record import (
+    COMMAND_ENV,
+    PACKAGES,
+    MemoryTracker,
+    MlflowTracker,
+    Tracker,
+    active_params,
+    command_line,
+    environment,
+    finite_metrics,
+    git_commit,
+    json_safe,
+    log_params,
+    mlflow_tags,
+    package_versions,
+    reproduce_command,
+    run_tags,
+    start_run,
+)
+from spot.tracking.store import (
+    LOCAL_STORES,
+    RUN_STORE,
+    SWEEP_STORE,
+    all_experiments,
+    experiment_id,
+    experiments,
+    given_uri,
+    has_experiment,
+    reader,
+    resolve_uri,
+    sqlite_path,
+)
+from spot.tracking.ui import run_url, runs_url, sweep_url, ui_command, where_logged
+
+__all__ = [
+    "COMMAND_ENV",
+    "MODELS_DIR",
+    "active_params",
+    "command_line",
+    "environment",
+    "json_safe",
+    "load_artifact_text",
+    "load_model",
+    "mlflow_tags",
+    "reproduce_command",
+    "run_config",
+    "run_url",
+    "runs_url",
+    "save_model",
+    "sweep_url",
+    "ui_command",
+    "where_logged",
+    "LOCAL_STORES",
+    "PACKAGES",
+    "RUN_STORE",
+    "SWEEP_STORE",
+    "MemoryTracker",
+    "MlflowTracker",
+    "Tracker",
+    "all_experiments",
+    "artifact_uri",
+    "close_orphans",
+    "download_artifact",
+    "experiment_id",
+    "experiments",
+    "finished_run",
+    "finite_metrics",
+    "first_run",
+    "git_commit",
+    "given_uri",
+    "has_experiment",
+    "local_artifact",
+    "log_params",
+    "package_versions",
+    "quote",
+    "record_failure",
+    "reader",
+    "resolve_uri",
+    "run_tags",
+    "search_runs",
+    "sqlite_path",
+    "start_run",
+    "tag_filter",
+]

@@ -1,0 +1,157 @@
+"""Queries on a store: filter strings, paging, finished-run lookup, failure records, orphan
+closing and artifact fetching. Sweeps, tables and figures read MLflow through these.
+
+Filter strings are built with :func:`quote` / :func:`tag_filter`: MLflow takes a value in single
+or double quotes and has no escape inside them, so a value is put in the quote it does not
+contain, and a value holding both is refused.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlparse
+
+from spot import SpotError
+from spot import config as config_lib
+from spot.tracking.record import create_run, log_params, lookup_tags, mlflow_tags, run_tags
+from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
+
+STATUSES = ("RUNNING", "SCHEDULED", "FINISHED", "FAILED", "KILLED")
+
+
+def quote(value: Any) -> str:
+    """``value`` as a quoted MLflow filter string literal."""
+    text = str(value)
+    if "'" not in text:
+        return f"'{text}'"
+    if '"' not in text:
+        return f'"{text}"'
+    raise SpotError(f"{text!r} holds both quote characters, which an MLflow filter cannot express")
+
+
+def tag_filter(tags: Mapping[str, Any], status: str | None = None) -> str:
+    """``tags.`k` = 'v' and ...`` (every tag equal), plus ``attributes.status`` if given."""
+    parts = [f"tags.`{k}` = {quote(v)}" for k, v in tags.items()]
+    if status is not None:
+        if status not in STATUSES:
+            raise ValueError(f"unknown run status {status!r}")
+        parts.append(f"attributes.status = '{status}'")
+    return " and ".join(parts)
+
+
+def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str = "") -> Iterator[Any]:
+    """Every run of the experiments matching ``filter_string``, through all pages."""
+    ids = list(experiment_ids)
+    for start in range(0, len(ids), SEARCH_EXPERIMENTS):
+        token = None
+        while True:
+            page = client.search_runs(
+                ids[start : start + SEARCH_EXPERIMENTS], filter_string=filter_string, max_results=PAGE, page_token=token
+            )
+            yield from page
+            token = page.token
+            if not token:
+                break
+
+
+def first_run(client: Any, experiment_id: str, tags: Mapping[str, Any], status: str | None = None) -> Any | None:
+    """One run of the experiment with all ``tags`` (and ``status``), or None."""
+    found = client.search_runs([experiment_id], tag_filter(tags, status), max_results=1)
+    return found[0] if found else None
+
+
+def finished_run(client: Any, experiment_id: str, tags: Mapping[str, Any]) -> Any | None:
+    """A FINISHED run with all ``tags`` (e.g. a sweep's id and trial key), or None."""
+    return first_run(client, experiment_id, tags, "FINISHED")
+
+
+def record_failure(
+    client: Any,
+    experiment_id: str,
+    cfg: config_lib.ExperimentConfig,
+    tags: dict[str, str],
+    error: BaseException,
+    *,
+    parent_run_id: str | None = None,
+) -> str | None:
+    """Make sure the attempt ``tags['attempt']`` has a FAILED run; return the run created, if any.
+
+    The pipeline's run already ends FAILED when the run failed after it started; this covers a
+    failure before that (config, dataset), with the config params, the run tags and the
+    ``failure_reason`` tag.
+    """
+    if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
+        return None
+    all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
+    all_tags.update(mlflow_tags(cfg, all_tags))
+    all_tags["failure_reason"] = f"{type(error).__name__}: {error}"[:4000]
+    if parent_run_id:
+        all_tags["mlflow.parentRunId"] = parent_run_id
+    run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
+    log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
+    client.set_terminated(run.info.run_id, "FAILED")
+    return run.info.run_id
+
+
+def close_orphans(
+    client: Any, experiment_id: str, tags: Mapping[str, Any], reason: str, keep: Sequence[str] = ()
+) -> int:
+    """Mark the runs with ``tags`` still RUNNING (their process is gone), but ``keep``, as KILLED
+    with ``failure_reason``; return how many."""
+    orphans = [
+        r for r in search_runs(client, [experiment_id], tag_filter(tags, "RUNNING")) if r.info.run_id not in keep
+    ]
+    for r in orphans:
+        client.set_tag(r.info.run_id, "failure_reason", reason)
+        client.set_terminated(r.info.run_id, "KILLED")
+    return len(orphans)
+
+
+# --------------------------------------------------------------------------- artifacts
+def local_artifact(artifact_uri: str, artifact_path: str, tracking_uri: str) -> Path | None:
+    """Where the artifact lies if its store is on this machine: ``file:`` artifact stores, and
+    ``mlflow-artifacts:`` ones beside a SQLite store (read without the server); None otherwise.
+
+    ``spot sweep`` serves ``<root>/mlflow.db`` with ``--artifacts-destination <root>/artifacts``, so
+    ``mlflow-artifacts:/<path>`` lives at ``<root>/artifacts/<path>``.
+    """
+    parsed = urlparse(artifact_uri)
+    db = sqlite_path(tracking_uri)
+    if parsed.scheme in ("", "file"):
+        root = Path(parsed.path)
+    elif parsed.scheme == "mlflow-artifacts" and db is not None:
+        root = db.parent / "artifacts" / parsed.path.lstrip("/")
+    else:
+        return None
+    return root / artifact_path
+
+
+def download_artifact(run_id: str, artifact_uri: str, artifact_path: str, tracking_uri: str, dst: str) -> Path | None:
+    """A local path of one artifact of a run (downloaded to ``dst`` if its store is remote), or
+    None if the run has no such artifact."""
+    import mlflow.artifacts
+    from mlflow.exceptions import MlflowException
+
+    local = local_artifact(artifact_uri, artifact_path, tracking_uri)
+    if local is not None:
+        return local if local.is_file() else None
+    try:
+        return Path(
+            mlflow.artifacts.download_artifacts(
+                run_id=run_id, artifact_path=artifact_path, dst_path=dst, tracking_uri=tracking_uri
+            )
+        )
+    except (MlflowException, OSError):
+        return None
+
+
+def artifact_uri(client: Any, run_id: str) -> str:
+    """The run's artifact root; SpotError if the store has no such run."""
+    from mlflow.exceptions import MlflowException
+
+    try:
+        return client.get_run(run_id).info.artifact_uri
+    except MlflowException as e:
+        raise SpotError(f"no run {run_id} in {client.tracking_uri}") from e
