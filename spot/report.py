@@ -660,7 +660,7 @@ def format_dose(dose: Dose) -> list[str]:
         return []
     lines = [
         f"### The term added to the reward per step vs the final score on {dose.dataset} "
-        f"(variant {dose.variant}, {dose.experiment})",
+        f"(variant {dose.variant}, {_label(dose.experiment)})",
         "",
         "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold |",
         "|---|---|---|---|---|",
@@ -682,8 +682,19 @@ def format_dose(dose: Dose) -> list[str]:
 
 
 # --------------------------------------------------------------------------- output
+def _label(experiment: str) -> str:
+    """A long default experiment set (three or more experiments) by its key: ``set P``; the report
+    lists each set's experiments once (:func:`format_rows`)."""
+    if experiment.count("+") >= 2:
+        for key, names in EXPERIMENTS.items():
+            if names[0] == experiment:
+                return f"set {key}"
+    return experiment
+
+
 def _n(row: Row) -> str:
-    return f"{row.n_x} vs {row.n_y} runs, {len(row.datasets)} datasets" if row.effect else "–"
+    k = len(row.datasets)
+    return f"{row.n_x} vs {row.n_y} runs, {k} dataset{'s' if k != 1 else ''}" if row.effect else "–"
 
 
 def format_high(rows: Sequence[Row]) -> list[str]:
@@ -729,13 +740,16 @@ def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
             digits = 3 if stat == "ood" else 1
             means = f"{r.means[0]:.{digits}f} / {r.means[1]:.{digits}f}" if r.means else "–"
             parts.append(
-                f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {means} | {_n(r)} "
+                f"| {r.claim} | {r.text} | {r.comparison} | {_label(r.experiment)} | {eff} | {poi} | {means} | {_n(r)} "
                 f"| {r.verdict} |"
             )
         parts.append("")
     parts += format_high(rows)
     parts += extra
-    notes = sorted({f"claim {r.claim} ({r.comparison}, {r.experiment}): {n}" for r in rows for n in r.notes})
+    sets = sorted({(_label(r.experiment), r.experiment) for r in rows if _label(r.experiment) != r.experiment})
+    if sets:
+        parts += ["Experiment sets:", *[f"- {label}: {names}" for label, names in sets], ""]
+    notes = sorted({f"claim {r.claim} ({r.comparison}, {_label(r.experiment)}): {n}" for r in rows for n in r.notes})
     if notes:
         parts += ["Notes:", *[f"- {n}" for n in notes]]
     return "\n".join(parts).rstrip() + "\n"

@@ -456,7 +456,24 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
     assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
     text = "\n".join(report.format_dose(dose))
     assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text
-    assert "final score on hopper-medium-replay (variant paper" in text
+    assert "final score on hopper-medium-replay (variant paper, set P)" in text
+
+
+def test_a_long_experiment_set_is_named_by_its_key_and_listed_once(runs):
+    frame = pd.concat(
+        [
+            runs,
+            _paper_arm(runs, "lab_fidelity", "sp", [70.0, 80.0, 90.0]),
+            _paper_arm(runs, "lab_variant_rows", "pt", [20.0, 25.0, 30.0], method="pt"),
+        ],
+        ignore_index=True,
+    )
+    text = report.format_rows(report.build(frame))
+    full = report.EXPERIMENTS["P"][0]
+    assert "| spot vs pt | set P | 55.0 [" in text and "3 vs 3 runs, 1 dataset |" in text
+    assert text.count(full) == 1 and f"- set P: {full}" in text
+    # two-experiment sets stay spelled out, with the plural
+    assert "| spot vs pt | lab_table1+lab_table1_fr | 8.5 [" in text and "runs, 2 datasets |" in text
 
 
 def test_dose_response_ranks_each_dataset_on_its_own(runs):
