@@ -519,3 +519,26 @@ def test_a_comparison_over_runs_on_different_data_says_so(runs):
         "pt: 2 on digest-hoppe, 1 on rebuilt-else); the arms may not share their data"
     ) in r.notes
     assert not any(n.startswith("walker2d-medium-replay: the runs span") for n in r.notes)
+
+
+def test_oracle_with_minmax_rewards_is_its_own_reference_row_and_stays_out_of_oracle_proper(runs):
+    # row OP: Oracle with relabel.normalize=minmax (lab_paper_oracle_minmax) against Oracle proper
+    # (lab_variant_rows; a run without the key counts as Oracle proper); mean(60, 70, 80) - mean(20, 22, 24) = 48
+    arm = functools.partial(_paper_arm, runs)
+    frame = pd.concat(
+        [
+            runs,
+            arm("lab_variant_rows", "or", [20.0, 22.0, 24.0], method="oracle", **{"params.relabel.normalize": "iql"}),
+            arm("lab_paper_oracle_minmax", "om", [60.0, 70.0, 80.0], method="oracle").assign(
+                **{"params.relabel.normalize": "minmax"}
+            ),
+        ],
+        ignore_index=True,
+    )
+    r = _row(report.build(frame), "OP", "oracle minmax vs oracle")
+    assert r.effect.value == pytest.approx(48.0) and r.n_x == 3 and r.n_y == 3 and r.poi.value == 1.0
+    # minmax Oracle runs in set P would not count as Oracle in row 1P's reference
+    moved = frame.assign(experiment=frame["experiment"].replace("lab_paper_oracle_minmax", "lab_variant_rows"))
+    moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
+    ref = _row(report.build(moved), "1P", "spot vs oracle")
+    assert ref.means == pytest.approx((51.0, 22.0)) and ref.n_y == 3
