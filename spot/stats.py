@@ -171,11 +171,12 @@ def verdict(est: Estimate, null: float = 0.0) -> str:
 def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -> Estimate:
     """Spearman's rank correlation of paired values with a 95 % percentile CI from SciPy's paired
     bootstrap (the pairs are resampled together). Resamples whose x or y values are all equal have
-    no correlation and are left out of the percentiles. The CI is ``(nan, nan)`` below 4 pairs."""
+    no correlation and are left out of the percentiles. The CI is ``(nan, nan)`` below 4 pairs; the
+    value too below 2 pairs or when x or y is constant."""
     a, b = _arrays([x, y])
     if len(a) != len(b):
         raise ValueError(f"rank_correlation: {len(a)} x values but {len(b)} y values")
-    if len(a) < 2:
+    if len(a) < 2 or np.ptp(a) == 0 or np.ptp(b) == 0:  # constant values have no rank correlation
         return Estimate(float("nan"), float("nan"), float("nan"), len(a))
     value = float(sps.spearmanr(a, b).statistic)
     if len(a) < 4:

@@ -1,5 +1,7 @@
 """spot.stats against hand-computed values and an independent stratified bootstrap."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -84,3 +86,8 @@ def test_rank_correlation_by_hand_and_its_small_sample_limits():
     assert few.value == pytest.approx(0.5) and np.isnan(few.low) and stats.verdict(few) == stats.TOO_FEW
     with pytest.raises(ValueError, match="3 x values but 2 y values"):
         stats.rank_correlation([1.0, 2.0, 3.0], [1.0, 2.0])
+    # constant x (every arm adds the same term): no correlation, no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        flat = stats.rank_correlation([0.5] * 6, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    assert np.isnan(flat.value) and np.isnan(flat.low) and flat.n == 6
