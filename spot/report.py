@@ -553,18 +553,22 @@ def build(
     """Every claim's rows for the last and the best score, and claim 6 for the OOD error; ``high``
     is the score that counts an evaluation as in the high mode (runs with exported curves)."""
     exps = {**EXPERIMENTS, **(experiments or {})}
+    runs = {key: _experiment(df, names) for key, names in exps.items()}  # each set's runs, selected once
+    one_count = {key: most_queries(sub) for key, (_, sub) in runs.items()}
+
+    def row_for(claim: str, key: str, text: str, comparison: str, stat: str) -> tuple[Row, pd.DataFrame]:
+        """The row's experiment runs (claim 4 at every query count, the others at one) and the row,
+        with the note on what was left out."""
+        name, sub = runs[key]
+        sub, note = (sub, None) if claim.startswith("4") else one_count[key]
+        return Row(claim, text, comparison, name, stat, high_mode=high, notes=[note] if note else []), sub
+
     rows = []
     for stat, metric in METRICS.items():
         for claim, key, text, comparison, fn in CLAIMS:
-            name, sub = _experiment(df, exps[key])
-            sub, note = (sub, None) if claim.startswith("4") else most_queries(sub)
-            row = fn(sub, metric, Row(claim, text, comparison, name, stat, high_mode=high))
-            row.notes += [note] if note else []
-            rows.append(row)
-    name, sub = _experiment(df, exps["6"])
-    sub, note = most_queries(sub)
-    row = Row("6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", name, "ood")
-    row.notes += [note] if note else []
+            row, sub = row_for(claim, key, text, comparison, stat)
+            rows.append(fn(sub, metric, row))
+    row, sub = row_for("6", "6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", "ood")
     rows.append(compare(sub, _method("pt"), _SPOT, OOD_METRIC, row, ("pt", "spot")))
     return rows
 
