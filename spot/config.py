@@ -193,8 +193,8 @@ class RelabelConfig:
     normalize: str = F(
         "pt",
         "reward normalisation after relabelling: pt = r*1000/(Rmax-Rmin)+0.5 (PT repo, locomotion), iql = "
-        "r*1000/(Rmax-Rmin), minmax = steps mapped to [0,1] then iql (default for mr/pt/spot on locomotion below "
-        "budget paper), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none",
+        "r*1000/(Rmax-Rmin), minmax = steps mapped to [0,1] then iql (default for mr/pt/spot on locomotion at "
+        "budgets small and tiny), wiserl = r*1000/max(|Rmin|,|Rmax|,Rmax-Rmin,1) (HPL's WiseRL), none",
         choices=("pt", "iql", "wiserl", "minmax", "none"),
     )
 

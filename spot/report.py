@@ -352,6 +352,8 @@ def _table4(base: Filter) -> Callable[[pd.DataFrame, str, Row], Row]:
 
 
 def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
+    for m in ("spot", "pt"):
+        row.notes += _failures(df, lambda d, m=m: d["method"] == m, m)
     done = finished(df)
     if done.empty or "params.labels.num_queries" not in done:
         return row

@@ -89,11 +89,13 @@ def test_claim4_difference_in_differences():
                         "data_digest": "d-rebuilt" if (m, q, s) == ("pt", 30, 1) else "d-original",
                     }
                 )
-    r = _row(report.build(pd.DataFrame(rows)), "4", "(spot")
-    # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9
+    killed = dict(rows[0], run_id="spot30k", seed=5, status="KILLED", **{"metrics.eval/score_final": 0.0})
+    r = _row(report.build(pd.DataFrame(rows + [killed])), "4", "(spot")
+    # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9 (the killed run at 0 is not counted)
     assert r.effect.value == pytest.approx(9.0)
     assert r.notes == [
-        "h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data"
+        "spot: 1 KILLED (not counted)",
+        "h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data",
     ]
 
 
