@@ -233,6 +233,7 @@ def _eval(args: argparse.Namespace) -> None:
     print(f"  {'score_mean':24s} {res['score_mean']:.3f}")
     print(f"  {'score_std':24s} {res['score_std']:.3f}")
     print(f"  {'return_mean':24s} {res['return_mean']:.3f}")
+    print(f"  {'length_mean':24s} {res['length_mean']:.1f}")
     logged = res["logged_score_final"]
     if logged is None:
         print("  the run logged no eval/score_final")

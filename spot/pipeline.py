@@ -201,5 +201,6 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
         "score_mean": float(res["score_mean"]),
         "score_std": float(res["score_std"]),
         "return_mean": float(res["return_mean"]),
+        "length_mean": float(res["episode_length_mean"]),
         "logged_score_final": logged,
     }

@@ -761,7 +761,12 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
                 max_steps=cfg.eval.max_steps,
             )
         ctx.log(
-            {"eval/score": res["score_mean"], "eval/score_std": res["score_std"], "eval/return": res["return_mean"]},
+            {
+                "eval/score": res["score_mean"],
+                "eval/score_std": res["score_std"],
+                "eval/return": res["return_mean"],
+                "eval/length": res["episode_length_mean"],  # a fall (locomotion) ends an episode early
+            },
             step=step,
         )
         if ctx.on_eval is not None:

@@ -144,6 +144,7 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
     run_id = out["run_id"]
     client = MlflowClient(uri)
     logged_return = [m for m in client.get_metric_history(run_id, "eval/return") if m.step == 200][0].value
+    logged_length = [m for m in client.get_metric_history(run_id, "eval/length") if m.step == 200][0].value
 
     res = pipeline.evaluate_run(run_id, uri)
     # the last evaluation ran eval.final_episodes (3), and spot eval defaults to the same episodes
@@ -152,10 +153,12 @@ def test_spot_eval_reproduces_the_logged_final_score(tmp_path, spot_dirs, tiny_d
     assert res["score_mean"] == pytest.approx(out["eval/score_final"], rel=1e-9, abs=1e-12)
     assert res["score_mean"] == pytest.approx(res["logged_score_final"], rel=1e-9, abs=1e-12)
     assert res["return_mean"] == pytest.approx(logged_return, rel=1e-6)
+    assert res["length_mean"] == logged_length and 1 <= logged_length <= 500  # drawer-open's horizon
 
     assert cli.main(["eval", run_id, "--tracking-uri", uri]) == 0
     printed = capsys.readouterr().out
     assert f"run {run_id}" in printed and "reproduces the logged eval/score_final" in printed
+    assert "length_mean" in printed
     assert cli.main(["eval", "0" * 32, "--tracking-uri", uri]) == 2
 
 
