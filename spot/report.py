@@ -37,7 +37,7 @@ SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random
 Claims 1 and C compare runs of the package's default fidelity variant (``variant=spot``; runs
 logged before the key count as ``spot``). Rows ``1P`` and ``CP`` are the same comparisons under
 ``variant=paper`` (docs/fidelity.md), from the runs of lab_fidelity, lab_variant_rows, lab_paper and
-lab_paper_random on Hopper and lab_walker on Walker2d (claim 1 only), with SPOT vs Oracle beside them
+lab_paper_random on Hopper and lab_walker and lab_walker_controls on Walker2d, with SPOT vs Oracle beside them
 as a reference (not a claim of the paper). Rows
 ``2P``, ``3P`` and ``5P`` are claims 2, 3 and 5 on the same data and variant: lab_fidelity's SPOT
 runs (top group, MSE + cosine CVAE, cosine shaping at λ = 1) against lab_paper_ablations'
@@ -82,7 +82,7 @@ EXPERIMENTS = {
     "F": ("lab_fidelity+lab_table1", "fidelity"),
     "P": (
         "lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping"
-        "+lab_paper_queries+lab_walker",
+        "+lab_paper_queries+lab_walker+lab_walker_controls",
     ),
     "O": ("lab_variant_rows+lab_paper_oracle_minmax",),
 }
