@@ -4,6 +4,7 @@
 #   SIZE=paper-fast scripts/build_paper_locomotion.sh walker2d 0   # the paper-fast size (smaller SAC)
 # Resumable: run it again after a kill; SAC continues from its last checkpoint and finished
 # datasets are reused. Data goes to $SPOT_DATA_DIR (SAC cache and checkpoint in $SPOT_DATA_DIR/_work).
+# medium-expert comes last: it is joined from the built medium and expert files (no new rollouts).
 # Progress bars refresh once a minute (TQDM_MININTERVAL) so that a log file stays small.
 set -euo pipefail
 env_name=${1:?usage: $0 hopper|walker2d [seed]}

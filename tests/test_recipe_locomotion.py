@@ -200,3 +200,52 @@ def test_same_seed_gives_identical_arrays(builds):
     assert card_a["behaviour"] == card_b["behaviour"]
     for key in RAW_KEYS:
         np.testing.assert_array_equal(getattr(raw_a, key), getattr(raw_b, key), err_msg=key)
+
+
+@pytest.mark.slow
+def test_medium_expert_is_joined_from_its_built_parts(builds, tmp_path, monkeypatch, capsys):
+    """With medium and expert built, the registry joins them: the same rows and card as the
+    rollout build, without rolling out again; a part that is damaged, or whose card records another
+    SAC run, makes it build the dataset whole instead."""
+    import json
+
+    from spot.data import formats, registry
+
+    monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path))
+    for part in ("hopper-medium", "hopper-expert"):
+        registry.build(part, "tiny", 0, progress=False)
+    path = registry.build("hopper-medium-expert", "tiny", 0, progress=True)
+    assert "hopper-medium-expert (tiny, seed 0) joined from the built hopper-medium and hopper-expert" in (
+        capsys.readouterr().err
+    )
+    joined, card = formats.read_d4rl_hdf5(path), registry.read_card(path)
+    rolled, rolled_card = builds["medium-expert"]  # locomotion.build: both parts rolled out again
+    for key in RAW_KEYS:
+        np.testing.assert_array_equal(getattr(joined, key), getattr(rolled, key), err_msg=key)
+    assert joined.metadata["episode_kind"] == rolled.metadata["episode_kind"]
+    assert card["joined_from"] == ["hopper-medium", "hopper-expert"] and card["sac_cache_hit"] is True
+    timing = {"build_time_s", "peak_rss_mb", "sac_cache_hit", "train_time_s"}  # this data dir trained its own SAC
+
+    def same(c):
+        return {k: same(v) if isinstance(v, dict) else v for k, v in c.items() if k not in timing}
+
+    assert same({k: v for k, v in card.items() if k in rolled_card}) == same(rolled_card)
+
+    # a part whose card records another SAC run: built whole (its rows are still the same)
+    medium_card = registry.card_path(registry.dataset_path("hopper-medium", "tiny", 0))
+    other = json.loads(medium_card.read_text())
+    other["behaviour"]["eval_curve"][-1][1] += 1.0
+    medium_card.write_text(json.dumps(other))
+    path = registry.build("hopper-medium-expert", "tiny", 0, progress=False, force=True)
+    assert "joined_from" not in registry.read_card(path)
+    np.testing.assert_array_equal(formats.read_d4rl_hdf5(path).rewards, rolled.rewards)
+
+    # a damaged part (its sha256 no longer the card's): built whole
+    medium_card.write_text(json.dumps({**other, "behaviour": rolled_card["behaviour"]}))
+    expert = registry.dataset_path("hopper-expert", "tiny", 0)
+    damaged = bytearray(expert.read_bytes())
+    damaged[-1] ^= 0xFF
+    expert.write_bytes(bytes(damaged))
+    path = registry.build("hopper-medium-expert", "tiny", 0, progress=False, force=True)
+    assert "joined_from" not in registry.read_card(path)
+    np.testing.assert_array_equal(formats.read_d4rl_hdf5(path).observations, rolled.observations)

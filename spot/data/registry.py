@@ -216,7 +216,8 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
                 return path
             if progress or "damaged" in why:
                 print(f"spot: rebuilding {path.name}: {why}", file=sys.stderr)
-        raw, card = recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
+        joined = _join_parts(recipe, e.name, size, seed, progress)
+        raw, card = joined or recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
         card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
         if version is not None:
             card["recipe_version"] = version
@@ -226,6 +227,35 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         _VERIFIED.add((str(path), st.st_mtime_ns, st.st_size))
         store.publish_dataset(path, card_path(path))
     return path
+
+
+def _join_parts(
+    recipe: Any, name: str, size: str, seed: int, progress: bool
+) -> tuple[RawDataset, dict[str, Any]] | None:
+    """A composite dataset (one the recipe's ``composite_parts`` names parts for, e.g.
+    ``hopper-medium-expert``) joined from its parts when every part is built, current and
+    undamaged; None otherwise, and then the recipe builds it whole."""
+    from spot.data import formats
+
+    parts_of = getattr(recipe, "composite_parts", None)
+    names = parts_of(name) if parts_of is not None else []
+    if not names:
+        return None
+    version = getattr(recipe, "RECIPE_VERSION", None)
+    parts = []
+    for part in names:
+        path = dataset_path(part, size, seed)
+        with _lock(path):
+            card = _card_or_none(path) if path.exists() and card_path(path).exists() else None
+            if card is None or (version is not None and card.get("recipe_version") != version):
+                return None
+            if _damage(path, card) is not None:
+                return None
+            parts.append((formats.read_d4rl_hdf5(path), card))
+    joined = recipe.join(name, size, seed, data_dir() / "_work", parts, progress=progress)
+    if joined is not None and progress:
+        print(f"spot: {name} ({size}, seed {seed}) joined from the built {' and '.join(names)}", file=sys.stderr)
+    return joined
 
 
 def _card_or_none(path: Path) -> dict[str, Any] | None:

@@ -68,6 +68,9 @@ RECIPE_VERSION = 2  # bump when a change here alters the SAC cache or the datase
 ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5"}
 KINDS = ("medium", "medium-replay", "expert", "medium-expert", "full-replay")
 _ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; tag 1 is SAC's evaluation env
+COMPOSITES: dict[str, tuple[str, ...]] = {"medium-expert": ("medium", "expert")}
+"""Kinds whose rows are exactly other kinds' rows of the same size and seed, in order: the
+registry joins the built parts (:func:`join`) instead of rolling them out again."""
 
 
 @dataclass(frozen=True)
@@ -431,11 +434,80 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
             episodes += eps
             episode_kind += [part] * len(eps)
 
+    return _finish(name, size, seed, episodes, episode_kind, result, cache_hit, start)
+
+
+def _finish(
+    name: str,
+    size: str,
+    seed: int,
+    episodes: list[dict[str, np.ndarray]],
+    episode_kind: list[str],
+    result: sac.SACResult,
+    cache_hit: bool,
+    start: float,
+) -> tuple[RawDataset, dict[str, Any]]:
+    """The raw dataset of ``episodes`` and its card, with the build's time and peak memory."""
+    spec = SIZES[size]
+    medium = pick_medium(result.snapshots, spec.medium_fraction)
     raw = raw_from_episodes(episodes, name=f"{name}-{size}", metadata={"episode_kind": episode_kind})
     card = make_card(name, size, seed, raw, episodes, result, medium, spec.medium_fraction)
     card["sac_cache_hit"] = cache_hit
     card["build_time_s"] = round(time.perf_counter() - start, 2)
     card["peak_rss_mb"] = round(sac.peak_rss_mb(), 1)
+    return raw, card
+
+
+def composite_parts(name: str) -> list[str]:
+    """The datasets whose rows make up ``name``, in order (``hopper-medium-expert`` ->
+    ``[hopper-medium, hopper-expert]``); ``[]`` for a dataset that is not a composite."""
+    env, kind = parse_name(name)
+    return [f"{env}-{part}" for part in COMPOSITES.get(kind, ())]
+
+
+def _eval_curve(result: sac.SACResult) -> list[list[float]]:
+    return [[int(s.step), round(float(s.eval_return), 1)] for s in result.snapshots]
+
+
+def _split(raw: RawDataset, where: str) -> list[dict[str, np.ndarray]]:
+    """A built dataset's rows back into its episodes (each ends in a terminal or a timeout)."""
+    ends = np.flatnonzero(raw.terminals | raw.timeouts)
+    if ends.size == 0 or ends[-1] != len(raw) - 1:
+        raise SpotError(f"{where}: its last row ends no episode (neither terminal nor timeout); rebuild it")
+    bounds = np.concatenate([[0], ends + 1])
+    keys = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
+    return [{k: getattr(raw, k)[a:b] for k in keys} for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
+def join(
+    name: str,
+    size: str,
+    seed: int,
+    cache_dir: Path,
+    parts: list[tuple[RawDataset, dict[str, Any]]],
+    progress: bool = True,
+) -> tuple[RawDataset, dict[str, Any]] | None:
+    """A :data:`COMPOSITES` dataset from its built parts (``(raw, card)`` in :func:`composite_parts`
+    order): their rows concatenated, the card as :func:`build` makes it, with ``joined_from``.
+    The same rows as :func:`build` rolls out, in seconds instead of one rollout per part. None when
+    a part's card does not record this seed's SAC run (another run's evaluation curve): the caller
+    then builds the dataset whole."""
+    env, kind = parse_name(name)
+    wanted = composite_parts(name)
+    if len(parts) != len(wanted):
+        raise SpotError(f"join('{name}'): got {len(parts)} parts; expected {len(wanted)} ({', '.join(wanted)})")
+    start = time.perf_counter()
+    result, cache_hit = train_or_load_sac(env, size, seed, cache_dir, progress)
+    episodes: list[dict[str, np.ndarray]] = []
+    episode_kind: list[str] = []
+    for part, (raw, card) in zip(COMPOSITES[kind], parts, strict=True):
+        if card.get("behaviour", {}).get("eval_curve") != _eval_curve(result):
+            return None
+        eps = _split(raw, f"{env}-{part} ({size}, seed {seed})")
+        episodes += eps
+        episode_kind += [part] * len(eps)
+    raw, card = _finish(name, size, seed, episodes, episode_kind, result, cache_hit, start)
+    card["joined_from"] = wanted
     return raw, card
 
 
@@ -502,7 +574,7 @@ def make_card(
                 "source": "d4rl/infos.py REF_MIN_SCORE / REF_MAX_SCORE",
             },
             "eval_episodes": cfg.eval_episodes,
-            "eval_curve": [[s.step, round(s.eval_return, 1)] for s in result.snapshots],
+            "eval_curve": _eval_curve(result),
         },
         "sac": {
             "steps": expert.step,
