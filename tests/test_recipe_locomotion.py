@@ -224,6 +224,7 @@ def test_medium_expert_is_joined_from_its_built_parts(builds, tmp_path, monkeypa
         np.testing.assert_array_equal(getattr(joined, key), getattr(rolled, key), err_msg=key)
     assert joined.metadata["episode_kind"] == rolled.metadata["episode_kind"]
     assert card["joined_from"] == ["hopper-medium", "hopper-expert"] and card["sac_cache_hit"] is True
+    assert card["build_time_s"] > 0
     timing = {"build_time_s", "peak_rss_mb", "sac_cache_hit", "train_time_s"}  # this data dir trained its own SAC
 
     def same(c):
@@ -239,6 +240,11 @@ def test_medium_expert_is_joined_from_its_built_parts(builds, tmp_path, monkeypa
     path = registry.build("hopper-medium-expert", "tiny", 0, progress=False, force=True)
     assert "joined_from" not in registry.read_card(path)
     np.testing.assert_array_equal(formats.read_d4rl_hdf5(path).rewards, rolled.rewards)
+
+    # a part rolled out under other package versions: built whole
+    medium_card.write_text(json.dumps({**other, "behaviour": rolled_card["behaviour"], "versions": {"mujoco": "0"}}))
+    path = registry.build("hopper-medium-expert", "tiny", 0, progress=False, force=True)
+    assert "joined_from" not in registry.read_card(path)
 
     # a damaged part (its sha256 no longer the card's): built whole
     medium_card.write_text(json.dumps({**other, "behaviour": rolled_card["behaviour"]}))

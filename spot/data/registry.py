@@ -233,19 +233,24 @@ def _join_parts(
     recipe: Any, name: str, size: str, seed: int, progress: bool
 ) -> tuple[RawDataset, dict[str, Any]] | None:
     """A composite dataset (one the recipe's ``composite_parts`` names parts for, e.g.
-    ``hopper-medium-expert``) joined from its parts when every part is built, current and
-    undamaged; None otherwise, and then the recipe builds it whole."""
+    ``hopper-medium-expert``) joined from its parts when every part is built (here, or in the shared
+    store: fetched), current and undamaged; None otherwise, and then the recipe builds it whole.
+    The card's ``build_time_s`` covers reading and checking the parts too."""
+    import time
+
     from spot.data import formats
 
     parts_of = getattr(recipe, "composite_parts", None)
     names = parts_of(name) if parts_of is not None else []
     if not names:
         return None
+    start = time.perf_counter()
     version = getattr(recipe, "RECIPE_VERSION", None)
     parts = []
     for part in names:
         path = dataset_path(part, size, seed)
-        with _lock(path):
+        with _lock(path), store.dataset_lock(path):
+            store.fetch_dataset(path, card_path(path))
             card = _card_or_none(path) if path.exists() and card_path(path).exists() else None
             if card is None or (version is not None and card.get("recipe_version") != version):
                 return None
@@ -253,7 +258,10 @@ def _join_parts(
                 return None
             parts.append((formats.read_d4rl_hdf5(path), card))
     joined = recipe.join(name, size, seed, data_dir() / "_work", parts, progress=progress)
-    if joined is not None and progress:
+    if joined is None:
+        return None
+    joined[1]["build_time_s"] = round(time.perf_counter() - start, 2)
+    if progress:
         print(f"spot: {name} ({size}, seed {seed}) joined from the built {' and '.join(names)}", file=sys.stderr)
     return joined
 

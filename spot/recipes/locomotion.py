@@ -490,8 +490,9 @@ def join(
     """A :data:`COMPOSITES` dataset from its built parts (``(raw, card)`` in :func:`composite_parts`
     order): their rows concatenated, the card as :func:`build` makes it, with ``joined_from``.
     The same rows as :func:`build` rolls out, in seconds instead of one rollout per part. None when
-    a part's card does not record this seed's SAC run (another run's evaluation curve): the caller
-    then builds the dataset whole."""
+    a part's card does not record this seed's SAC run (another run's evaluation curve) or these
+    package versions (rollouts under other simulator or JAX versions may differ): the caller then
+    builds the dataset whole."""
     env, kind = parse_name(name)
     wanted = composite_parts(name)
     if len(parts) != len(wanted):
@@ -501,7 +502,10 @@ def join(
     episodes: list[dict[str, np.ndarray]] = []
     episode_kind: list[str] = []
     for part, (raw, card) in zip(COMPOSITES[kind], parts, strict=True):
-        if card.get("behaviour", {}).get("eval_curve") != _eval_curve(result):
+        behaviour = card.get("behaviour")
+        if not isinstance(behaviour, dict) or behaviour.get("eval_curve") != _eval_curve(result):
+            return None
+        if card.get("versions") != _versions():
             return None
         eps = _split(raw, f"{env}-{part} ({size}, seed {seed})")
         episodes += eps
