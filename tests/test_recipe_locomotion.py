@@ -255,3 +255,23 @@ def test_medium_expert_is_joined_from_its_built_parts(builds, tmp_path, monkeypa
     path = registry.build("hopper-medium-expert", "tiny", 0, progress=False, force=True)
     assert "joined_from" not in registry.read_card(path)
     np.testing.assert_array_equal(formats.read_d4rl_hdf5(path).observations, rolled.observations)
+
+
+@pytest.mark.slow
+def test_medium_expert_joins_parts_from_the_shared_store(tmp_path, monkeypatch):
+    """Node A builds medium and expert (uploaded to the store); node B, with an empty data dir,
+    fetches them and joins medium-expert instead of rolling it out."""
+    from spot.data import registry
+
+    monkeypatch.setenv("SPOT_STORE", str(tmp_path / "store"))
+    monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path / "A"))
+    for part in ("hopper-medium", "hopper-expert"):
+        registry.build(part, "tiny", 0, progress=False)
+    monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path / "B"))
+    path = registry.build("hopper-medium-expert", "tiny", 0, progress=False)
+    assert registry.read_card(path)["joined_from"] == ["hopper-medium", "hopper-expert"]
+    assert {p.name for p in (tmp_path / "B").glob("*.hdf5")} == {
+        "hopper-medium__tiny__seed0.hdf5",
+        "hopper-expert__tiny__seed0.hdf5",
+        "hopper-medium-expert__tiny__seed0.hdf5",
+    }
