@@ -385,6 +385,11 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     flat = [a for s in strata for a in s]
     row.min_n = min(len(a) for a in flat)
     row.effect = stats.estimate(flat, diff_in_diff)
+    change = [
+        float(np.mean([few.mean() - most.mean() for few, most in zip(strata[i], strata[i + 1], strict=True)]))
+        for i in (0, 2)
+    ]
+    row.means = (change[0], change[1])  # shown as "means x / y": SPOT's change, PT's change
     row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
     return row
 

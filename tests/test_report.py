@@ -93,6 +93,7 @@ def test_claim4_difference_in_differences():
     r = _row(report.build(pd.DataFrame(rows + [killed])), "4", "(spot")
     # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9 (the killed run at 0 is not counted)
     assert r.effect.value == pytest.approx(9.0)
+    assert r.means == pytest.approx((-1.0, -10.0))  # each method's change, fewest minus most queries
     assert r.notes == [
         "spot: 1 KILLED (not counted)",
         "h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data",
