@@ -17,6 +17,7 @@ import importlib
 import json
 import os
 import sys
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -119,7 +120,6 @@ def clean_stale_temp(folder: Path, min_age_s: float = STALE_TEMP_S) -> list[Path
     longer runs here and the file is older than ``min_age_s`` (the age guards a writer on another
     host sharing the folder). Returns the removed paths."""
     import re
-    import time
 
     removed = []
     if not folder.is_dir():
@@ -202,15 +202,7 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
         version = getattr(recipe, "RECIPE_VERSION", None)
         if path.exists() and card_path(path).exists() and not force:
-            card = _card_or_none(path)
-            built = card.get("recipe_version") if card is not None else None
-            if card is None:
-                why = f"its card {card_path(path)} is not a JSON object"
-            elif version is not None and built != version:
-                why = f"it was built by recipe version {built}; rebuilding with version {version}"
-            else:
-                why = _damage(path, card)
-                why = None if why is None else f"it is damaged ({why})"
+            _, why = _reusable(path, version)
             if why is None:
                 store.publish_dataset(path, card_path(path), if_missing=True)  # built before the store was named
                 return path
@@ -229,6 +221,19 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
     return path
 
 
+def _reusable(path: Path, version: Any) -> tuple[dict[str, Any] | None, str | None]:
+    """The card of the built file ``path`` (file and card present) and why it cannot be reused:
+    a card that is not a JSON object, another recipe version, or damage; None when it can."""
+    card = _card_or_none(path)
+    if card is None:
+        return None, f"its card {card_path(path)} is not a JSON object"
+    built = card.get("recipe_version")
+    if version is not None and built != version:
+        return card, f"it was built by recipe version {built}; rebuilding with version {version}"
+    why = _damage(path, card)
+    return card, None if why is None else f"it is damaged ({why})"
+
+
 def _join_parts(
     recipe: Any, name: str, size: str, seed: int, progress: bool
 ) -> tuple[RawDataset, dict[str, Any]] | None:
@@ -236,8 +241,6 @@ def _join_parts(
     ``hopper-medium-expert``) joined from its parts when every part is built (here, or in the shared
     store: fetched), current and undamaged; None otherwise, and then the recipe builds it whole.
     The card's ``build_time_s`` covers reading and checking the parts too."""
-    import time
-
     from spot.data import formats
 
     parts_of = getattr(recipe, "composite_parts", None)
@@ -251,10 +254,10 @@ def _join_parts(
         path = dataset_path(part, size, seed)
         with _lock(path), store.dataset_lock(path):
             store.fetch_dataset(path, card_path(path))
-            card = _card_or_none(path) if path.exists() and card_path(path).exists() else None
-            if card is None or (version is not None and card.get("recipe_version") != version):
+            if not (path.exists() and card_path(path).exists()):
                 return None
-            if _damage(path, card) is not None:
+            card, why = _reusable(path, version)
+            if why is not None:
                 return None
             parts.append((formats.read_d4rl_hdf5(path), card))
     joined = recipe.join(name, size, seed, data_dir() / "_work", parts, progress=progress)

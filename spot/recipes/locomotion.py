@@ -497,16 +497,16 @@ def join(
     wanted = composite_parts(name)
     if len(parts) != len(wanted):
         raise SpotError(f"join('{name}'): got {len(parts)} parts; expected {len(wanted)} ({', '.join(wanted)})")
+    cards = [card for _, card in parts]
+    if any(card.get("versions") != _versions() or not isinstance(card.get("behaviour"), dict) for card in cards):
+        return None  # checked before the SAC run is loaded
     start = time.perf_counter()
     result, cache_hit = train_or_load_sac(env, size, seed, cache_dir, progress)
+    if any(card["behaviour"].get("eval_curve") != _eval_curve(result) for card in cards):
+        return None
     episodes: list[dict[str, np.ndarray]] = []
     episode_kind: list[str] = []
-    for part, (raw, card) in zip(COMPOSITES[kind], parts, strict=True):
-        behaviour = card.get("behaviour")
-        if not isinstance(behaviour, dict) or behaviour.get("eval_curve") != _eval_curve(result):
-            return None
-        if card.get("versions") != _versions():
-            return None
+    for part, (raw, _) in zip(COMPOSITES[kind], parts, strict=True):
         eps = _split(raw, f"{env}-{part} ({size}, seed {seed})")
         episodes += eps
         episode_kind += [part] * len(eps)
