@@ -45,6 +45,8 @@ bottom-group and MSE-only arms and lab_paper_shaping's other (kind, λ) arms; ro
 with lab_paper_queries' 50-query PT and SPOT runs. Row ``OP`` (a reference, not a claim) is Oracle
 with ``relabel.normalize=minmax`` (the true reward scaled, plus a per-step offset) against Oracle
 (lab_paper_oracle_minmax, lab_variant_rows): the survival-bonus reading tested on the true reward.
+Row ``OD`` (also a reference) is Oracle at ``iql.discount=0.995`` against Oracle at IQL's 0.99
+(lab_oracle_discount, lab_variant_rows): does a longer horizon keep Oracle from falling?
 :func:`dose_response` sets the term each arm adds to the reward per step against its score (a
 description of the runs, not a claim).
 """
@@ -70,7 +72,8 @@ HIGH_MODE = 50.0
 # F is not a claim of the paper: SPOT's fidelity variants against each other (docs/fidelity.md); the
 # `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P,
 # 3P, 4P and 5P (claims 1 to 5 and the controls under variant paper). O holds row OP: Oracle on its
-# default reward against Oracle with relabel.normalize=minmax (the true reward plus a per-step offset).
+# default reward against Oracle with relabel.normalize=minmax (the true reward plus a per-step offset),
+# and row OD: Oracle at discount 0.995 against Oracle at its default 0.99 (a longer horizon).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -84,7 +87,7 @@ EXPERIMENTS = {
         "lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping"
         "+lab_paper_queries+lab_walker+lab_walker_controls",
     ),
-    "O": ("lab_variant_rows+lab_paper_oracle_minmax",),
+    "O": ("lab_variant_rows+lab_paper_oracle_minmax+lab_oracle_discount",),
 }
 
 Filter = Callable[[pd.DataFrame], pd.Series]
@@ -110,15 +113,33 @@ def _not(a: Filter) -> Filter:
     return lambda df: ~a(df)
 
 
+def _numbers(key: str) -> Callable[[pd.DataFrame], pd.Series]:
+    col = f"params.{key}"
+    return lambda df: pd.to_numeric(df[col], errors="coerce") if col in df else pd.Series(np.nan, index=df.index)
+
+
+def _equal_to(key: str, value: float) -> Filter:
+    """Runs that logged the number ``key`` as ``value``."""
+    return lambda df: _numbers(key)(df) == value
+
+
+def _other_than(key: str, default: float) -> Filter:
+    """Runs that logged the number ``key`` as something other than ``default`` (runs without it: the default)."""
+    return lambda df: _numbers(key)(df).notna() & (_numbers(key)(df) != default)
+
+
 def _either(a: Filter, b: Filter) -> Filter:
     return lambda df: a(df) | b(df)
 
 
 _RANDOM_SUBGOALS = _param("subgoal.source", "random")
 # Oracle with min-max-normalised rewards: on locomotion, the true reward scaled plus a per-step offset
-# (docs/reproduction.md); Oracle proper is every other Oracle run (runs without the key: its default)
-_ORACLE_MINMAX = _both(_method("oracle"), _param("relabel.normalize", "minmax"))
-_ORACLE = _both(_method("oracle"), _not(_param("relabel.normalize", "minmax")))
+# (docs/reproduction.md). Oracle at another discount than IQL's 0.99 (row OD). Oracle proper is every
+# other Oracle run (runs without a key: its default)
+_MINMAX = _param("relabel.normalize", "minmax")
+_ORACLE_MINMAX = _both(_method("oracle"), _MINMAX)
+_ORACLE_LONG = _both(_both(_method("oracle"), _equal_to("iql.discount", 0.995)), _not(_MINMAX))
+_ORACLE = _both(_method("oracle"), _not(_either(_MINMAX, _other_than("iql.discount", 0.99))))
 _CONSTANT_BONUS = _param("shaping.kind", "constant")
 _BOTTOM_GROUP = _param("subgoal.group", "bottom")
 _MSE_CVAE = _param("cvae.loss", "mse")
@@ -550,6 +571,13 @@ CLAIMS: tuple[Claim, ...] = (
         "reference: Oracle's true reward plus a per-step offset (relabel.normalize=minmax) vs Oracle (variant paper)",
         "oracle minmax vs oracle",
         _versus(_in_variant(_ORACLE_MINMAX, "paper"), _in_variant(_ORACLE, "paper"), ("oracle minmax", "oracle")),
+    ),
+    (
+        "OD",
+        "O",
+        "reference: Oracle at discount 0.995 (a longer horizon) vs Oracle at 0.99 (variant paper)",
+        "oracle γ=0.995 vs oracle",
+        _versus(_in_variant(_ORACLE_LONG, "paper"), _in_variant(_ORACLE, "paper"), ("oracle γ=0.995", "oracle")),
     ),
 )
 

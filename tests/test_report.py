@@ -552,3 +552,23 @@ def test_oracle_with_minmax_rewards_is_its_own_reference_row_and_stays_out_of_or
     moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
     ref = _row(report.build(moved), "1P", "spot vs oracle")
     assert ref.means == pytest.approx((51.0, 22.0)) and ref.n_y == 3
+
+
+def test_oracle_at_a_longer_discount_is_row_od_and_stays_out_of_every_other_oracle_arm(runs):
+    # row OD: Oracle at iql.discount 0.995 (lab_oracle_discount, two seeds) against Oracle proper at 0.99
+    # (lab_variant_rows, one run with the key and two without it): mean(40, 50) - mean(20, 22, 24) = 23
+    arm = functools.partial(_paper_arm, runs)
+    proper = arm("lab_variant_rows", "or", [20.0, 22.0, 24.0], method="oracle")
+    proper.loc[proper.index[0], "params.iql.discount"] = "0.99"  # logged as a string; the others never logged it
+    long = arm("lab_oracle_discount", "od", [40.0, 50.0, 0.0], method="oracle").iloc[:2]
+    frame = pd.concat([runs, proper, long.assign(**{"params.iql.discount": 0.995})], ignore_index=True)
+    r = _row(report.build(frame), "OD", "oracle γ=0.995 vs oracle")
+    assert r.effect.value == pytest.approx(23.0) and (r.n_x, r.n_y) == (2, 3)
+    assert r.verdict.startswith("too few")  # 2 seeds < MIN_SEEDS: the effect and CI are shown, no verdict
+    # the 0.995 runs never count as Oracle proper: not in row OP's reference, nor in 1P's (moved to set P)
+    minmax = arm("lab_paper_oracle_minmax", "om", [60.0, 70.0, 80.0], method="oracle")
+    frame = pd.concat([frame, minmax.assign(**{"params.relabel.normalize": "minmax"})], ignore_index=True)
+    assert _row(report.build(frame), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
+    moved = frame.assign(experiment=frame["experiment"].replace("lab_oracle_discount", "lab_variant_rows"))
+    moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
+    assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
