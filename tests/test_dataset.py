@@ -196,3 +196,21 @@ def test_registry_rebuilds_a_build_of_another_recipe_version(spot_dirs, monkeypa
     del fake.RECIPE_VERSION  # recipes without a version are never stale
     registry.build("fake-task", "tiny", 0, progress=False)
     assert len(calls) == 3
+    # a recipe whose versions differ per dataset and size: recipe_version(name, size) wins over RECIPE_VERSION
+    fake.RECIPE_VERSION, fake.recipe_version = 4, lambda name, size: f"4+{size}"
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 4 and registry.read_card(path)["recipe_version"] == "4+tiny"
+    registry.build("fake-task", "tiny", 0, progress=False)
+    assert len(calls) == 4
+
+
+def test_locomotion_versions_name_the_stop_rule_where_it_is_not_the_first_one():
+    # the rule hopper's paper-fast data are built under (stochastic returns, two evaluations in a row) is in
+    # their version, so a file built under the one-deterministic-evaluation rule is rebuilt, not reused
+    from spot.recipes import locomotion
+
+    v = locomotion.RECIPE_VERSION
+    assert locomotion.recipe_version("hopper-medium-replay", "paper-fast") == f"{v}+stop-stochastic-2"
+    assert locomotion.recipe_version("hopper-expert", "paper") == v  # the rule of every built Hopper file
+    assert locomotion.recipe_version("walker2d-medium", "paper-fast") == v
+    assert locomotion.recipe_version("hopper-medium", "tiny") == v  # no stop rule: a fixed length

@@ -1,5 +1,7 @@
 """SAC's tanh-Gaussian log-probability, and tiny D4RL-style locomotion builds in real Hopper-v5."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,6 +74,25 @@ def test_pick_medium_takes_first_snapshot_reaching_a_third():
         sac.Snapshot(step, ret, 0.0, None) for step, ret in [(1, 50.0), (2, 400.0), (3, 200.0), (4, 1100.0), (5, 900.0)]
     ]
     assert locomotion.pick_medium(snaps, 1 / 3).step == 2  # 400 >= 900 / 3; later dips don't count
+
+
+@pytest.mark.slow
+def test_a_build_under_a_stochastic_stop_rule_records_the_rule_and_the_stochastic_returns(tmp_path, monkeypatch):
+    # tiny Hopper with paper-fast's Hopper rule and an unreachable target: SAC runs to its cap of 3000 steps
+    rule = locomotion.StopRule(1e9, 3000, policy="stochastic", evals=2)
+    monkeypatch.setitem(locomotion.SIZES, "tiny", dataclasses.replace(locomotion.SIZES["tiny"], stop={"hopper": rule}))
+    raw, card = locomotion.build("hopper-medium-replay", "tiny", 0, tmp_path, progress=False)
+    b = card["behaviour"]
+    assert (b["stop_policy"], b["stop_evals"], b["target_reached"]) == ("stochastic", 2, False)
+    assert [step for step, _ in b["stochastic_curve"]] == list(range(500, 3001, 500))  # every evaluation
+    assert b["expert_stochastic_return"] == pytest.approx(b["stochastic_curve"][-1][1], abs=0.05)
+    medium_step = b["medium_snapshot_step"]  # the medium snapshot is still picked by the deterministic returns
+    assert b["medium_stochastic_return"] == pytest.approx(dict(b["stochastic_curve"])[medium_step], abs=0.05)
+    assert card["recipe_version"] == f"{locomotion.RECIPE_VERSION}+stop-stochastic-2"
+    # its SAC run is cached under its own name, never mistaken for the plain rule's run
+    assert locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
+    monkeypatch.undo()
+    assert not locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
 
 
 # ------------------------------------------------------------------------- tiny builds (Hopper)

@@ -1,4 +1,5 @@
-"""SAC's stop rule (target return with a step cap) and checkpoint/resume, at size tiny in Hopper-v5."""
+"""SAC's stop rule (target return with a step cap; deterministic or stochastic returns, one or more
+evaluations in a row) and checkpoint/resume, at size tiny in Hopper-v5."""
 
 import dataclasses
 from pathlib import Path
@@ -58,6 +59,72 @@ def test_target_reached_compares_the_last_evaluation():
     assert result(40.5).target_reached is False  # the cap came first
 
 
+def test_stop_rule_reads_the_chosen_policys_returns_over_consecutive_evaluations():
+    # (step, deterministic return, stochastic return): the stochastic policy scores less, as Hopper's did
+    snaps = [
+        sac.Snapshot(k * 500, det, 0.0, None, sto, 1.0)
+        for k, (det, sto) in enumerate([(50, 10), (60, 35), (45, 31)], 1)
+    ]
+
+    def reached(upto, target, policy, evals):
+        cfg = dataclasses.replace(CFG, target_return=target, stop_policy=policy, stop_evals=evals)
+        return sac.stop_reached(snaps[:upto], cfg)
+
+    assert reached(1, 40.0, "deterministic", 1) and not reached(1, 40.0, "stochastic", 1)  # 50 >= 40 > 10
+    assert not reached(2, 30.0, "stochastic", 2)  # 10, 35: the first of the two misses
+    assert reached(3, 30.0, "stochastic", 2) and not reached(3, 32.0, "stochastic", 2)  # 35, 31
+    assert reached(3, 45.0, "deterministic", 2) and not reached(3, 46.0, "deterministic", 2)  # 60, 45
+    assert not reached(1, 0.0, "deterministic", 2)  # fewer evaluations than the rule needs
+    assert not sac.stop_reached(snaps, CFG)  # no target: never
+    unmeasured = [sac.Snapshot(500, 99.0, 0.0, None)]  # a stochastic rule needs stochastic returns
+    assert not sac.stop_reached(unmeasured, dataclasses.replace(CFG, target_return=1.0, stop_policy="stochastic"))
+    result = sac.SACResult("Hopper-v5", 0, dataclasses.replace(CFG, target_return=30.0, stop_evals=2), snaps, {}, {})
+    assert result.target_reached is True  # 60 and 45 both >= 30
+
+
+def test_stop_rule_fields_are_checked_and_left_out_of_a_runs_identity_at_their_defaults():
+    with pytest.raises(SpotError, match="stop_policy = 'mean'; expected one of deterministic, stochastic"):
+        dataclasses.replace(CFG, stop_policy="mean")
+    with pytest.raises(SpotError, match="stop_evals = 0"):
+        dataclasses.replace(CFG, stop_evals=0)
+    # runs cached before the fields existed keep their cache names: at the defaults the identity is the old asdict
+    old = {k: v for k, v in dataclasses.asdict(CFG).items() if k not in ("stop_policy", "stop_evals")}
+    assert sac.identity(CFG) == old
+    sturdy = dataclasses.replace(CFG, stop_policy="stochastic", stop_evals=2)
+    assert sac.identity(sturdy) == {**old, "stop_policy": "stochastic", "stop_evals": 2}
+
+
+@pytest.mark.slow
+def test_a_stochastic_two_in_a_row_rule_stops_later_and_resumes_bit_for_bit(full, tmp_path):
+    # the sampled-action evaluations ride beside the deterministic ones and change nothing else
+    target = 0.5 * max(s.eval_return for s in full.snapshots)
+    cfg = dataclasses.replace(CFG, target_return=target, stop_policy="stochastic", stop_evals=2)
+    run = sac.train_sac("Hopper-v5", cfg, 0, progress=False)
+    stoch = [s.stochastic_return for s in run.snapshots]
+    assert all(v is not None for v in stoch) and len(stoch) >= 2
+    stopped_by_rule = stoch[-1] >= target and stoch[-2] >= target
+    assert run.target_reached is stopped_by_rule
+    # the run stopped at the first evaluation with two in a row, or ran to its cap without one
+    firsts = [i for i in range(1, len(stoch)) if stoch[i] >= target and stoch[i - 1] >= target]
+    assert (firsts[0] == len(stoch) - 1) if firsts else run.snapshots[-1].step == CFG.total_steps
+    _assert_same_run(full, run, steps=run.snapshots[-1].step)  # deterministic returns, params, buffer unchanged
+    ckpt = tmp_path / "run.ckpt"
+
+    def kill_at_1000(step, metrics):
+        assert "eval/stochastic_return_mean" in metrics
+        if step == 1000:
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        sac.train_sac("Hopper-v5", cfg, 0, progress=False, on_eval=kill_at_1000, checkpoint=ckpt, checkpoint_every=500)
+    with pytest.raises(SpotError, match="belongs to another run"):  # a checkpoint of the plain rule's run
+        sac.train_sac("Hopper-v5", dataclasses.replace(cfg, stop_evals=1), 0, progress=False, checkpoint=ckpt)
+    resumed = sac.train_sac("Hopper-v5", cfg, 0, progress=False, checkpoint=ckpt, checkpoint_every=500)
+    assert resumed.resumed_from == (500,)
+    assert [s.stochastic_return for s in resumed.snapshots] == stoch
+    _assert_same_run(run, resumed)
+
+
 @pytest.mark.slow
 def test_a_killed_run_resumes_from_its_checkpoint_bit_for_bit(full, tmp_path):
     ckpt = tmp_path / "run.ckpt"
@@ -98,7 +165,13 @@ def test_paper_size_trains_to_d4rl_expert_level():
 
 def test_paper_fast_keeps_papers_rows_and_targets_with_a_smaller_sac():
     paper, fast = locomotion.SIZES["paper"], locomotion.SIZES["paper-fast"]
-    assert (fast.transitions, fast.stop, fast.medium_fraction) == (paper.transitions, paper.stop, paper.medium_fraction)
+    assert (fast.transitions, fast.medium_fraction) == (paper.transitions, paper.medium_fraction)
+    # the same targets and caps; Hopper's paper-fast rule reads the stochastic policy twice in a row
+    assert {e: (r.target, r.cap) for e, r in fast.stop.items()} == {e: (r.target, r.cap) for e, r in paper.stop.items()}
+    assert fast.stop["walker2d"] == paper.stop["walker2d"] == locomotion.StopRule(4000.0, 3_000_000)
+    hopper = fast.sac_config("hopper")
+    assert (hopper.stop_policy, hopper.stop_evals) == ("stochastic", 2)
+    assert (paper.sac_config("hopper").stop_policy, paper.sac_config("hopper").stop_evals) == ("deterministic", 1)
     for env in locomotion.ENV_IDS:
         p, f = paper.sac_config(env), fast.sac_config(env)
         assert (f.target_return, f.total_steps, f.eval_every, f.eval_episodes) == (

@@ -6,7 +6,8 @@ dir ``$SPOT_DATA_DIR`` (default ``~/.cache/spot/data``). A path to an existing f
 it is (D4RL hdf5, robomimic hdf5). Built files are keyed by ``(name, size, seed)`` and built once;
 a build writes to a temporary name and renames, under a file lock, so concurrent trials of a sweep
 neither corrupt nor duplicate it. A recipe module that defines ``RECIPE_VERSION`` stores it in the
-card, and a cached build whose card holds another version (or none) is stale and rebuilt.
+card, and a cached build whose card holds another version (or none) is stale and rebuilt; a recipe
+whose datasets differ in version (e.g. by size) defines ``recipe_version(name, size)`` instead.
 """
 
 from __future__ import annotations
@@ -200,7 +201,7 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         clean_stale_temp(path.parent)
         store.fetch_dataset(path, card_path(path))  # a build another node uploaded
         recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
-        version = getattr(recipe, "RECIPE_VERSION", None)
+        version = _version(recipe, e.name, size)
         if path.exists() and card_path(path).exists() and not force:
             _, why = _reusable(path, version)
             if why is None:
@@ -219,6 +220,13 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         _VERIFIED.add((str(path), st.st_mtime_ns, st.st_size))
         store.publish_dataset(path, card_path(path))
     return path
+
+
+def _version(recipe: Any, name: str, size: str) -> Any:
+    """The recipe version a build of ``name`` at ``size`` records: the recipe's
+    ``recipe_version(name, size)`` if it has one, else its ``RECIPE_VERSION`` (None: never stale)."""
+    per_dataset = getattr(recipe, "recipe_version", None)
+    return per_dataset(name, size) if per_dataset is not None else getattr(recipe, "RECIPE_VERSION", None)
 
 
 def _reusable(path: Path, version: Any) -> tuple[dict[str, Any] | None, str | None]:
@@ -248,9 +256,9 @@ def _join_parts(
     if not names:
         return None
     start = time.perf_counter()
-    version = getattr(recipe, "RECIPE_VERSION", None)
     parts = []
     for part in names:
+        version = _version(recipe, part, size)
         path = dataset_path(part, size, seed)
         with _lock(path), store.dataset_lock(path):
             store.fetch_dataset(path, card_path(path))

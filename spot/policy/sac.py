@@ -15,8 +15,10 @@ of device arrays; every ``update_every`` environment steps one jitted ``lax.scan
 ``update_every`` gradient updates, so Python costs little. Actions must lie in ``[-1, 1]``, as in
 Hopper and Walker2d.
 
-A run stops after ``total_steps`` or, with ``target_return`` set, at the first evaluation whose
-mean deterministic return reaches it (``total_steps`` is then a cap). A run can write checkpoints
+A run stops after ``total_steps`` or, with ``target_return`` set, once ``stop_evals`` evaluations
+in a row have a mean return that reaches it (``total_steps`` is then a cap); ``stop_policy`` says
+whose return: the deterministic (mean-action) policy's or the stochastic one's, which the datasets
+are rolled out with. A run can write checkpoints
 (learner and optimiser states, the replay buffer so far, the snapshots, the random generators and
 the training env's simulator state); :func:`train_sac` resumes from one and continues bit for bit.
 """
@@ -49,6 +51,12 @@ from tqdm.auto import tqdm
 from spot import SpotError
 
 Params = Any
+
+
+STOP_POLICIES = ("deterministic", "stochastic")
+# Config fields added after SAC runs were cached: left out of a run's identity (cache name,
+# checkpoint) while at these defaults, so runs cached before them keep their names.
+_LATER_FIELDS = {"stop_policy": "deterministic", "stop_evals": 1}
 
 
 @dataclass(frozen=True)
@@ -91,13 +99,21 @@ class SACConfig:
     max_episode_steps: int = 1000
     """Time limit of an episode; reaching it is a truncation (a D4RL timeout), not a terminal."""
     target_return: float | None = None
-    """Stop at the first evaluation whose mean deterministic return reaches this (D4RL's expert
-    level); ``total_steps`` is then a cap. ``None`` runs all ``total_steps``."""
+    """Stop once ``stop_evals`` evaluations in a row have a mean return (of ``stop_policy``) that
+    reaches this (D4RL's expert level); ``total_steps`` is then a cap. ``None`` runs all ``total_steps``."""
+    stop_policy: str = "deterministic"
+    """Whose return the stop rule reads: ``"deterministic"`` (the mean action, the evaluation every
+    run makes) or ``"stochastic"`` (sampled actions, as the datasets are rolled out: each evaluation
+    then also runs ``eval_episodes`` stochastic episodes)."""
+    stop_evals: int = 1
+    """Evaluations in a row whose return must reach ``target_return`` (1: the first one stops)."""
 
     def __post_init__(self) -> None:
-        for name in ("total_steps", "update_every", "eval_every", "eval_episodes", "batch_size"):
+        for name in ("total_steps", "update_every", "eval_every", "eval_episodes", "batch_size", "stop_evals"):
             if getattr(self, name) <= 0:
                 raise SpotError(f"SACConfig.{name} = {getattr(self, name)}; expected a positive integer")
+        if self.stop_policy not in STOP_POLICIES:
+            raise SpotError(f"SACConfig.stop_policy = {self.stop_policy!r}; expected one of {', '.join(STOP_POLICIES)}")
         if self.start_steps < 0 or self.start_steps % self.update_every:
             raise SpotError(
                 f"SACConfig.start_steps = {self.start_steps}; expected a non-negative multiple of "
@@ -112,6 +128,11 @@ class SACConfig:
             raise SpotError(
                 f"SACConfig.start_steps = {self.start_steps} leaves no updates in total_steps = {self.total_steps}"
             )
+
+
+def identity(cfg: SACConfig) -> dict[str, Any]:
+    """The config as a run's identity: its fields, less those of :data:`_LATER_FIELDS` at their defaults."""
+    return {k: v for k, v in dataclasses.asdict(cfg).items() if not (k in _LATER_FIELDS and v == _LATER_FIELDS[k])}
 
 
 # --------------------------------------------------------------------------------------- networks
@@ -387,12 +408,18 @@ def run_episode(
     return ep
 
 
-def evaluate(env: gym.Env, params: Params, episodes: int, seed: int, cfg: SACConfig) -> np.ndarray:
-    """Returns of ``episodes`` deterministic episodes; the first reset uses ``seed``."""
-    key = jax.random.key(0)  # unused: deterministic actions
+def evaluate(
+    env: gym.Env, params: Params, episodes: int, seed: int, cfg: SACConfig, key: jax.Array | None = None
+) -> np.ndarray:
+    """Returns of ``episodes`` episodes; the first reset uses ``seed``. Deterministic (mean
+    actions) without ``key``; with it, sampled actions, episode ``i`` with ``fold_in(key, i)``."""
+    deterministic = key is None
+    key = jax.random.key(0) if key is None else key  # unused when deterministic
     return np.array(
         [
-            run_episode(env, params, key, True, cfg, seed=seed if i == 0 else None)["rewards"].sum()
+            run_episode(env, params, jax.random.fold_in(key, i), deterministic, cfg, seed=seed if i == 0 else None)[
+                "rewards"
+            ].sum()
             for i in range(episodes)
         ]
     )
@@ -400,12 +427,44 @@ def evaluate(env: gym.Env, params: Params, episodes: int, seed: int, cfg: SACCon
 
 @dataclass(frozen=True)
 class Snapshot:
-    """The actor at one evaluation: host (numpy) params and its deterministic eval returns."""
+    """The actor at one evaluation: host (numpy) params, its deterministic eval returns and, where
+    the stop rule reads the stochastic policy, that policy's (else None)."""
 
     step: int
     eval_return: float
     eval_return_std: float
     actor_params: Params
+    stochastic_return: float | None = None
+    stochastic_return_std: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """msgpack-able fields (the stochastic returns only where measured)."""
+        out = {"step": self.step, "eval_return": self.eval_return, "eval_return_std": self.eval_return_std}
+        if self.stochastic_return is not None:
+            out |= {"stochastic_return": self.stochastic_return, "stochastic_return_std": self.stochastic_return_std}
+        return {**out, "actor_params": self.actor_params}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Snapshot:
+        stoch = d.get("stochastic_return")
+        return cls(
+            int(d["step"]),
+            float(d["eval_return"]),
+            float(d["eval_return_std"]),
+            d["actor_params"],
+            None if stoch is None else float(stoch),
+            None if stoch is None else float(d["stochastic_return_std"]),
+        )
+
+
+def stop_reached(snapshots: Sequence[Snapshot], cfg: SACConfig) -> bool:
+    """Whether the last ``cfg.stop_evals`` evaluations all reach ``cfg.target_return`` with the
+    return of ``cfg.stop_policy`` (False without a target)."""
+    if cfg.target_return is None or len(snapshots) < cfg.stop_evals:
+        return False
+    last = snapshots[len(snapshots) - cfg.stop_evals :]
+    values = [s.stochastic_return if cfg.stop_policy == "stochastic" else s.eval_return for s in last]
+    return all(v is not None and v >= cfg.target_return for v in values)
 
 
 @dataclass(frozen=True)
@@ -434,10 +493,10 @@ class SACResult:
 
     @property
     def target_reached(self) -> bool | None:
-        """Whether the last evaluation reached ``config.target_return`` (``None`` without one)."""
+        """Whether the run ended by its stop rule (:func:`stop_reached`; ``None`` without a target)."""
         if self.config.target_return is None:
             return None
-        return self.snapshots[-1].eval_return >= self.config.target_return
+        return stop_reached(self.snapshots, self.config)
 
 
 def peak_rss_mb() -> float:
@@ -475,6 +534,9 @@ class _Run:
         }
         self.random_actions = np.random.default_rng(seed)
         self.eval_seed = int(np.random.SeedSequence([seed, 1]).generate_state(1)[0])
+        # the stochastic evaluations (stop_policy stochastic): their own env seed and action keys
+        self.stochastic_seed = int(np.random.SeedSequence([seed, 4]).generate_state(1)[0])
+        self.stochastic_key = jax.random.fold_in(jax.random.key(seed), 4)
         self.snapshots: list[Snapshot] = []
         self.timing = {"total": 0.0, "env": 0.0, "update": 0.0, "eval": 0.0, "checkpoint": 0.0, "peak_rss_mb": 0.0}
         self.resumed_from: list[int] = []
@@ -521,7 +583,8 @@ class _Run:
         self.timing["update"] += time.perf_counter() - tic
 
     def evaluate(self) -> dict[str, float]:
-        """Snapshot the actor, evaluate it deterministically; the metrics for ``on_eval``."""
+        """Snapshot the actor, evaluate it deterministically (and with sampled actions where the stop
+        rule reads those); the metrics for ``on_eval``."""
         tic = time.perf_counter()
         metrics = {}
         if self.t > self.cfg.start_steps:
@@ -532,9 +595,16 @@ class _Run:
                 )
         params = jax.tree.map(lambda x: np.array(x, copy=True), self.state.actor.params)
         returns = evaluate(self.eval_env, params, self.cfg.eval_episodes, self.eval_seed, self.cfg)
-        self.snapshots.append(Snapshot(self.t, float(returns.mean()), float(returns.std()), params))
+        metrics |= {"eval/return_mean": float(returns.mean()), "eval/return_std": float(returns.std())}
+        stoch = (None, None)
+        if self.cfg.stop_policy == "stochastic":
+            key = jax.random.fold_in(self.stochastic_key, self.t)
+            sampled = evaluate(self.eval_env, params, self.cfg.eval_episodes, self.stochastic_seed, self.cfg, key)
+            stoch = (float(sampled.mean()), float(sampled.std()))
+            metrics |= {"eval/stochastic_return_mean": stoch[0], "eval/stochastic_return_std": stoch[1]}
+        self.snapshots.append(Snapshot(self.t, float(returns.mean()), float(returns.std()), params, *stoch))
         self.timing["eval"] += time.perf_counter() - tic
-        return {**metrics, "eval/return_mean": float(returns.mean()), "eval/return_std": float(returns.std())}
+        return metrics
 
     # ---------------------------------------------------------------------------- checkpoints
     def payload(self) -> dict[str, Any]:
@@ -544,21 +614,11 @@ class _Run:
         mujoco.mj_getState(u.model, u.data, mj_state, _MJ_STATE)
         return {
             "format": CHECKPOINT_FORMAT,
-            "run": json.dumps(
-                {"env_id": self.env_id, "seed": self.seed, "config": dataclasses.asdict(self.cfg)}, sort_keys=True
-            ),
+            "run": json.dumps({"env_id": self.env_id, "seed": self.seed, "config": identity(self.cfg)}, sort_keys=True),
             "t": self.t,
             "learner": serialization.to_state_dict(self.state),
             "host": {k: v[: self.t] for k, v in self.host.items()},
-            "snapshots": {
-                str(i): {
-                    "step": s.step,
-                    "eval_return": s.eval_return,
-                    "eval_return_std": s.eval_return_std,
-                    "actor_params": s.actor_params,
-                }
-                for i, s in enumerate(self.snapshots)
-            },
+            "snapshots": {str(i): s.to_dict() for i, s in enumerate(self.snapshots)},
             "timing": {
                 **self.timing,
                 "total": self.elapsed(),
@@ -576,9 +636,7 @@ class _Run:
 
     def restore(self, payload: dict[str, Any], path: Path) -> None:
         """Continue from :meth:`payload`'s output; raises :class:`SpotError` if it is another run's."""
-        mine = json.dumps(
-            {"env_id": self.env_id, "seed": self.seed, "config": dataclasses.asdict(self.cfg)}, sort_keys=True
-        )
+        mine = json.dumps({"env_id": self.env_id, "seed": self.seed, "config": identity(self.cfg)}, sort_keys=True)
         if payload.get("format") != CHECKPOINT_FORMAT or payload.get("run") != mine:
             raise SpotError(
                 f"SAC checkpoint {path} belongs to another run or format (it holds "
@@ -590,10 +648,7 @@ class _Run:
         for k in _REPLAY_KEYS:
             self.host[k][: self.t] = payload["host"][k]
         snaps = [payload["snapshots"][str(i)] for i in range(len(payload["snapshots"]))]
-        self.snapshots = [
-            Snapshot(int(s["step"]), float(s["eval_return"]), float(s["eval_return_std"]), s["actor_params"])
-            for s in snaps
-        ]
+        self.snapshots = [Snapshot.from_dict(s) for s in snaps]
         self.timing.update({k: float(v) for k, v in payload["timing"].items()})
         self.total_before = self.timing["total"]
         self.resumed_from = [int(x) for x in payload["resumed_from"]] + [self.t]
@@ -634,8 +689,8 @@ def train_sac(
     checkpoint_every: int = 0,
     make_kwargs: dict[str, Any] | None = None,
 ) -> SACResult:
-    """Train SAC in ``env_id`` for ``cfg.total_steps`` environment steps, or until an evaluation
-    reaches ``cfg.target_return``.
+    """Train SAC in ``env_id`` for ``cfg.total_steps`` environment steps, or until its stop rule
+    (:func:`stop_reached`: ``cfg.stop_evals`` evaluations in a row reach ``cfg.target_return``).
 
     Args:
       env_id: a gymnasium id with actions in ``[-1, 1]`` (``Hopper-v5``, ``Walker2d-v5``).
@@ -672,7 +727,7 @@ def train_sac(
         if on_eval is not None:
             on_eval(run.t, metrics)
         bar.set_postfix(eval_return=f"{metrics['eval/return_mean']:.0f}")
-        if cfg.target_return is not None and metrics["eval/return_mean"] >= cfg.target_return:
+        if stop_reached(run.snapshots, cfg):
             break
         if checkpoint is not None and checkpoint_every and run.t % checkpoint_every == 0 and run.t < cfg.total_steps:
             run.save(Path(checkpoint))
