@@ -87,27 +87,37 @@ def test_stop_rule_fields_are_checked_and_left_out_of_a_runs_identity_at_their_d
         dataclasses.replace(CFG, stop_policy="mean")
     with pytest.raises(SpotError, match="stop_evals = 0"):
         dataclasses.replace(CFG, stop_evals=0)
+    with pytest.raises(SpotError, match="shape a stop rule, but target_return is None"):
+        dataclasses.replace(CFG, stop_policy="stochastic")  # tiny has no target
+    with pytest.raises(SpotError, match=r"StopRule.policy = 'mean'"):
+        locomotion.StopRule(3000.0, 1000, policy="mean")
+    with pytest.raises(SpotError, match="expected a finite target, a positive cap and at least one evaluation"):
+        locomotion.StopRule(3000.0, 1000, evals=0)
     # runs cached before the fields existed keep their cache names: at the defaults the identity is the old asdict
     old = {k: v for k, v in dataclasses.asdict(CFG).items() if k not in ("stop_policy", "stop_evals")}
     assert sac.identity(CFG) == old
-    sturdy = dataclasses.replace(CFG, stop_policy="stochastic", stop_evals=2)
-    assert sac.identity(sturdy) == {**old, "stop_policy": "stochastic", "stop_evals": 2}
+    sturdy = dataclasses.replace(CFG, target_return=1.0, stop_policy="stochastic", stop_evals=2)
+    assert sac.identity(sturdy) == {**old, "target_return": 1.0, "stop_policy": "stochastic", "stop_evals": 2}
 
 
 @pytest.mark.slow
-def test_a_stochastic_two_in_a_row_rule_stops_later_and_resumes_bit_for_bit(full, tmp_path):
-    # the sampled-action evaluations ride beside the deterministic ones and change nothing else
-    target = 0.5 * max(s.eval_return for s in full.snapshots)
-    cfg = dataclasses.replace(CFG, target_return=target, stop_policy="stochastic", stop_evals=2)
+def test_a_stochastic_two_in_a_row_rule_stops_where_its_returns_say_and_resumes_bit_for_bit(full, tmp_path):
+    # first the whole run with the rule's evaluations and a target it never meets: the sampled-action
+    # evaluations ride beside the deterministic ones and change nothing else
+    never = dataclasses.replace(CFG, target_return=1e9, stop_policy="stochastic", stop_evals=2)
+    capped = sac.train_sac("Hopper-v5", never, 0, progress=False)
+    assert capped.target_reached is False and capped.snapshots[-1].step == CFG.total_steps
+    _assert_same_run(full, capped)
+    stoch = [s.stochastic_return for s in capped.snapshots]
+    # a target that some pair of consecutive evaluations before the last meets: the smaller of the best pair
+    pairs = [min(stoch[i - 1], stoch[i]) for i in range(1, len(stoch) - 1)]
+    target = max(pairs)
+    stop = capped.snapshots[1 + pairs.index(target)].step  # the first pair that meets it
+    cfg = dataclasses.replace(never, target_return=target)
     run = sac.train_sac("Hopper-v5", cfg, 0, progress=False)
-    stoch = [s.stochastic_return for s in run.snapshots]
-    assert all(v is not None for v in stoch) and len(stoch) >= 2
-    stopped_by_rule = stoch[-1] >= target and stoch[-2] >= target
-    assert run.target_reached is stopped_by_rule
-    # the run stopped at the first evaluation with two in a row, or ran to its cap without one
-    firsts = [i for i in range(1, len(stoch)) if stoch[i] >= target and stoch[i - 1] >= target]
-    assert (firsts[0] == len(stoch) - 1) if firsts else run.snapshots[-1].step == CFG.total_steps
-    _assert_same_run(full, run, steps=run.snapshots[-1].step)  # deterministic returns, params, buffer unchanged
+    assert run.snapshots[-1].step == stop < CFG.total_steps and run.target_reached is True
+    assert [s.stochastic_return for s in run.snapshots] == stoch[: len(run.snapshots)]
+    _assert_same_run(full, run, steps=stop)
     ckpt = tmp_path / "run.ckpt"
 
     def kill_at_1000(step, metrics):
@@ -116,13 +126,14 @@ def test_a_stochastic_two_in_a_row_rule_stops_later_and_resumes_bit_for_bit(full
             raise _Killed
 
     with pytest.raises(_Killed):
-        sac.train_sac("Hopper-v5", cfg, 0, progress=False, on_eval=kill_at_1000, checkpoint=ckpt, checkpoint_every=500)
-    with pytest.raises(SpotError, match="belongs to another run"):  # a checkpoint of the plain rule's run
-        sac.train_sac("Hopper-v5", dataclasses.replace(cfg, stop_evals=1), 0, progress=False, checkpoint=ckpt)
-    resumed = sac.train_sac("Hopper-v5", cfg, 0, progress=False, checkpoint=ckpt, checkpoint_every=500)
+        kw = {"on_eval": kill_at_1000, "checkpoint": ckpt, "checkpoint_every": 500}
+        sac.train_sac("Hopper-v5", never, 0, progress=False, **kw)
+    with pytest.raises(SpotError, match="belongs to another run"):  # the rule is part of the run's identity
+        sac.train_sac("Hopper-v5", dataclasses.replace(never, stop_evals=1), 0, progress=False, checkpoint=ckpt)
+    resumed = sac.train_sac("Hopper-v5", never, 0, progress=False, checkpoint=ckpt, checkpoint_every=500)
     assert resumed.resumed_from == (500,)
     assert [s.stochastic_return for s in resumed.snapshots] == stoch
-    _assert_same_run(run, resumed)
+    _assert_same_run(capped, resumed)
 
 
 @pytest.mark.slow

@@ -180,7 +180,8 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
     """Build a registered dataset with its local recipe (once) and return the file path.
 
     A cached build is reused unless ``force``, its card's ``recipe_version`` differs from the
-    recipe's ``RECIPE_VERSION`` (recipes without one are never stale), or the file is damaged: its
+    recipe's (:func:`_version`: its ``recipe_version(name, size)`` or ``RECIPE_VERSION``; recipes
+    without either are never stale), or the file is damaged: its
     sha256 (recorded in the card) differs, or, for a card from before checksums, it does not read.
     A damaged or stale build is rebuilt. Temp files of killed builds are removed first.
     """

@@ -114,6 +114,11 @@ class SACConfig:
                 raise SpotError(f"SACConfig.{name} = {getattr(self, name)}; expected a positive integer")
         if self.stop_policy not in STOP_POLICIES:
             raise SpotError(f"SACConfig.stop_policy = {self.stop_policy!r}; expected one of {', '.join(STOP_POLICIES)}")
+        if self.target_return is None and (self.stop_policy, self.stop_evals) != ("deterministic", 1):
+            raise SpotError(
+                f"SACConfig: stop_policy = {self.stop_policy!r} and stop_evals = {self.stop_evals} shape a stop "
+                "rule, but target_return is None (no rule: the run is total_steps long)"
+            )
         if self.start_steps < 0 or self.start_steps % self.update_every:
             raise SpotError(
                 f"SACConfig.start_steps = {self.start_steps}; expected a non-negative multiple of "
@@ -463,8 +468,13 @@ def stop_reached(snapshots: Sequence[Snapshot], cfg: SACConfig) -> bool:
     if cfg.target_return is None or len(snapshots) < cfg.stop_evals:
         return False
     last = snapshots[len(snapshots) - cfg.stop_evals :]
-    values = [s.stochastic_return if cfg.stop_policy == "stochastic" else s.eval_return for s in last]
+    values = [stop_value(s, cfg) for s in last]
     return all(v is not None and v >= cfg.target_return for v in values)
+
+
+def stop_value(snapshot: Snapshot, cfg: SACConfig) -> float | None:
+    """The return of ``snapshot`` that ``cfg``'s stop rule reads (None: not measured)."""
+    return snapshot.stochastic_return if cfg.stop_policy == "stochastic" else snapshot.eval_return
 
 
 @dataclass(frozen=True)
@@ -698,7 +708,8 @@ def train_sac(
       seed: seeds the networks, the action noise, the random start actions and both environments;
         the same seed gives the same run on the same machine.
       on_eval: called after each evaluation with ``(step, metrics)``; metrics holds
-        ``eval/return_mean``, ``eval/return_std`` and the chunk's ``sac/...`` means.
+        ``eval/return_mean``, ``eval/return_std``, under a stochastic stop rule
+        ``eval/stochastic_return_mean`` and ``_std``, and the chunk's ``sac/...`` means.
       progress: show a tqdm bar over environment steps.
       checkpoint: a file to resume from if it exists, and to save to every ``checkpoint_every``
         steps (after that step's evaluation; a multiple of ``cfg.eval_every``; 0: never). A run

@@ -67,7 +67,7 @@ RECIPE = "d4rl-sac-locomotion"
 RECIPE_VERSION = 2  # bump when a change here alters the SAC cache or the datasets
 ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5"}
 KINDS = ("medium", "medium-replay", "expert", "medium-expert", "full-replay")
-_ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; tag 1 is SAC's evaluation env
+_ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; SAC's evaluations use tags 1 and 4 (spot.policy.sac)
 COMPOSITES: dict[str, tuple[str, ...]] = {"medium-expert": ("medium", "expert")}
 """Kinds whose rows are exactly other kinds' rows of the same size and seed, in order: the
 registry joins the built parts (:func:`join`) instead of rolling them out again."""
@@ -83,6 +83,15 @@ class StopRule:
     cap: int
     policy: str = "deterministic"
     evals: int = 1
+
+    def __post_init__(self) -> None:
+        if self.policy not in sac.STOP_POLICIES:
+            raise SpotError(f"StopRule.policy = {self.policy!r}; expected one of {', '.join(sac.STOP_POLICIES)}")
+        if self.evals < 1 or self.cap < 1 or not np.isfinite(self.target):
+            raise SpotError(
+                f"StopRule(target={self.target}, cap={self.cap}, evals={self.evals}): expected a finite "
+                "target, a positive cap and at least one evaluation"
+            )
 
 
 @dataclass(frozen=True)
@@ -177,8 +186,10 @@ SIZES: dict[str, SizeSpec] = {
 
 def recipe_version(name: str, size: str) -> int | str:
     """The version a card of ``name`` at ``size`` records (the registry rebuilds a file whose card
-    holds another): :data:`RECIPE_VERSION`, with the stop rule appended where it is not the first
-    one (one deterministic evaluation), so data built under one stop rule never pass for another's."""
+    holds another): :data:`RECIPE_VERSION`, with the stop rule's policy and count appended where
+    they are not the first rule's (one deterministic evaluation), so data built under one
+    (policy, count) never pass for another's. A change of a target or cap changes the SAC run's cache
+    name (:func:`sac_cache_path`) but not this: bump :data:`RECIPE_VERSION` with it."""
     env, _ = parse_name(name)
     rule = SIZES[size].stop.get(env) if size in SIZES else None
     if rule is None or (rule.policy, rule.evals) == ("deterministic", 1):
@@ -433,8 +444,9 @@ def build(name: str, size: str, seed: int, cache_dir: Path, progress: bool = Tru
     if progress and result.target_reached is False:
         print(
             f"spot: warning: SAC {ENV_IDS[env]} stopped at its cap of {result.config.total_steps} "
-            f"steps with eval return {expert.eval_return:.0f}, below the target "
-            f"{result.config.target_return:.0f}",
+            f"steps without meeting its stop rule ({result.config.stop_evals} evaluation(s) in a row of the "
+            f"{result.config.stop_policy} policy at {result.config.target_return:.0f} or more; the last: "
+            f"{sac.stop_value(expert, result.config):.0f})",
             file=sys.stderr,
         )
 
