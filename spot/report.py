@@ -64,6 +64,7 @@ from spot import SpotError, results, stats
 MIN_SEEDS = 3  # a verdict needs at least this many finished runs per arm and dataset (effect and CI shown below it)
 METRICS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"}
 OOD_METRIC = "metrics.diag/extrapolation_error_ood"
+LENGTH = "metrics.eval/length"  # the last evaluation's mean episode length (logged from 2026-11-26 on)
 # On the local Hopper data the runs are bimodal (docs/reproduction.md): ~20 or 55-91 normalised.
 HIGH_MODE = 50.0
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
@@ -728,11 +729,20 @@ def _dose(done: pd.DataFrame, experiment: str, variant: str, dataset: str, high:
                 "added": float(g["added"].mean()),
                 "score": stats.cell(g["score"].to_numpy(np.float64)),
                 "high": high_mode(g, high),
+                "length": _lengths(g),
             }
         )
     dose.arms.sort(key=lambda a: a["added"])
     dose.rho = stats.rank_correlation(done["added"].to_numpy(), done["score"].to_numpy())
     return dose
+
+
+def _lengths(runs: pd.DataFrame) -> tuple[float, int]:
+    """Mean final-evaluation episode length (``eval/length``) over the runs that logged it, and how
+    many did (runs before the metric have none): on locomotion a fall ends an episode early, so it
+    tells a run that falls from one that lasts."""
+    lengths = pd.to_numeric(runs[LENGTH], errors="coerce").dropna() if LENGTH in runs else pd.Series(dtype=float)
+    return (float(lengths.mean()) if len(lengths) else float("nan")), len(lengths)
 
 
 def format_dose(dose: Dose) -> list[str]:
@@ -743,15 +753,19 @@ def format_dose(dose: Dose) -> list[str]:
         f"### The term added to the reward per step vs the final score on {dose.dataset} "
         f"(variant {dose.variant}, {_label(dose.experiment)})",
         "",
-        "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold |",
-        "|---|---|---|---|---|",
+        "| arm | runs | added per step (mean) | final score: mean ± std [95% CI] | evaluations ≥ threshold "
+        "| episode length (runs logging it) |",
+        "|---|---|---|---|---|---|",
     ]
     for a in dose.arms:
         c = a["score"]
         ci = f"[{c['ci_low']:.1f}, {c['ci_high']:.1f}]" if np.isfinite(c["ci_low"]) else "(CI n/a)"
         high = a["high"].text() if a["high"] else "–"
         sd = f" ± {c['std']:.1f}" if np.isfinite(c["std"]) else ""  # one run has no std
-        lines.append(f"| {a['label']} | {a['runs']} | {a['added']:.3f} | {c['mean']:.1f}{sd} {ci} | {high} |")
+        mean_length, logged = a["length"]
+        length = f"{mean_length:.0f} ({logged} of {a['runs']})" if logged else "–"
+        cells = [a["label"], a["runs"], f"{a['added']:.3f}", f"{c['mean']:.1f}{sd} {ci}", high, length]
+        lines.append("| " + " | ".join(str(x) for x in cells) + " |")
     assert dose.rho is not None
     lines += [
         "",

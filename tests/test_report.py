@@ -441,7 +441,10 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
                 arm("lab_paper_shaping", "c01", [16.0, 20.0, 18.0], **{"params.shaping.weight": "0.1"}),
                 [0.06, 0.07, 0.08],
             ),
-            shaped(arm("lab_fidelity", "sp", [70.0, 60.0, 80.0]), [0.6, 0.65, 0.7]),
+            # eval/length: two of the three runs logged it (the third ran before the metric): mean(500, 900) = 700
+            shaped(arm("lab_fidelity", "sp", [70.0, 60.0, 80.0]), [0.6, 0.65, 0.7]).assign(
+                **{"metrics.eval/length": [500.0, 900.0, np.nan]}
+            ),
             arm("lab_paper", "mr", [30.0, 40.0, 50.0], method="mr"),  # MR: neither PT nor SPOT, left out
             arm("lab_paper_random", "rs", [1.0, 2.0, 3.0], **{"params.subgoal.source": "random"}),  # no metrics
             shaped(arm("lab_fidelity", "ss", [1.0, 2.0, 3.0], **{"params.variant": "spot"}), [0.9, 0.9, 0.9]),
@@ -469,6 +472,8 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
     assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
     text = "\n".join(report.format_dose(dose))
     assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text
+    assert "| SPOT, cosine λ=1 | 3 | 0.650 | 70.0 ± 10.0 [" in text and "| 700 (2 of 3) |" in text
+    assert text.count("| – |\n") == 2  # PT's and λ=0.1's runs logged no length
     assert "final score on hopper-medium-replay (variant paper, set P)" in text
 
 
