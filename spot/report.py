@@ -126,7 +126,13 @@ def _equal_to(key: str, value: float) -> Filter:
 
 def _other_than(key: str, default: float) -> Filter:
     """Runs that logged the number ``key`` as something other than ``default`` (runs without it: the default)."""
-    return lambda df: _numbers(key)(df).notna() & (_numbers(key)(df) != default)
+    numbers = _numbers(key)
+
+    def select(df: pd.DataFrame) -> pd.Series:
+        values = numbers(df)
+        return values.notna() & (values != default)
+
+    return select
 
 
 def _either(a: Filter, b: Filter) -> Filter:
