@@ -33,6 +33,13 @@ def _arrays(strata: Sequence[Sequence[float]]) -> list[np.ndarray]:
     return [np.asarray(s, dtype=np.float64).ravel() for s in strata]
 
 
+def _sorted(strata: Sequence[Sequence[float]]) -> list[np.ndarray]:
+    """Each stratum in ascending order: a resample draws positions, so sorting first makes an
+    unpaired CI a function of each stratum's values alone, not of the order the runs were listed in
+    (a re-exported results file lists them in another order and must give the same report)."""
+    return [np.sort(a) for a in _arrays(strata)]
+
+
 def _bootstrap(
     samples: Sequence[np.ndarray],
     statistic: Callable[..., np.ndarray],
@@ -70,7 +77,7 @@ def bootstrap_ci(
     ``statistic`` must be vectorised: it receives arrays whose last axis holds one resample of
     each stratum. Returns ``(nan, nan)`` when a stratum has fewer than two values.
     """
-    arrays = _arrays(strata)
+    arrays = _sorted(strata)
     if not arrays or min(len(a) for a in arrays) < 2:
         return float("nan"), float("nan")
     if all(np.ptp(a) == 0 for a in arrays):  # every resample gives the same value
@@ -178,6 +185,8 @@ def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -
         raise ValueError(f"rank_correlation: {len(a)} x values but {len(b)} y values")
     if len(a) < 2 or np.ptp(a) == 0 or np.ptp(b) == 0:  # constant values have no rank correlation
         return Estimate(float("nan"), float("nan"), float("nan"), len(a))
+    order = np.lexsort((b, a))  # pairs in (x, y) order: the CI does not depend on how they were listed
+    a, b = a[order], b[order]
     value = float(sps.spearmanr(a, b).statistic)
     if len(a) < 4:
         return Estimate(value, float("nan"), float("nan"), len(a))
