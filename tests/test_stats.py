@@ -4,6 +4,7 @@ import warnings
 
 import numpy as np
 import pytest
+from scipy import stats as scipy_stats
 
 from spot import stats
 
@@ -104,3 +105,18 @@ def test_intervals_do_not_depend_on_the_order_the_runs_are_listed_in():
     perm = np.array([3, 0, 5, 1, 4, 2])
     a, b = stats.rank_correlation(u, v), stats.rank_correlation(u[perm], v[perm])
     assert (a.value, a.low, a.high) == (b.value, b.low, b.high)
+
+
+def test_vectorised_spearman_matches_scipy_with_ties_and_constant_rows():
+    rng = np.random.default_rng(3)
+    u = rng.integers(0, 4, size=(50, 7)).astype(float)  # many ties
+    v = rng.normal(size=(50, 7))
+    v[0] = 1.0  # a constant row has no correlation
+    got = stats.spearman(u, v)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        want = np.array([scipy_stats.spearmanr(a, b).statistic for a, b in zip(u, v, strict=True)])
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12, equal_nan=True)
+    assert np.isnan(got[0])
+    # by hand: ranks (1, 2, 3) against (1, 3, 2): d = (0, -1, 1), rho = 1 - 6 * 2 / (3 * 8) = 0.5
+    assert stats.spearman(np.array([1.0, 2, 3]), np.array([10.0, 30, 20])) == pytest.approx(0.5)
