@@ -242,7 +242,12 @@ class Row:
     def verdict(self) -> str:
         if self.effect is None:
             return "no runs"
-        return stats.TOO_FEW if self.min_n < MIN_SEEDS else stats.verdict(self.effect)
+        if self.min_n < MIN_SEEDS:
+            return stats.TOO_FEW
+        v = stats.verdict(self.effect)
+        if self.effect.other_verdicts:  # the CI bound near 0 changes side with the bootstrap seed
+            return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
+        return v
 
 
 # --------------------------------------------------------------------------- selecting runs

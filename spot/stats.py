@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from scipy import stats as sps
 
 CONFIDENCE = 0.95
-N_RESAMPLES = 5000
+N_RESAMPLES = 20000
+SEED_CHECKS = 4  # estimate() redraws the CI under this many other bootstrap seeds (verdict stability)
 SUPPORTED, NOT_SUPPORTED, INCONCLUSIVE, TOO_FEW = ("supported", "not supported", "inconclusive", "too few seeds")
 
 
@@ -136,6 +137,9 @@ class Estimate:
     low: float
     high: float
     n: int
+    # verdicts that other bootstrap seeds give (estimate()); empty when every seed agrees. A CI bound
+    # is a Monte Carlo estimate: when one lies near 0 its side of 0 can change with the seed.
+    other_verdicts: tuple[str, ...] = ()
 
     def text(self, digits: int = 1) -> str:
         if np.isnan(self.low):
@@ -157,11 +161,18 @@ def cell(values: Sequence[float], *, seed: int = 0) -> dict[str, float]:
     }
 
 
-def estimate(strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *, seed: int = 0) -> Estimate:
-    """``statistic`` on ``strata`` with its stratified-bootstrap CI."""
+def estimate(
+    strata: Sequence[Sequence[float]], statistic: Callable[..., np.ndarray], *, seed: int = 0, checks: int = SEED_CHECKS
+) -> Estimate:
+    """``statistic`` on ``strata`` with its stratified-bootstrap CI (bootstrap seed ``seed``), and the
+    verdicts that ``checks`` other bootstrap seeds (``seed + 1`` ...) would give where they differ."""
     arrays = _arrays(strata)
-    low, high = bootstrap_ci(arrays, statistic, seed=seed)
-    return Estimate(float(statistic(*arrays, axis=-1)), low, high, sum(len(a) for a in arrays))
+    value, n = float(statistic(*arrays, axis=-1)), sum(len(a) for a in arrays)
+    est = Estimate(value, *bootstrap_ci(arrays, statistic, seed=seed), n)
+    redrawn = (Estimate(value, *bootstrap_ci(arrays, statistic, seed=seed + k), n) for k in range(1, checks + 1))
+    others = {verdict(e) for e in redrawn}
+    others.discard(verdict(est))
+    return replace(est, other_verdicts=tuple(sorted(others)))
 
 
 def verdict(est: Estimate, null: float = 0.0) -> str:

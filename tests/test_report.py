@@ -577,3 +577,11 @@ def test_oracle_at_a_longer_discount_is_row_od_and_stays_out_of_every_other_orac
     moved = frame.assign(experiment=frame["experiment"].replace("lab_oracle_discount", "lab_variant_rows"))
     moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
     assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
+
+
+def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
+    row = report.Row("CP", "text", "a vs b", "exp", "last", min_n=3)
+    row.effect = stats.Estimate(15.9, 0.3, 31.1, 12, other_verdicts=(stats.INCONCLUSIVE,))
+    assert row.verdict == "supported (borderline: inconclusive under another bootstrap seed)"
+    row.effect = stats.Estimate(15.9, 0.3, 31.1, 12)
+    assert row.verdict == stats.SUPPORTED

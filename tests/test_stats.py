@@ -120,3 +120,20 @@ def test_vectorised_spearman_matches_scipy_with_ties_and_constant_rows():
     assert np.isnan(got[0])
     # by hand: ranks (1, 2, 3) against (1, 3, 2): d = (0, -1, 1), rho = 1 - 6 * 2 / (3 * 8) = 0.5
     assert stats.spearman(np.array([1.0, 2, 3]), np.array([10.0, 30, 20])) == pytest.approx(0.5)
+
+
+def test_estimate_names_the_verdicts_other_bootstrap_seeds_give():
+    # three seeds an arm: the lower bound of the difference sits at 0, and its side of 0 depends on
+    # which resamples are drawn; the estimate says so instead of presenting one draw as the verdict
+    x, y = np.array([1.7, 0.5, -1.3]), np.array([-1.5, -0.6, -1.8])
+    est = stats.estimate([x, y], stats.mean_difference)
+    assert est.value == pytest.approx(1.6)
+    redrawn = {
+        stats.verdict(stats.Estimate(est.value, *stats.bootstrap_ci([x, y], stats.mean_difference, seed=k), 6))
+        for k in range(1, stats.SEED_CHECKS + 1)
+    }
+    assert len(redrawn | {stats.verdict(est)}) == 2
+    assert est.other_verdicts == tuple(sorted(redrawn - {stats.verdict(est)}))
+    # a clear effect is the same under every seed
+    clear = stats.estimate([np.array([50.0, 52, 55]), np.array([1.0, 2, 3])], stats.mean_difference)
+    assert clear.other_verdicts == () and stats.verdict(clear) == stats.SUPPORTED
