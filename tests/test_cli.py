@@ -305,3 +305,24 @@ def test_sweep_dry_run_lists_trials_and_launches_nothing(tmp_path):
     assert "3 trials, 3 runs" in out.stdout
     assert [ln.split()[1] for ln in out.stdout.splitlines()[1:]] == ["method=oracle", "method=pt", "method=spot"]
     assert list(tmp_path.iterdir()) == []  # no store, no Ray folder
+
+
+def test_output_into_a_closed_pipe_stops_quietly(tmp_path):
+    # `spot sweep FILE --dry-run | head`: the reader leaves early; no traceback, status 141. The sweep
+    # has 4000 trials so that its listing (~200 kB) overflows the pipe's buffer after head has left.
+    import os
+    import subprocess
+    import sys
+
+    import yaml
+
+    repo = Path(__file__).resolve().parents[1]
+    sweep = yaml.safe_load((repo / "sweeps" / "quickstart.yaml").read_text())
+    sweep["seeds"] = list(range(4000))
+    (tmp_path / "big.yaml").write_text(yaml.safe_dump(sweep))
+    cmd = f"{sys.executable} -m spot.cli sweep {tmp_path / 'big.yaml'} --dry-run | head -c 1 > /dev/null"
+    proc = subprocess.run(
+        ["bash", "-c", f"set -o pipefail; {cmd}"], cwd=repo, capture_output=True, text=True, env=dict(os.environ)
+    )
+    assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr, proc.stderr
+    assert proc.returncode == 141, (proc.returncode, proc.stderr)
