@@ -44,7 +44,7 @@ ID_COLUMNS = (
     "start_time",
     "end_time",
 )
-METRIC_PREFIXES = ("eval/", "diag/", "time/", "cache/", "reward/", "cvae/", "subgoal/", "shaping/")
+METRIC_PREFIXES = ("eval/", "diag/", "time/", "cache/", "reward/", "cvae/", "subgoal/", "shaping/", "iql/")
 TAG_COLUMNS = {"sweep_id": "tags.sweep_id", "data_digest": "tags.data_digest", "git_commit": "tags.git_commit"}
 REQUIRED = ("run_id", "experiment", "status", "method", "dataset", "seed")
 CURVE_METRIC = "eval/score"  # the periodic evaluations' mean normalised score, logged at its IQL step

@@ -135,14 +135,15 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
         client.log_metric(run.info.run_id, "eval/score_final", score)
         for step, value in ((20000, score + 0.5), (0, 1.0), (10000, 60.0 * seed)):  # out of step order
             client.log_metric(run.info.run_id, "eval/score", value, step=step)
-        client.log_metric(run.info.run_id, "iql/value_loss", 1.0)  # not a results metric
+        client.log_metric(run.info.run_id, "iql/awr_clip_frac", 0.25)  # IQL's AWR diagnostics are exported
+        client.log_metric(run.info.run_id, "labels/ties", 1.0)  # not a results metric
         client.set_terminated(run.info.run_id)
     out = tmp_path / "r.csv"
     p = run_cli("results", "export", "--experiment", "lab_table1", "--tracking-uri", uri, "--out", str(out))
     assert p.returncode == 0, p.stderr
     df = results.read(out)
     assert sorted(df["metrics.eval/score_final"]) == [10.0, 20.0]
-    assert "metrics.iql/value_loss" not in df
+    assert "metrics.labels/ties" not in df and df["metrics.iql/awr_clip_frac"].tolist() == [0.25, 0.25]
     assert df["config_hash"].nunique() == 1 and set(df["data_digest"]) == {"d1"}
     curves = dict(zip(df["seed"], df[results.CURVE_COLUMN], strict=True))
     assert curves[0] == "0:1.0000;10000:0.0000;20000:10.5000"  # in step order
