@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import select
 import shlex
 import sys
 from pathlib import Path
@@ -871,6 +872,17 @@ def _add_figures(sub: Any) -> None:
         d.set_defaults(fn=_figures)
 
 
+def _stdout_closed() -> bool:
+    """Whether standard output is a pipe whose reader has gone (poll reports an error on it)."""
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+    except (AttributeError, OSError, ValueError):  # no real descriptor, or no poll() on this platform
+        return False
+    poller.register(fd, select.POLLOUT)
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+
+
 def main(argv: list[str] | None = None) -> int:
     from spot import runtime
 
@@ -908,9 +920,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # `spot ... | head`: the reader left; stop quietly, as Unix tools do
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())  # the interpreter's final flush must not raise again
+    except BrokenPipeError:
+        if not _stdout_closed():  # a socket or a child's pipe (MLflow, Ray): a real failure
+            raise
+        # `spot ... | head`: the reader left; stop quietly, as Unix tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the final flush must not raise again
         return 141  # 128 + SIGPIPE, the shell's status for a command killed by a closed pipe
     return rc or 0
 

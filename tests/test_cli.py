@@ -326,3 +326,16 @@ def test_output_into_a_closed_pipe_stops_quietly(tmp_path):
     )
     assert "Traceback" not in proc.stderr and "BrokenPipeError" not in proc.stderr, proc.stderr
     assert proc.returncode == 141, (proc.returncode, proc.stderr)
+
+
+def test_a_broken_pipe_that_is_not_stdout_is_a_real_error(monkeypatch):
+    # a closed socket or child pipe (MLflow over HTTP, Ray) must not pass for `| head`
+    import spot.cli
+    from spot import stages
+
+    def broken() -> None:
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(stages, "load_plugins", broken)
+    with pytest.raises(BrokenPipeError):
+        spot.cli.main(["data", "list"])
