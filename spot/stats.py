@@ -207,7 +207,7 @@ def rank_correlation(x: Sequence[float], y: Sequence[float], *, seed: int = 0) -
         return Estimate(float("nan"), float("nan"), float("nan"), len(a))
     order = np.lexsort((b, a))  # pairs in (x, y) order: the CI does not depend on how they were listed
     a, b = a[order], b[order]
-    value = float(sps.spearmanr(a, b).statistic)
+    value = float(spearman(a, b))
     if len(a) < 4:
         return Estimate(value, float("nan"), float("nan"), len(a))
     with warnings.catch_warnings():  # the constant resamples (their rho is nan, left out below)

@@ -1,12 +1,17 @@
 """The `spot` command through a subprocess: help, data, labels, config; exit code 2 on user errors."""
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from mlflow.tracking import MlflowClient
 
+from spot import cli, stages
 from tests.conftest import run_cli
 
 PT_LABELS = Path(__file__).parent / "data" / "pt-human-labels"
@@ -310,12 +315,6 @@ def test_sweep_dry_run_lists_trials_and_launches_nothing(tmp_path):
 def test_output_into_a_closed_pipe_stops_quietly(tmp_path):
     # `spot sweep FILE --dry-run | head`: the reader leaves early; no traceback, status 141. The sweep
     # has 4000 trials so that its listing (~200 kB) overflows the pipe's buffer after head has left.
-    import os
-    import subprocess
-    import sys
-
-    import yaml
-
     repo = Path(__file__).resolve().parents[1]
     sweep = yaml.safe_load((repo / "sweeps" / "quickstart.yaml").read_text())
     sweep["seeds"] = list(range(4000))
@@ -330,12 +329,10 @@ def test_output_into_a_closed_pipe_stops_quietly(tmp_path):
 
 def test_a_broken_pipe_that_is_not_stdout_is_a_real_error(monkeypatch):
     # a closed socket or child pipe (MLflow over HTTP, Ray) must not pass for `| head`
-    import spot.cli
-    from spot import stages
 
     def broken() -> None:
         raise BrokenPipeError(32, "Broken pipe")
 
     monkeypatch.setattr(stages, "load_plugins", broken)
     with pytest.raises(BrokenPipeError):
-        spot.cli.main(["data", "list"])
+        cli.main(["data", "list"])
