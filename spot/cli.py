@@ -278,6 +278,8 @@ def _bench(args: argparse.Namespace) -> int | None:
 def _sweep(args: argparse.Namespace) -> int:
     from spot import sweep
 
+    if args.status:
+        return _sweep_status(args)
     if args.dry_run:
         spec = sweep.load(args.file, smoke=args.smoke)
         trials = spec.trials()
@@ -305,6 +307,18 @@ def _sweep(args: argparse.Namespace) -> int:
         print(f"interrupted: {e}", file=sys.stderr)
         return e.exit_code  # 143 for SIGTERM, 130 for SIGINT
     return 0 if all(r.status == "FINISHED" for r in rows) else 1  # the summary lists what failed
+
+
+def _sweep_status(args: argparse.Namespace) -> int:
+    from spot import sweep, tracking
+    from spot.sweep import status
+
+    spec = sweep.load(args.file, smoke=args.smoke)
+    uri = tracking.given_uri(args.tracking_uri) or f"sqlite:///{tracking.SWEEP_STORE.resolve()}"
+    st = status.sweep_status(spec, uri, args.storage)
+    print(f"sweep '{spec.experiment}', launch {st.sweep_id} ({uri}):")
+    print(status.format_status(st, spec.axis_keys))
+    return 0 if st.done else 1
 
 
 # --------------------------------------------------------------------------- tables, figures
@@ -739,6 +753,12 @@ def _add_sweep(sub: Any) -> None:
         "other nodes reach it; unauthenticated, see docs/sweeps.md (default: 127.0.0.1)",
     )
     d.add_argument("--dry-run", action="store_true", help="list the trials (axes, seeds) and exit; launches nothing")
+    d.add_argument(
+        "--status",
+        action="store_true",
+        help="where the last launch stands, from MLflow: each (config, seed)'s status, final score, or latest "
+        "evaluation while it runs; launches nothing; exit code 0 when every run finished, 1 otherwise",
+    )
     d.set_defaults(fn=_sweep)
 
     cfg = sub.add_parser("config", help="show resolved run configs and valid keys").add_subparsers(

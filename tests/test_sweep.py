@@ -344,3 +344,16 @@ def test_fast_compile_is_a_sweep_key_a_smoke_block_can_set(tmp_path):
     assert sweep.load(_write(tmp_path, top), smoke=True).fast_compile is True  # the smoke block inherits it
     with pytest.raises(SpotError, match=r"'smoke.fast_compile': expected true or false, got 'yes'"):
         sweep.load(_write(tmp_path, text.replace("fast_compile: true", "fast_compile: 'yes'")), smoke=True)
+
+
+@pytest.mark.slow
+def test_status_after_the_resumed_launch(killed_and_resumed):
+    """``spot sweep FILE --status`` on the real store: the launch's four (config, seed), as the summary."""
+    root = killed_and_resumed["root"]
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    cmd = [sys.executable, "-m", "spot.cli", "sweep", str(root / "killtest.yaml"), "--smoke", "--status"]
+    out = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1, out.stderr  # the broken file's two runs failed
+    assert f"launch {killed_and_resumed['state']['sweep_id']}" in out.stdout
+    assert "4 runs: 2 failed, 2 finished" in out.stdout
+    assert sum("broken.hdf5" in ln for ln in out.stdout.splitlines() if "FAILED" in ln) == 2
