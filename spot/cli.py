@@ -313,12 +313,25 @@ def _sweep_status(args: argparse.Namespace) -> int:
     from spot import sweep, tracking
     from spot.sweep import status
 
+    given = [
+        f"--{k.replace('_', '-')}"
+        for k in ("resume", "retry_errored", "dry_run", "address", "max_concurrent", "store", "tracking_host")
+        if getattr(args, k)
+    ]
+    if given:
+        raise SpotError(f"--status launches nothing: it does not take {', '.join(given)}")
     spec = sweep.load(args.file, smoke=args.smoke)
     uri = tracking.given_uri(args.tracking_uri) or f"sqlite:///{tracking.SWEEP_STORE.resolve()}"
     st = status.sweep_status(spec, uri, args.storage)
-    print(f"sweep '{spec.experiment}', launch {st.sweep_id} ({uri}):")
+    if not st.sweep_id:
+        print(f"sweep '{spec.experiment}': its first launch is starting ({st.launcher}); no run yet")
+        return st.exit_code
+    running = f"a launch is running ({st.launcher})" if st.launcher else "no launch running"
+    print(f"sweep '{spec.experiment}', last launch {st.sweep_id} ({uri}); {running}:")
+    if st.previous:
+        print("(a new launch is starting: until it opens its parent run, these are the previous launch's runs)")
     print(status.format_status(st, spec.axis_keys))
-    return 0 if st.done else 1
+    return st.exit_code
 
 
 # --------------------------------------------------------------------------- tables, figures
@@ -757,7 +770,8 @@ def _add_sweep(sub: Any) -> None:
         "--status",
         action="store_true",
         help="where the last launch stands, from MLflow: each (config, seed)'s status, final score, or latest "
-        "evaluation while it runs; launches nothing; exit code 0 when every run finished, 1 otherwise",
+        "evaluation while it runs; launches nothing; exit code 0 when every run finished, 3 while the launch "
+        "or a run is still going, 1 when it ended with runs not finished",
     )
     d.set_defaults(fn=_sweep)
 

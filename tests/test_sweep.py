@@ -353,7 +353,8 @@ def test_status_after_the_resumed_launch(killed_and_resumed):
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     cmd = [sys.executable, "-m", "spot.cli", "sweep", str(root / "killtest.yaml"), "--smoke", "--status"]
     out = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True, timeout=120)
-    assert out.returncode == 1, out.stderr  # the broken file's two runs failed
+    assert out.returncode == 1, out.stderr  # the launch ended; the broken file's two runs failed
     assert f"launch {killed_and_resumed['state']['sweep_id']}" in out.stdout
     assert "4 runs: 2 failed, 2 finished" in out.stdout
-    assert sum("broken.hdf5" in ln for ln in out.stdout.splitlines() if "FAILED" in ln) == 2
+    failed = [ln.split("FAILED", 1)[1].strip() for ln in out.stdout.splitlines() if " FAILED " in ln]
+    assert len(failed) == 2 and all(failed), out.stdout  # each with its failure reason

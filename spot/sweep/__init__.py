@@ -7,6 +7,7 @@
 * :mod:`spot.sweep.launch`: the driver (:func:`run_sweep`, ``spot sweep FILE``): store, Ray,
   parent run, the Tune experiment, resume.
 * :mod:`spot.sweep.summary`: the per-(config, seed) summary and the sweep's paper table.
+* :mod:`spot.sweep.status`: where the last launch stands (``spot sweep FILE --status``), from MLflow.
 
 MLflow is the record: the driver creates the experiment and a parent run; each (config, seed) is
 a child run tagged with the sweep id, the Ray trial id, a ``trial_key`` (hash of the override dict

@@ -3,11 +3,14 @@ launch, read from MLflow while the launch runs or after it ended; launches nothi
 
 A running (config, seed) shows its latest evaluation and how far its IQL has got; a finished one its
 final score; a failed one its reason. Runs left RUNNING by a process of this host that is gone are
-marked KILLED first, as every reading command does (:mod:`spot.tracking.processes`).
+marked KILLED first, as every reading command does (:mod:`spot.tracking.processes`). Whether a
+launch is running is read from its lock (``<storage>/<experiment>.lock``, held by the launching
+process for as long as it lives).
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import time
 from dataclasses import dataclass
@@ -26,24 +29,53 @@ class Status:
     sweep_id: str
     rows: list[Row]
     progress: dict[str, str]  # run key -> "eval 20.5 at 20000 / 300000 (3 min ago)"
+    launcher: str = ""  # the lock holder's line ("pid 123 on host, since ...") while a launch runs
+    previous: bool = False  # a new launch is starting: the rows are the previous launch's
 
     @property
-    def done(self) -> bool:
-        return all(r.status == "FINISHED" for r in self.rows)
+    def exit_code(self) -> int:
+        """0: every run finished; 3: still in progress (a launch runs, or a run is RUNNING); 1: the
+        launch ended with runs not finished (failed, killed, never run)."""
+        if self.launcher or any(r.status == "RUNNING" for r in self.rows):
+            return 3
+        return 0 if all(r.status == "FINISHED" for r in self.rows) else 1
 
 
-def launch_id(sweep: Sweep, storage: str | Path) -> str:
-    """The sweep id of the last launch recorded under ``storage`` (``spot sweep --storage``)."""
+def launcher(sweep: Sweep, storage: str | Path) -> str:
+    """The holder line of the launch lock if a launch of this sweep runs with ``storage``, else ""."""
+    lock = Path(storage).resolve() / f"{sweep.experiment}.lock"
+    try:
+        f = open(lock)
+    except FileNotFoundError:
+        return ""
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return f.read().strip() or "another process"
+        fcntl.flock(f, fcntl.LOCK_UN)
+        return ""
+
+
+def launch_record(sweep: Sweep, storage: str | Path) -> dict[str, str]:
+    """The record of the last launch under ``storage`` (``spot sweep --storage``), checked to be of
+    this file as it is now."""
     state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
     if not state_file.is_file():
         raise SpotError(f"sweep '{sweep.experiment}' was never launched with storage {state_file.parent}")
+    keys = ("sweep_id", "spec_hash", "parent_run_id")
     try:
         state = json.loads(state_file.read_text())
-        if not (isinstance(state, dict) and isinstance(state.get("sweep_id"), str) and state["sweep_id"]):
-            raise ValueError("expected an object with a sweep_id")
+        if not (isinstance(state, dict) and all(isinstance(state.get(k), str) and state[k] for k in keys)):
+            raise ValueError(f"expected an object with {', '.join(keys)}")
     except (ValueError, UnicodeDecodeError) as e:
         raise SpotError(f"launch record {state_file} is damaged ({e})") from None
-    return state["sweep_id"]
+    if state["spec_hash"] != sweep.spec_hash():
+        raise SpotError(
+            f"sweep file '{sweep.path}' expands to other trials than its last launch {state['sweep_id']} "
+            "(the file changed since): its status would list other (config, seed) than the launch ran"
+        )
+    return state
 
 
 def _progress(client: Any, run_id: str, now_ms: int) -> str:
@@ -63,16 +95,28 @@ def sweep_status(sweep: Sweep, tracking_uri: str, storage: str | Path) -> Status
     from spot import tracking
     from spot.tracking.processes import close_dead_runs
 
-    sweep_id = launch_id(sweep, storage)
+    running = launcher(sweep, storage)
+    if running and not (Path(storage).resolve() / f"{sweep.experiment}.json").is_file():
+        return Status("", [], {}, running)  # the first launch is starting: no record yet
+    state = launch_record(sweep, storage)
     client = tracking.reader(tracking_uri)
     exp = client.get_experiment_by_name(sweep.experiment)
     if exp is None:
         raise SpotError(f"no experiment '{sweep.experiment}' in the MLflow store {tracking_uri}")
+    try:
+        parent = client.get_run(state["parent_run_id"])
+    except Exception:  # noqa: BLE001 - MLflow raises its own error for a run it does not hold
+        raise SpotError(
+            f"the MLflow store {tracking_uri} does not hold launch {state['sweep_id']} (parent run "
+            f"{state['parent_run_id']}); was it launched with another --tracking-uri or $MLFLOW_TRACKING_URI?"
+        ) from None
     close_dead_runs(client, [exp.experiment_id])
-    rows = summarize(sweep, client, exp.experiment_id, sweep_id)
+    rows = summarize(sweep, client, exp.experiment_id, state["sweep_id"])
     now = int(time.time() * 1000)
     progress = {r.key: _progress(client, r.run_id, now) for r in rows if r.status == "RUNNING"}
-    return Status(sweep_id, rows, progress)
+    # A new launch holds the lock from its start but writes its record only once its parent run is open.
+    previous = bool(running) and parent.info.status != "RUNNING"
+    return Status(state["sweep_id"], rows, progress, running, previous)
 
 
 def format_status(status: Status, axis_keys: tuple[str, ...], width: int = 70) -> str:
