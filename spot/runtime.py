@@ -14,9 +14,10 @@ each sweep trial process, the test suite's ``conftest.py`` and library users who
 
 ``SPOT_FAST_COMPILE=1`` appends :data:`FAST_COMPILE_FLAGS` to ``XLA_FLAGS``: XLA's backend
 optimisations off and LLVM's expensive passes skipped. A tiny SPOT run's ~75 programs then compile
-in about 14 s instead of 30 (cold cache, 2 CPU cores), but the programs run slower and round
-differently, so it is for smoke runs (a sweep file's ``fast_compile: true``), never for results; the flags are in every run's
-``environment.json`` and in the compilation cache's key. docs/benchmarks.md has the figures.
+in about 14 s instead of 30 (cold cache, 2 CPU cores), but the programs run slower (IQL: 86
+instead of 151 updates/s) and round differently, so it is for smoke runs (a sweep file's
+``fast_compile: true``), never for results; the flags are in every run's ``environment.json`` and
+in the compilation cache's key. docs/benchmarks.md has the figures.
 
 It also turns on JAX's persistent compilation cache (:func:`compilation_cache_settings`), so that
 the trials of a sweep, the commands run one after another and the test suite's subprocesses
