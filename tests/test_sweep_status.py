@@ -8,6 +8,7 @@ import re
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -33,6 +34,7 @@ def _dead_process() -> tuple[int, str]:
         fields = Path(f"/proc/{proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
         if fields[0] == "Z":
             break
+        time.sleep(0.01)
     started = fields[19]  # field 22 of /proc/<pid>/stat
     proc.wait()
     return proc.pid, started

@@ -458,6 +458,26 @@ def _fit(
 
 
 # --------------------------------------------------------------------------- the launch's records
+def record_file(sweep: Sweep, storage: str | Path) -> Path:
+    """``<storage>/<experiment>.json``: the record of the sweep's last launch with that storage (its
+    lock, held while a launch runs, is ``<storage>/<experiment>.lock``)."""
+    return Path(storage).resolve() / f"{sweep.experiment}.json"
+
+
+def read_record(state_file: Path) -> dict[str, str]:
+    """A launch record: sweep id, spec hash and parent run id; ValueError if it is damaged."""
+    try:
+        state = json.loads(state_file.read_text())
+    except UnicodeDecodeError as e:
+        raise ValueError(str(e)) from None
+    if not (
+        isinstance(state, dict)
+        and all(isinstance(state.get(k), str) and state[k] for k in ("sweep_id", "spec_hash", "parent_run_id"))
+    ):
+        raise ValueError("expected an object with sweep_id, spec_hash and parent_run_id")
+    return state
+
+
 def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) -> dict[str, Any]:
     """The launch record: a new sweep id, or the one being resumed (checked to expand the same)."""
     if not resume:
@@ -472,13 +492,8 @@ def _state(sweep: Sweep, path: str | Path, state_file: Path, *, resume: bool) ->
             "start it without --resume"
         )
     try:
-        state = json.loads(state_file.read_text())
-        if not (
-            isinstance(state, dict)
-            and all(isinstance(state.get(k), str) and state[k] for k in ("sweep_id", "spec_hash", "parent_run_id"))
-        ):
-            raise ValueError("expected an object with sweep_id, spec_hash and parent_run_id")
-    except (ValueError, UnicodeDecodeError) as e:
+        state = read_record(state_file)
+    except ValueError as e:
         raise SpotError(
             f"launch record {state_file} is damaged ({e}); it cannot be resumed: start a new launch without --resume"
         ) from None
@@ -805,7 +820,7 @@ def run_sweep(
     _check_tracking_uri(tracking.given_uri(tracking_uri))  # before anything is written
     _check_tracking_host(tracking_host, address or os.environ.get("RAY_ADDRESS"), tracking_uri)
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
-    state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
+    state_file = record_file(sweep, storage)
     with _launch_lock(state_file, sweep.experiment), _shared_store(sweep, store):
         return _launch(
             sweep,

@@ -11,15 +11,16 @@ process for as long as it lives).
 from __future__ import annotations
 
 import fcntl
-import json
 import time
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from spot import SpotError
+from spot.sweep.launch import read_record, record_file
 from spot.sweep.spec import Sweep
-from spot.sweep.summary import Row, summarize, tag_value
+from spot.sweep.summary import Row, first_line, summarize, tag_value, text_table
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,7 @@ class Status:
 
 def launcher(sweep: Sweep, storage: str | Path) -> str:
     """The holder line of the launch lock if a launch of this sweep runs with ``storage``, else ""."""
-    lock = Path(storage).resolve() / f"{sweep.experiment}.lock"
+    lock = record_file(sweep, storage).with_name(f"{sweep.experiment}.lock")  # as the launch names it
     try:
         f = open(lock)
     except FileNotFoundError:
@@ -60,15 +61,12 @@ def launcher(sweep: Sweep, storage: str | Path) -> str:
 def launch_record(sweep: Sweep, storage: str | Path) -> dict[str, str]:
     """The record of the last launch under ``storage`` (``spot sweep --storage``), checked to be of
     this file as it is now."""
-    state_file = Path(storage).resolve() / f"{sweep.experiment}.json"
+    state_file = record_file(sweep, storage)
     if not state_file.is_file():
         raise SpotError(f"sweep '{sweep.experiment}' was never launched with storage {state_file.parent}")
-    keys = ("sweep_id", "spec_hash", "parent_run_id")
     try:
-        state = json.loads(state_file.read_text())
-        if not (isinstance(state, dict) and all(isinstance(state.get(k), str) and state[k] for k in keys)):
-            raise ValueError(f"expected an object with {', '.join(keys)}")
-    except (ValueError, UnicodeDecodeError) as e:
+        state = read_record(state_file)
+    except ValueError as e:
         raise SpotError(f"launch record {state_file} is damaged ({e})") from None
     if state["spec_hash"] != sweep.spec_hash():
         raise SpotError(
@@ -96,7 +94,7 @@ def sweep_status(sweep: Sweep, tracking_uri: str, storage: str | Path) -> Status
     from spot.tracking.processes import close_dead_runs
 
     running = launcher(sweep, storage)
-    if running and not (Path(storage).resolve() / f"{sweep.experiment}.json").is_file():
+    if running and not record_file(sweep, storage).is_file():
         return Status("", [], {}, running)  # the first launch is starting: no record yet
     state = launch_record(sweep, storage)
     client = tracking.reader(tracking_uri)
@@ -129,15 +127,9 @@ def format_status(status: Status, axis_keys: tuple[str, ...], width: int = 70) -
             str(r.seed),
             r.status,
             "" if r.score_final is None else f"{r.score_final:.2f}",
-            status.progress.get(r.key) or (r.reason.splitlines() or [""])[0][:width],
+            status.progress.get(r.key) or first_line(r.reason, width),
         ]
         for r in status.rows
     ]
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
-    lines = ["  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip() for line in (header, *body)]
-    counts: dict[str, int] = {}
-    for r in status.rows:
-        counts[r.status] = counts.get(r.status, 0) + 1
-    tally = ", ".join(f"{n} {s.lower()}" for s, n in sorted(counts.items()))
-    rule = "  ".join("-" * w for w in widths)
-    return "\n".join([lines[0], rule, *lines[1:], "", f"{len(status.rows)} runs: {tally}"])
+    tally = ", ".join(f"{n} {s.lower()}" for s, n in sorted(Counter(r.status for r in status.rows).items()))
+    return f"{text_table(header, body)}\n\n{len(status.rows)} runs: {tally}"

@@ -71,6 +71,18 @@ def summarize(
     return rows
 
 
+def text_table(header: list[str], body: list[list[str]]) -> str:
+    """Columns padded to their widest cell, two spaces apart, a rule of dashes under the header."""
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
+    lines = ["  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip() for line in (header, *body)]
+    return "\n".join([lines[0], "  ".join("-" * w for w in widths), *lines[1:]])
+
+
+def first_line(reason: str, width: int = 70) -> str:
+    """A failure reason's first line, cut to ``width`` characters."""
+    return (reason.splitlines() or [""])[0][:width]
+
+
 def format_summary(rows: list[Row], axis_keys: tuple[str, ...], width: int = 70) -> str:
     """A plain-text table: axis values, seed, score_final, status, failure reason."""
     header = [*axis_keys, "seed", "score_final", "status", "reason"]
@@ -80,13 +92,11 @@ def format_summary(rows: list[Row], axis_keys: tuple[str, ...], width: int = 70)
             str(r.seed),
             "" if r.score_final is None else f"{r.score_final:.2f}",
             r.status,
-            (r.reason.splitlines() or [""])[0][:width],
+            first_line(r.reason, width),
         ]
         for r in rows
     ]
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *body, strict=True)]
-    lines = ["  ".join(str(x).ljust(w) for x, w in zip(line, widths, strict=True)).rstrip() for line in (header, *body)]
-    return "\n".join([lines[0], "  ".join("-" * w for w in widths), *lines[1:]])
+    return text_table(header, body)
 
 
 def paper_table(sweep: Sweep, uri: str, sweep_id: str, out_dir: Path | None = None) -> str:
