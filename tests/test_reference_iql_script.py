@@ -19,10 +19,11 @@ def _script():
 
 
 def test_load_splits_episodes_and_scales_rewards_by_the_return_range(tmp_path):
-    # episode A: 2 steps ending in a fall (terminal); episode B: 3 steps, cut off (no terminal),
-    # so only the next row's jump marks where B ends; a one-step episode C follows.
-    obs = np.array([[0.0], [1.0], [10.0], [11.0], [12.0], [20.0]], np.float32)
-    nxt = np.array([[1.0], [2.0], [11.0], [12.0], [13.0], [21.0]], np.float32)
+    # episode A: 2 steps ending in a fall (terminal), and B starts where A's last step led, so only
+    # the terminal ends A; episode B: 3 steps, cut off (no terminal), so only the next row's jump
+    # marks where B ends; a one-step episode C follows.
+    obs = np.array([[0.0], [1.0], [2.0], [3.0], [4.0], [20.0]], np.float32)
+    nxt = np.array([[1.0], [2.0], [3.0], [4.0], [5.0], [21.0]], np.float32)
     rewards = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 0.5], np.float32)
     terminals = np.array([0, 1, 0, 0, 0, 0], bool)
     actions = np.array([[0.5], [1.0], [-1.0], [0.0], [0.2], [-0.3]], np.float32)
