@@ -40,3 +40,9 @@ def test_load_splits_episodes_and_scales_rewards_by_the_return_range(tmp_path):
     assert a.max() == pytest.approx(1 - 1e-5) and a.min() == pytest.approx(-1 + 1e-5)
     np.testing.assert_array_equal(o, obs)
     np.testing.assert_array_equal(n, nxt)
+
+
+def test_a_file_of_another_env_is_refused_before_anything_runs(tmp_path):
+    # the file's name picks the evaluation env; any other env must not fall through to Walker2d
+    with pytest.raises(SystemExit, match="expected a hopper-\\* or walker2d-\\* file"):
+        _script().main(str(tmp_path), str(tmp_path / "halfcheetah-medium.hdf5"), 0, 10, str(tmp_path / "out.csv"))

@@ -69,12 +69,14 @@ def evaluate(agent, env, episodes, seed, ref):
 
 
 def main(ref_dir, path, seed, steps, out, every=10000):
+    name = os.path.basename(path).split("-")[0]
+    if name not in REF:
+        sys.exit(f"{path}: expected a hopper-* or walker2d-* file (its name says which env evaluates it)")
     sys.path.insert(0, ref_dir)
     flax.config.update("flax_return_frozendict", True)  # the reference unpacks FrozenDict.pop
     from common import Batch
     from learner import Learner
 
-    name = os.path.basename(path).split("-")[0]
     obs, act, rew, masks, nxt = load(path)
     np.random.seed(seed)
     agent = Learner(

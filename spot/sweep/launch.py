@@ -459,9 +459,13 @@ def _fit(
 
 # --------------------------------------------------------------------------- the launch's records
 def record_file(sweep: Sweep, storage: str | Path) -> Path:
-    """``<storage>/<experiment>.json``: the record of the sweep's last launch with that storage (its
-    lock, held while a launch runs, is ``<storage>/<experiment>.lock``)."""
+    """``<storage>/<experiment>.json``: the record of the sweep's last launch with that storage."""
     return Path(storage).resolve() / f"{sweep.experiment}.json"
+
+
+def lock_file(state_file: Path) -> Path:
+    """The lock beside a launch record, ``<storage>/<experiment>.lock``: held while a launch runs."""
+    return state_file.with_suffix(".lock")
 
 
 def read_record(state_file: Path) -> dict[str, str]:
@@ -872,7 +876,7 @@ def _launch_lock(state_file: Path, experiment: str) -> Iterator[None]:
     """Hold an exclusive ``flock`` on ``<storage>/<experiment>.lock`` for the launch: a second
     launch (or ``--resume``) of the same sweep with the same storage refuses while one runs, so
     no launch overwrites another's record. The lock dies with the process, however it ends."""
-    lock_path = state_file.with_name(f"{experiment}.lock")
+    lock_path = lock_file(state_file)
     try:
         state_file.parent.mkdir(parents=True, exist_ok=True)
         f = open(lock_path, "a+")

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError
-from spot.sweep.launch import read_record, record_file
+from spot.sweep.launch import lock_file, read_record, record_file
 from spot.sweep.spec import Sweep
 from spot.sweep.summary import Row, first_line, summarize, tag_value, text_table
 
@@ -44,7 +44,7 @@ class Status:
 
 def launcher(sweep: Sweep, storage: str | Path) -> str:
     """The holder line of the launch lock if a launch of this sweep runs with ``storage``, else ""."""
-    lock = record_file(sweep, storage).with_name(f"{sweep.experiment}.lock")  # as the launch names it
+    lock = lock_file(record_file(sweep, storage))
     try:
         f = open(lock)
     except FileNotFoundError:
