@@ -207,6 +207,48 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
     assert "launch stopped by SIGTERM" in sigtermed["log"] and "--resume" in sigtermed["log"]
 
 
+_SIGTERM_PROBE = """
+import os, signal, sys, time
+from spot.sweep import launch
+
+mode = sys.argv[1]
+
+def stop():
+    print("stop ran", file=sys.stderr, flush=True)
+    if mode == "raises":
+        raise RuntimeError("the tracking server is gone")
+    if mode == "hangs":
+        time.sleep(60)
+
+class Reentrant:  # as a stream whose write the signal interrupted: flushing it raises
+    def write(self, text):
+        return len(text)
+
+    def flush(self):
+        raise RuntimeError("reentrant call inside <_io.BufferedWriter name='<stdout>'>")
+
+if mode == "reentrant":
+    sys.stdout = Reentrant()
+with launch._on_sigterm(stop, grace_s=2.0):
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(30)
+sys.exit(5)  # never reached: the handler ends the process
+"""
+
+
+@pytest.mark.parametrize("mode", ["returns", "raises", "hangs", "reentrant"])
+def test_a_sigterm_exits_143_whatever_its_cleanup_does(mode):
+    # A cleanup that fails, hangs or meets a stream the signal interrupted still ends the process
+    # with the shell's code for SIGTERM (128 + 15), never Ray's 1 or a traceback's.
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", _SIGTERM_PROBE, mode], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 143, done.stderr
+    assert "stop ran" in done.stderr
+    assert ("cleanup failed: RuntimeError" in done.stderr) == (mode == "raises")
+    assert ("still running after 2 s" in done.stderr) == (mode == "hangs")
+    assert time.monotonic() - start < 30
+
+
 @pytest.mark.slow
 def test_sigint_closes_runs_killed_and_exits_130(sigtermed):
     assert sigtermed["rc_int"] == 130, sigtermed["log_int"][-4000:]

@@ -606,16 +606,29 @@ class Interrupted(Exception):  # noqa: N818 - a stop, not an error
         super().__init__(f"sweep stopped by {signal.Signals(signum).name}")
 
 
+SIGTERM_GRACE_S = 60.0  # the longest a SIGTERM's cleanup may take before the process exits anyway
+
+
+def _say(message: str) -> None:
+    """A line on stderr from a signal handler: it must not raise, even when the handler interrupted a
+    write to the same stream (a reentrant write raises ``RuntimeError``)."""
+    with contextlib.suppress(Exception):
+        print(message, file=sys.stderr, flush=True)
+
+
 @contextlib.contextmanager
-def _on_sigterm(stop: Callable[[], None]) -> Iterator[None]:
+def _on_sigterm(stop: Callable[[], None], grace_s: float = SIGTERM_GRACE_S) -> Iterator[None]:
     """Within the block, SIGTERM runs ``stop()`` and ends the process with exit code 143.
 
     A SIGTERM to the sweep's process group (``timeout``, a batch scheduler) reaches Ray's GCS,
     raylet and workers too, and Tune's own cleanup would then wait forever on the dead cluster;
-    so the driver does not unwind through Tune: ``stop()`` kills what is left of Ray, closes the
-    runs in MLflow (the server runs in its own session and survives the signal) and stops the
-    server, and the process exits at once. Further SIGTERMs are ignored meanwhile. Ray's driver
-    handler (installed by ``ray.init``) is restored after the block.
+    so the driver does not unwind through Tune: ``stop()`` closes the runs in MLflow (the server
+    runs in its own session and survives the signal), kills what is left of Ray and stops the
+    server, and the process exits at once. The exit is certain: nothing ``stop()`` raises, and no
+    flush of a stream the signal interrupted, can skip it, and a watchdog thread ends the process
+    with the same code if ``stop()`` has not returned after ``grace_s`` seconds. Further SIGTERMs
+    are ignored meanwhile. Ray's driver handler (installed by ``ray.init``; it exits with code 1)
+    is restored after the block.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -624,12 +637,23 @@ def _on_sigterm(stop: Callable[[], None]) -> Iterator[None]:
 
     def handler(signum: int, frame: Any) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        code = 128 + signum
+
+        def watchdog() -> None:
+            time.sleep(grace_s)
+            _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s; exiting")
+            os._exit(code)
+
+        threading.Thread(target=watchdog, name="sigterm-watchdog", daemon=True).start()
         try:
             stop()
+        except BaseException as e:  # noqa: BLE001 - reported, then the exit below
+            _say(f"SIGTERM: cleanup failed: {type(e).__name__}: {e}")
         finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(128 + signum)
+            for stream in (sys.stdout, sys.stderr):
+                with contextlib.suppress(Exception):
+                    stream.flush()
+            os._exit(code)
 
     signal.signal(signal.SIGTERM, handler)
     try:
@@ -698,11 +722,9 @@ def _close_launch(uri: str, ctx: SweepContext, reason: str, resume_command: str)
     tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": ctx.sweep_id}, reason, keep=(ctx.parent_run_id,))
     mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
     mine.set_terminated(ctx.parent_run_id, "KILLED")
-    print(
+    _say(
         f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
-        f"to continue: {resume_command}",
-        file=sys.stderr,
-        flush=True,
+        f"to continue: {resume_command}"
     )
 
 
@@ -736,12 +758,15 @@ def _run_launch(
             _close_launch(store.uri, ctx, reason, resume_command)
 
     def on_sigterm() -> None:
-        print("SIGTERM: stopping Ray, closing the runs", file=sys.stderr, flush=True)
-        if started_ray:
-            _kill_local_ray()
+        # The runs first, while nothing of Ray's teardown can get in the way: the MLflow server is in
+        # its own session, so a SIGTERM to the process group leaves it up.
+        _say("SIGTERM: closing the runs, then stopping Ray")
         try:
             close("launch stopped by SIGTERM")
         finally:
+            if started_ray:
+                _kill_local_ray()
+                _say("SIGTERM: Ray stopped")
             store.stop()
 
     reason = "launch crashed"
