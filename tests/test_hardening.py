@@ -155,6 +155,10 @@ def sigtermed(tmp_path_factory):
     rc, sockets = _gated_launch(root, cmd, root / "launch.log", signal.SIGTERM, to_group=True, kill_a_trial=True)
     saved_error = _tune_marked_an_error(root)
     killed_runs = _runs(db)
+    # SIGTERM to the driver alone (`kill PID`): the trials are not signalled, the driver stops them.
+    rc_drv, _ = _gated_launch(root, [*cmd, "--resume"], root / "resume0.log", signal.SIGTERM, to_group=False)
+    trial_pids = [int(f.name.split("-")[1]) for f in (root / "gate").glob("started-*")]
+    driver_killed_runs = _runs(db)
     rc_int, _ = _gated_launch(root, [*cmd, "--resume"], root / "resume1.log", signal.SIGINT, to_group=False)
     interrupted_runs = _runs(db)
     (root / "gate" / "hold").unlink()
@@ -166,6 +170,10 @@ def sigtermed(tmp_path_factory):
         "log": (root / "launch.log").read_text(),
         "sockets": sockets,
         "killed_runs": killed_runs,
+        "rc_drv": rc_drv,
+        "log_drv": (root / "resume0.log").read_text(),
+        "trial_pids": trial_pids,
+        "driver_killed_runs": driver_killed_runs,
         "rc_int": rc_int,
         "log_int": (root / "resume1.log").read_text(),
         "interrupted_runs": interrupted_runs,
@@ -205,6 +213,27 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
     for r in [parent, *children]:
         assert r.data.tags["spot.host"] == socket.gethostname() and r.data.tags["spot.pid"].isdigit()
     assert "launch stopped by SIGTERM" in sigtermed["log"] and "--resume" in sigtermed["log"]
+
+
+@pytest.mark.slow
+def test_sigterm_to_the_driver_alone_stops_its_trials_and_closes_the_runs(sigtermed):
+    import psutil
+
+    assert sigtermed["rc_drv"] == 143, sigtermed["log_drv"][-4000:]
+    runs = sigtermed["driver_killed_runs"]
+    assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
+    # The trials that held at the gate were killed by the driver before it closed their runs.
+    assert len(sigtermed["trial_pids"]) >= 2
+
+    def is_alive(pid: int) -> bool:
+        try:
+            return psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return False
+
+    alive = [pid for pid in sigtermed["trial_pids"] if is_alive(pid)]
+    assert not alive, alive
+    assert "launch stopped by SIGTERM" in sigtermed["log_drv"] and "--resume" in sigtermed["log_drv"]
 
 
 _SIGTERM_PROBE = """

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
 import json
 import logging
 import os
@@ -441,7 +442,11 @@ def _fit(
     os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")  # use the CLIReporter of _tuner
     os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
     trainable = tune.with_resources(
-        tune.with_parameters(_trainable, ctx=ctx, run_fn=run_fn),
+        # A partial, not tune.with_parameters: that ray.put()s its arguments, objects the driver owns in
+        # the node's object store, and when the node dies under a SIGTERM Ray's core worker tries to
+        # recover them, fails to reach the store and ends the driver with exit code 1 (_Exit in C++)
+        # before its handler can close the runs. ctx and run_fn are small; Tune ships a partial as it is.
+        functools.partial(_trainable, ctx=ctx, run_fn=run_fn),
         {"cpu": sweep.resources["cpu"], "gpu": sweep.resources["gpu"]},
     )
     from mlflow.tracking import MlflowClient
@@ -622,29 +627,29 @@ def _on_sigterm(stop: Callable[[], None], grace_s: float = SIGTERM_GRACE_S) -> I
 
     A SIGTERM to the sweep's process group (``timeout``, a batch scheduler) reaches Ray's GCS,
     raylet and workers too, and Tune's own cleanup would then wait forever on the dead cluster;
-    so the driver does not unwind through Tune: ``stop()`` closes the runs in MLflow (the server
-    runs in its own session and survives the signal), kills what is left of Ray and stops the
-    server, and the process exits at once. The exit is certain: nothing ``stop()`` raises, and no
-    flush of a stream the signal interrupted, can skip it, and a watchdog thread ends the process
-    with the same code if ``stop()`` has not returned after ``grace_s`` seconds. Further SIGTERMs
-    are ignored meanwhile. Ray's driver handler (installed by ``ray.init``; it exits with code 1)
-    is restored after the block.
+    so the driver does not unwind through Tune: ``stop()`` stops the trials, closes the runs in
+    MLflow (the server runs in its own session and survives the signal), stops Ray and the server,
+    and the process exits at once. The exit is certain: an exception from ``stop()`` is printed,
+    a flush of a stream that raises cannot skip the exit, and a watchdog thread (started with the
+    block, armed by the signal, so the handler starts no thread) ends the process with the same
+    code if ``stop()`` has not returned after ``grace_s`` seconds. Further SIGTERMs are ignored
+    meanwhile. The handler ``ray.init`` installs (``sys.exit(15)``) is restored after the block.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     previous = signal.getsignal(signal.SIGTERM)
+    armed, over = threading.Event(), threading.Event()
+
+    def watchdog() -> None:
+        armed.wait()
+        if not over.is_set() and not over.wait(grace_s):
+            _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s; exiting")
+            os._exit(128 + signal.SIGTERM)
 
     def handler(signum: int, frame: Any) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        code = 128 + signum
-
-        def watchdog() -> None:
-            time.sleep(grace_s)
-            _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s; exiting")
-            os._exit(code)
-
-        threading.Thread(target=watchdog, name="sigterm-watchdog", daemon=True).start()
+        armed.set()
         try:
             stop()
         except BaseException as e:  # noqa: BLE001 - reported, then the exit below
@@ -653,13 +658,40 @@ def _on_sigterm(stop: Callable[[], None], grace_s: float = SIGTERM_GRACE_S) -> I
             for stream in (sys.stdout, sys.stderr):
                 with contextlib.suppress(Exception):
                     stream.flush()
-            os._exit(code)
+            os._exit(128 + signum)
 
+    threading.Thread(target=watchdog, name="sigterm-watchdog", daemon=True).start()
     signal.signal(signal.SIGTERM, handler)
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        over.set()
+        armed.set()
+
+
+def _kill_trial_workers(timeout: float = 5.0) -> None:
+    """SIGKILL the worker processes (``ray::...``: the trials) of the local Ray node this driver
+    started and wait for them, without talking to Ray; the node itself stays up, so nothing a
+    trial could still do (finish its run, open the next seed's) outlives the closing of the runs."""
+    import psutil
+    import ray
+    from ray._private import ray_constants
+
+    node = getattr(ray._private.worker, "_global_node", None)
+    if node is None:
+        return
+    workers = []
+    for info in node.all_processes.get(ray_constants.PROCESS_TYPE_RAYLET, []):
+        with contextlib.suppress(psutil.Error):
+            for child in psutil.Process(info.process.pid).children(recursive=True):
+                with contextlib.suppress(psutil.Error, IndexError):
+                    if child.cmdline()[0].startswith("ray::"):
+                        workers.append(child)
+    for worker in workers:
+        with contextlib.suppress(psutil.Error):
+            worker.kill()
+    psutil.wait_procs(workers, timeout=timeout)
 
 
 def _kill_local_ray() -> None:
@@ -758,15 +790,16 @@ def _run_launch(
             _close_launch(store.uri, ctx, reason, resume_command)
 
     def on_sigterm() -> None:
-        # The runs first, while nothing of Ray's teardown can get in the way: the MLflow server is in
-        # its own session, so a SIGTERM to the process group leaves it up.
-        _say("SIGTERM: closing the runs, then stopping Ray")
+        # The trials first (a SIGTERM to the driver alone leaves them running), then the runs, while
+        # the MLflow server is up (it is in its own session: a SIGTERM to the group leaves it), then Ray.
+        _say("SIGTERM: stopping the trials, closing the runs, stopping Ray")
         try:
+            if started_ray:
+                _kill_trial_workers()
             close("launch stopped by SIGTERM")
         finally:
             if started_ray:
                 _kill_local_ray()
-                _say("SIGTERM: Ray stopped")
             store.stop()
 
     reason = "launch crashed"
