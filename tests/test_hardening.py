@@ -97,6 +97,13 @@ def _tune_marked_an_error(root: Path) -> bool:
     return any(re.search(r'status\\*": \\*"ERROR', p.read_text(errors="replace")) for p in states)
 
 
+def _ray_driver_log_tail(pid: int, lines: int = 40) -> str:
+    logs = sorted(Path("/tmp/ray").glob(f"session_*/logs/python-core-driver-*_{pid}.log"))
+    if not logs:
+        return "(none found)\n"
+    return "\n".join(logs[-1].read_text(errors="replace").splitlines()[-lines:]) + "\n"
+
+
 def _gated_launch(
     root: Path, cmd: list[str], log: Path, stop: int, to_group: bool, kill_a_trial: bool = False
 ) -> tuple[int, list]:
@@ -134,7 +141,11 @@ def _gated_launch(
                 os.killpg(proc.pid, stop)
             else:
                 os.kill(proc.pid, stop)
-            return proc.wait(120), sockets
+            rc = proc.wait(120)
+            if rc != (128 + stop):  # Ray's core worker logs why it ended a driver only to its own file
+                with open(log, "a") as out_text:
+                    out_text.write("\n---- Ray's log of this driver (tail):\n" + _ray_driver_log_tail(proc.pid))
+            return rc, sockets
         finally:
             if proc.poll() is None:
                 os.killpg(proc.pid, signal.SIGKILL)
