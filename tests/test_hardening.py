@@ -293,11 +293,12 @@ def test_a_sigterm_exits_143_whatever_its_cleanup_does(mode):
 def test_sigint_closes_runs_killed_and_exits_130(sigtermed):
     assert sigtermed["rc_int"] == 130, sigtermed["log_int"][-4000:]
     assert "resuming launch gated-" in sigtermed["log_int"]
-    # The trial whose process was killed is cut off, not failed: the resume runs it again (said
-    # when Tune saved it as errored; a trial Tune still saved as RUNNING is resumed as unfinished).
+    # The trial whose process was killed is cut off, not failed: the first resume (the one stopped by
+    # a SIGTERM to its driver) runs it again (said when Tune saved it as errored; a trial Tune still
+    # saved as RUNNING is resumed as unfinished).
     if sigtermed["saved_error"]:
         assert re.search(
-            r"note: \d+ trial\(s\) whose process died with the interrupted launch run again\n", sigtermed["log_int"]
+            r"note: \d+ trial\(s\) whose process died with the interrupted launch run again\n", sigtermed["log_drv"]
         )
     runs = sigtermed["interrupted_runs"]
     assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
