@@ -643,7 +643,7 @@ def _on_sigterm(stop: Callable[[], None], grace_s: float = SIGTERM_GRACE_S) -> I
 
     def watchdog() -> None:
         armed.wait()
-        if not over.is_set() and not over.wait(grace_s):
+        if not over.wait(grace_s):  # set at once when the block ended without a signal
             _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s; exiting")
             os._exit(128 + signal.SIGTERM)
 
