@@ -14,7 +14,9 @@ import json
 import os
 import select
 import shlex
+import signal
 import sys
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -205,21 +207,62 @@ def _config_keys(args: argparse.Namespace) -> None:
 
 
 # --------------------------------------------------------------------------- run
-def _run(args: argparse.Namespace) -> None:
-    from mlflow.tracking import MlflowClient
+def _seed_list(text: str) -> list[int]:
+    try:
+        seeds = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integer seeds, e.g. 0,1,2, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise argparse.ArgumentTypeError(f"expected distinct comma-separated seeds, e.g. 0,1,2, got {text!r}")
+    return seeds
 
-    from spot import config, pipeline, tracking
+
+def _method_list(text: str) -> list[str]:
+    from spot.config import METHODS
+
+    methods = [x.strip() for x in text.split(",") if x.strip()]
+    bad = [m for m in methods if m not in METHODS]
+    if not methods or bad or len(set(methods)) != len(methods):
+        raise argparse.ArgumentTypeError(
+            f"expected distinct comma-separated methods of {', '.join(METHODS)}, e.g. oracle,pt,spot, got {text!r}"
+        )
+    return methods
+
+
+def _terminate_as_interrupt(signum: int, frame: Any) -> None:
+    """SIGTERM during ``spot run``: end the run as Ctrl-C does (its MLflow run or record KILLED).
+    Python acts on it between jitted chunks, as on Ctrl-C."""
+    raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+
+
+def _run(args: argparse.Namespace) -> None:
+    from spot import config, multiseed, pipeline, tracking
 
     overrides = [*args.overrides, *([f"tracking.uri={args.tracking_uri}"] if args.tracking_uri else [])]
+    overrides += [f"tracking.record={args.record}"] if args.record else []
     cfg = config.load(args.config, overrides)
-    final = pipeline.run(cfg, progress=not args.quiet)
-    print(f"run {final['run_id']}: {cfg.method} on {cfg.data.name} (seed {cfg.seed})")
-    for key in sorted(final):
-        if key != "run_id":
-            print(f"  {key:24s} {final[key]:.3f}")
+    methods = [config.load(args.config, [*overrides, f"method={m}"]) for m in args.methods] if args.methods else [cfg]
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminate_as_interrupt)
+    if args.seeds or args.methods:
+        cfgs = [config.replace(c, seed=s) for c in methods for s in (args.seeds or [c.seed])]
+        finals = multiseed.run(cfgs, progress=not args.quiet)
+    else:
+        cfgs, finals = [cfg], [pipeline.run(cfg, progress=not args.quiet)]
+    for c, final in zip(cfgs, finals, strict=True):
+        print(f"run {final['run_id']}: {c.method} on {c.data.name} (seed {c.seed})")
+        for key in sorted(final):
+            if key != "run_id":
+                print(f"  {key:24s} {final[key]:.3f}")
+    if cfg.tracking.record:
+        print(f"recorded under {cfg.tracking.record}; log into MLflow with: spot results import {cfg.tracking.record}")
+        return
+    from mlflow.tracking import MlflowClient
+
     uri = tracking.resolve_uri(cfg.tracking.uri)
-    exp_id = MlflowClient(uri).get_run(final["run_id"]).info.experiment_id
-    print("\n".join(tracking.where_logged(uri, exp_id, final["run_id"])))
+    exp_id = MlflowClient(uri).get_run(finals[0]["run_id"]).info.experiment_id
+    for final in finals:
+        print("\n".join(tracking.where_logged(uri, exp_id, final["run_id"])))
 
 
 def _eval(args: argparse.Namespace) -> None:
@@ -392,6 +435,16 @@ def _results_export(args: argparse.Namespace) -> None:
         raise SpotError(f"no runs in experiments {args.experiment} of {args.tracking_uri or 'the default store'}")
     path = results.export(results.add_curves(runs, tracking.reader(args.tracking_uri)), args.out)
     print(f"wrote {path} ({len(runs)} runs)")
+
+
+def _results_import(args: argparse.Namespace) -> None:
+    from spot.tracking import recorded
+
+    done = recorded.import_records(args.folder, args.tracking_uri, args.experiment)
+    for item in done:
+        print(f"{item['record_id']}: {item['action']}" + (f" as run {item['run_id']}" if item["run_id"] else ""))
+    n = sum(item["action"] == "imported" for item in done)
+    print(f"{n} of {len(done)} records imported")
 
 
 def _report(args: argparse.Namespace) -> None:
@@ -684,9 +737,11 @@ def _add_run(sub: Any) -> None:
         "run",
         "one run (one seed) end to end, logged to MLflow",
         "spot run configs/quickstart.yaml method=spot seed=1\n"
-        "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000",
+        "spot run method=pt budget=tiny data.name=drawer-open --tracking-uri http://127.0.0.1:5000\n"
+        "spot run budget=paper --methods oracle,pt,spot --seeds 0,1,2 --record /scratch/records",
         description="One run (one seed) end to end, logged to MLflow. It ends with where it logged, "
-        "the mlflow ui command and a link to the run.",
+        "the mlflow ui command and a link to the run. With --seeds and --methods, several runs as one program "
+        "(IQL vmapped over them: a GPU's throughput); with --record, recorded as files for 'spot results import'.",
     )
     d.add_argument("config", nargs="?", help="YAML run config (see configs/)")
     d.add_argument("overrides", nargs="*", help="a.b=value overrides, e.g. method=pt iql.steps=5000")
@@ -694,6 +749,26 @@ def _add_run(sub: Any) -> None:
         "--tracking-uri",
         help="MLflow tracking URI, same as the override tracking.uri=URI (default: "
         "tracking.uri, else $MLFLOW_TRACKING_URI, else ./mlruns/mlflow.db)",
+    )
+    d.add_argument(
+        "--seeds",
+        type=_seed_list,
+        metavar="S1,S2,...",
+        help="run these seeds of the config as one program, IQL vmapped over them (a run per seed; the config's "
+        "seed is ignored); methods trained by IQL only",
+    )
+    d.add_argument(
+        "--methods",
+        type=_method_list,
+        metavar="M1,M2,...",
+        help="run these methods of the config (each with --seeds) as one program, IQL vmapped over all of them "
+        "(a run each); their data.*, iql.* and eval.* must agree",
+    )
+    d.add_argument(
+        "--record",
+        metavar="FOLDER",
+        help="record the runs as files in FOLDER instead of MLflow (same as tracking.record=FOLDER; a machine "
+        "without MLflow); log them into a store later with 'spot results import FOLDER'",
     )
     _quiet(d)
     d.set_defaults(fn=_run)
@@ -826,6 +901,17 @@ def _add_tables(sub: Any) -> None:
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--out", required=True, help="the CSV to write, e.g. results/lab_table1.csv")
     d.set_defaults(fn=_results_export)
+
+    d = _parser(
+        res,
+        "import",
+        "log runs recorded as files (spot run --record) into MLflow; again skips those already there",
+        "spot results import /data/gpu-records --tracking-uri sqlite:///runs/mlflow.db",
+    )
+    d.add_argument("folder", help="a folder of records (or one record's folder)")
+    d.add_argument("--experiment", help="the MLflow experiment for every record (default: each record's own)")
+    d.add_argument("--tracking-uri", help=_URI_HELP)
+    d.set_defaults(fn=_results_import)
 
     d = _parser(
         sub,

@@ -463,6 +463,11 @@ class EvalConfig:
 class TrackingConfig:
     uri: str = F("", "MLflow tracking URI; empty = local store ./mlruns in the working folder")
     experiment: str = F("spot", "MLflow experiment name")
+    record: str = F(
+        "",
+        "a folder: record the run there as files instead of logging it to MLflow (a machine without MLflow or "
+        "its store); `spot results import FOLDER` logs the records into a store later; empty = MLflow",
+    )
 
 
 _STAGES: dict[str, type] = {

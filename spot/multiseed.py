@@ -49,27 +49,43 @@ its reward models and CVAEs differ from one-seed training in the last bits, so t
 entries are kept apart and a one-seed run's numbers never depend on which filled the cache first."""
 
 
-def check(cfgs: Sequence[ExperimentConfig]) -> stages.RewardKind:
-    """The method's stages, after checking that ``cfgs`` are one config with distinct seeds whose
-    policy stage is IQL (SpotError otherwise)."""
+SHARED_SECTIONS = ("data", "iql", "eval")
+"""The config sections every member of one vmapped IQL program must share (the transitions, the
+IQL program and the evaluation schedule); members may differ in the seed and in everything that
+only makes their reward (method, labels, reward model, subgoals, CVAE, shaping)."""
+
+
+def _identity(cfg: ExperimentConfig) -> ExperimentConfig:
+    """``cfg`` without its seed and tracking: the cell it belongs to."""
+    return dataclasses.replace(cfg, seed=0, tracking=dataclasses.replace(cfg.tracking, experiment=""))
+
+
+def check(cfgs: Sequence[ExperimentConfig]) -> list[stages.RewardKind]:
+    """Each member's stages, after checking that ``cfgs`` are distinct members (no config twice with
+    one seed) that share :data:`SHARED_SECTIONS` and whose policy stage is IQL (SpotError otherwise)."""
     if not cfgs:
         raise SpotError("seed_mode vmap: no seeds to run")
-    seeds = [c.seed for c in cfgs]
-    if len(set(seeds)) != len(seeds):
-        raise SpotError(f"seed_mode vmap: seeds {seeds} repeat")
-    base = dataclasses.replace(cfgs[0], seed=0)
+    members = [(c.seed, _identity(c)) for c in cfgs]
+    for i, member in enumerate(members):
+        if member in members[:i]:
+            seeds = [c.seed for c, (_, cell) in zip(cfgs, members, strict=True) if cell == member[1]]
+            raise SpotError(f"seed_mode vmap: seeds {seeds} repeat")
     for cfg in cfgs[1:]:
-        if dataclasses.replace(cfg, seed=0) != base:
+        for section in SHARED_SECTIONS:
+            if getattr(cfg, section) != getattr(cfgs[0], section):
+                who = f"seed {cfg.seed}'s" if cfg.method == cfgs[0].method else f"{cfg.method} seed {cfg.seed}'s"
+                raise SpotError(
+                    f"seed_mode vmap: {who} config differs from seed {cfgs[0].seed}'s in {section}.*: the members "
+                    f"of one vmapped IQL program share {', '.join(s + '.*' for s in SHARED_SECTIONS)}"
+                )
+    kinds = [stages.stages_of(c) for c in cfgs]
+    for cfg, kind in zip(cfgs, kinds, strict=True):
+        if kind.policy is not stages.iql_policy:
             raise SpotError(
-                f"seed_mode vmap: seed {cfg.seed}'s config differs from seed {cfgs[0].seed}'s beyond the seed"
+                f"seed_mode vmap trains IQL over seeds; method {cfg.method!r} trains its own policy "
+                f"({kind.policy.__name__}): use seed_mode: sequential or trials"
             )
-    kind = stages.stages_of(cfgs[0])
-    if kind.policy is not stages.iql_policy:
-        raise SpotError(
-            f"seed_mode vmap trains IQL over seeds; method {cfgs[0].method!r} trains its own policy "
-            f"({kind.policy.__name__}): use seed_mode: sequential or trials"
-        )
-    return kind
+    return kinds
 
 
 def run(
@@ -81,20 +97,28 @@ def run(
     on_eval: Sequence[Callable[[dict[str, float]], None] | None] | None = None,
     trackers: Sequence[Tracker | None] | None = None,
 ) -> list[dict[str, Any]]:
-    """Run the seeds of ``cfgs`` (one config, distinct seeds), IQL vmapped over them (module docstring).
+    """Run the members ``cfgs`` (seeds of one config, or of several configs that share
+    :data:`SHARED_SECTIONS`), IQL vmapped over all of them (module docstring).
 
-    ``extra_tags``, ``on_eval`` and ``trackers`` are per seed (as :func:`spot.pipeline.run`'s).
-    Returns each seed's final metrics and ``run_id``, in the order of ``cfgs``.
+    ``extra_tags``, ``on_eval`` and ``trackers`` are per member (as :func:`spot.pipeline.run`'s).
+    The stages before the policy run config by config, in the order the configs first appear, so
+    a later config reuses an earlier one's stage-cache entries (SPOT after PT: the same reward
+    models). Returns each member's final metrics and ``run_id``, in the order of ``cfgs``.
     """
     t_start = time.perf_counter()
-    kind = check(cfgs)
+    kinds = check(cfgs)
     n = len(cfgs)
     extra_tags, on_eval, trackers = extra_tags or [None] * n, on_eval or [None] * n, trackers or [None] * n
     ds, card, env_name, data_s = pipeline._load(cfgs[0], progress)
     mode_tags = {"seed_mode": "vmap", "vmap.seeds": ",".join(str(c.seed) for c in cfgs)}
+    if len({c.method for c in cfgs}) > 1 or len({_identity(c) for c in cfgs}) > 1:
+        mode_tags["vmap.members"] = ",".join(f"{c.method}:{c.seed}" for c in cfgs)
+    groups: dict[ExperimentConfig, list[int]] = {}
+    for i, cfg in enumerate(cfgs):
+        groups.setdefault(_identity(cfg), []).append(i)
     with contextlib.ExitStack() as stack:
         ctxs, labelled = [], []
-        for cfg, tags, callback, tracker in zip(cfgs, extra_tags, on_eval, trackers, strict=True):
+        for cfg, tags, callback, tracker, kind in zip(cfgs, extra_tags, on_eval, trackers, kinds, strict=True):
             tr = stack.enter_context(
                 pipeline._tracking(cfg, card, tracker, parent_run_id, {**(tags or {}), **mode_tags}, ds)
             )
@@ -105,10 +129,14 @@ def run(
             ctx.times["time/data_s"] = data_s
             labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
-        vmapped_rewards(ctxs, labelled, kind)
-        parts = [pipeline.up_to_subgoals(ctx, kind, lab) for ctx, lab in zip(ctxs, labelled, strict=True)]
-        vmapped_cvaes(ctxs, [p[1] for p in parts], [p[2] for p in parts])
-        shaped = [pipeline.from_cvae(ctx, *p) for ctx, p in zip(ctxs, parts, strict=True)]
+        shaped: list[Any] = [None] * n
+        for members in groups.values():
+            kind = kinds[members[0]]
+            vmapped_rewards([ctxs[i] for i in members], [labelled[i] for i in members], kind)
+            parts = {i: pipeline.up_to_subgoals(ctxs[i], kind, labelled[i]) for i in members}
+            vmapped_cvaes([ctxs[i] for i in members], [parts[i][1] for i in members], [parts[i][2] for i in members])
+            for i in members:
+                shaped[i] = pipeline.from_cvae(ctxs[i], *parts[i])
         policies = train_iql(ctxs, shaped)
         return [stages.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
 

@@ -150,6 +150,12 @@ def _tracking(
     if tracker is not None:
         yield tracker
         return
+    if cfg.tracking.record:  # files, imported into MLflow later (spot.tracking.recorded)
+        from spot.tracking import recorded
+
+        with recorded.start_record(cfg, card, parent_run_id=parent_run_id, extra_tags=extra_tags, dataset=ds) as tr:
+            yield tr
+        return
     from spot import tracking
 
     with tracking.start_run(cfg, card, parent_run_id=parent_run_id, extra_tags=extra_tags, dataset=ds) as tr:

@@ -55,12 +55,22 @@ PACKAGES = (
 )
 
 
+GIT_COMMIT_ENV = "SPOT_GIT_COMMIT"
+"""Names the commit of a copy of the code that is not a git checkout (a working tree copied to a GPU
+node or a container without ``.git``); a real checkout's own commit always wins."""
+
+
 @functools.cache
 def git_commit() -> str:
+    """``git rev-parse HEAD`` of spot's checkout (``-dirty`` with uncommitted changes to tracked
+    files); outside a checkout ``$SPOT_GIT_COMMIT``, else ``unknown``."""
     here = Path(__file__).resolve().parent
+    fallback = os.environ.get(GIT_COMMIT_ENV, "").strip() or "unknown"
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
-        commit = out.stdout.strip() or "unknown"
+        if out.returncode != 0 or not out.stdout.strip():
+            return fallback
+        commit = out.stdout.strip()
         dirty = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
             cwd=here,
@@ -70,7 +80,7 @@ def git_commit() -> str:
         ).stdout.strip()
         return commit + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
+        return fallback
 
 
 def commit_hash() -> str | None:
