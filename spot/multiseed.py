@@ -22,6 +22,12 @@ Per-seed timings: ``time/iql_s`` of every seed is the wall time of the shared vm
 (the evaluations excluded), ``time/eval_s`` that seed's own evaluations, ``time/total_s`` the
 whole multi-seed call. The runs are tagged ``seed_mode = vmap`` and ``vmap.seeds`` (all seeds).
 
+Members of several configs (``spot run --methods oracle,pt,spot --seeds 0,1,2``) share one
+IQL program too, when they agree on :data:`SHARED_SECTIONS`: the stages before the policy run
+config by config (a later config reuses an earlier one's stage-cache entries: SPOT takes PT's
+reward models), and such runs are tagged ``vmap.members`` (``method:seed`` of every member).
+On a GPU this width is nearly free, where a second process sharing the GPU is not.
+
 Only methods whose policy stage is IQL (:func:`spot.stages.iql_policy`) can be vmapped; IPL
 trains its own critic on the preferences and is refused (run its seeds with ``seed_mode:
 sequential`` or ``trials``). If one seed fails before or during training, every seed's run ends

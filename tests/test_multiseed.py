@@ -110,6 +110,37 @@ def test_vmapped_seeds_equal_one_run_per_seed(method, tmp_path, spot_dirs, tiny_
     assert q[0] != q[1]
 
 
+@pytest.mark.slow  # a one-seed Oracle run and a three-method vmapped program (~40 s on 2 cores)
+def test_methods_as_members_of_one_program(tmp_path, spot_dirs, tiny_drawer, monkeypatch):
+    """Oracle, PT and SPOT at seed 0 as one vmapped IQL program: Oracle's member equals a one-seed
+    Oracle run; SPOT's reward model is PT's (the same stage-cache entry, trained once); each run
+    is tagged with every member."""
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+    single = MemoryTracker("single")
+    pipeline.run(_cfg(0, "method=oracle"), progress=False, tracker=single)
+    trackers = {m: MemoryTracker(m) for m in ("oracle", "pt", "spot")}
+    outs = multiseed.run([_cfg(0, f"method={m}") for m in trackers], progress=False, trackers=list(trackers.values()))
+    assert [o["run_id"] for o in outs] == ["oracle", "pt", "spot"]
+    for t in trackers.values():
+        assert t.tags["vmap.members"] == "oracle:0,pt:0,spot:0" and t.tags["vmap.seeds"] == "0,0,0"
+    pt, spot = trackers["pt"].tags, trackers["spot"].tags
+    assert pt["cache.reward"] == "miss" and spot["cache.reward"] == "hit"
+    assert spot["stage.reward.key"] == pt["stage.reward.key"]
+    curve, want = _series(trackers["oracle"], "eval/score"), _series(single, "eval/score")
+    assert [st for st, _ in curve] == [st for st, _ in want] == [0, 100, 150]
+    np.testing.assert_allclose([v for _, v in curve], [v for _, v in want], atol=1e-4)
+    for name in ("iql/critic_loss", "iql/q_mean"):
+        np.testing.assert_allclose(
+            [v for _, v in _series(trackers["oracle"], name)],
+            [v for _, v in _series(single, name)],
+            rtol=1e-4,
+            atol=1e-5,
+        )
+    # the members learn from their own rewards: PT's and SPOT's critics differ from Oracle's
+    q = {m: [v for _, v in _series(t, "iql/q_mean")] for m, t in trackers.items()}
+    assert q["pt"] != q["oracle"] and q["spot"] != q["pt"]
+
+
 def test_vmap_refuses_ipl_and_mixed_configs():
     with pytest.raises(SpotError, match="method 'ipl' trains its own policy .*seed_mode: sequential"):
         multiseed.check([_cfg(0, "method=ipl"), _cfg(1, "method=ipl")])
@@ -117,6 +148,15 @@ def test_vmap_refuses_ipl_and_mixed_configs():
         multiseed.check([_cfg(0, "method=oracle"), _cfg(1, "method=oracle", "iql.lr=0.001")])
     with pytest.raises(SpotError, match=r"seeds \[2, 2\] repeat"):
         multiseed.check([_cfg(2, "method=oracle"), _cfg(2, "method=oracle")])
+    # methods may differ in what makes their reward, not in the IQL program they share
+    kinds = multiseed.check(
+        [_cfg(0, "method=oracle"), _cfg(0, "method=pt"), _cfg(1, "method=spot", "shaping.weight=0.5")]
+    )
+    assert len(kinds) == 3
+    with pytest.raises(SpotError, match=r"pt seed 0's config differs from seed 0's in eval\.\*"):
+        multiseed.check([_cfg(0, "method=oracle"), _cfg(0, "method=pt", "eval.episodes=3")])
+    with pytest.raises(SpotError, match="method 'ipl' trains its own policy"):
+        multiseed.check([_cfg(0, "method=oracle"), _cfg(0, "method=ipl")])
 
 
 # --------------------------------------------------------------------------- in a sweep

@@ -4,9 +4,9 @@ import json
 from pathlib import Path
 
 import pytest
+from conftest import run_cli
 from mlflow.tracking import MlflowClient
 
-from conftest import run_cli
 from spot import SpotError, config, results, tables
 from spot.tracking import recorded
 

@@ -9,6 +9,8 @@
 * :mod:`spot.tracking.models`: a run's trained models as data-only artifacts with a JSON header
   (``models/<name>.npz`` + ``.json``), saved and loaded again (``spot eval``, ``spot figures``).
 * :mod:`spot.tracking.ui`: the lean ``mlflow ui`` command and links that open the runs table.
+* :mod:`spot.tracking.recorded`: runs recorded as files where no MLflow store is at hand
+  (``tracking.record``), imported into one later (``spot results import``).
 
 With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under
 ``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.mlflow_server`).
