@@ -76,6 +76,13 @@ def check(cfgs: Sequence[ExperimentConfig]) -> list[stages.RewardKind]:
         if member in members[:i]:
             seeds = [c.seed for c, (_, cell) in zip(cfgs, members, strict=True) if cell == member[1]]
             raise SpotError(f"seed_mode vmap: seeds {seeds} repeat")
+    kinds = [stages.stages_of(c) for c in cfgs]
+    for cfg, kind in zip(cfgs, kinds, strict=True):
+        if kind.policy is not stages.iql_policy:
+            raise SpotError(
+                f"seed_mode vmap trains IQL over seeds; method {cfg.method!r} trains its own policy "
+                f"({kind.policy.__name__}): use seed_mode: sequential or trials"
+            )
     for cfg in cfgs[1:]:
         for section in SHARED_SECTIONS:
             if getattr(cfg, section) != getattr(cfgs[0], section):
@@ -84,13 +91,6 @@ def check(cfgs: Sequence[ExperimentConfig]) -> list[stages.RewardKind]:
                     f"seed_mode vmap: {who} config differs from seed {cfgs[0].seed}'s in {section}.*: the members "
                     f"of one vmapped IQL program share {', '.join(s + '.*' for s in SHARED_SECTIONS)}"
                 )
-    kinds = [stages.stages_of(c) for c in cfgs]
-    for cfg, kind in zip(cfgs, kinds, strict=True):
-        if kind.policy is not stages.iql_policy:
-            raise SpotError(
-                f"seed_mode vmap trains IQL over seeds; method {cfg.method!r} trains its own policy "
-                f"({kind.policy.__name__}): use seed_mode: sequential or trials"
-            )
     return kinds
 
 

@@ -56,16 +56,19 @@ PACKAGES = (
 
 
 GIT_COMMIT_ENV = "SPOT_GIT_COMMIT"
-"""Names the commit of a copy of the code that is not a git checkout (a working tree copied to a GPU
-node or a container without ``.git``); a real checkout's own commit always wins."""
+"""Names the commit of a copy of the code whose own ``.git`` cannot say it (a working tree copied
+to a GPU node or a container, without ``.git`` or with an older one); when set, it wins."""
 
 
 @functools.cache
 def git_commit() -> str:
-    """``git rev-parse HEAD`` of spot's checkout (``-dirty`` with uncommitted changes to tracked
-    files); outside a checkout ``$SPOT_GIT_COMMIT``, else ``unknown``."""
+    """``$SPOT_GIT_COMMIT`` when set; else ``git rev-parse HEAD`` of spot's checkout (``-dirty``
+    with uncommitted changes to tracked files), ``unknown`` outside a checkout."""
     here = Path(__file__).resolve().parent
-    fallback = os.environ.get(GIT_COMMIT_ENV, "").strip() or "unknown"
+    given = os.environ.get(GIT_COMMIT_ENV, "").strip()
+    if given:
+        return given
+    fallback = "unknown"
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
         if out.returncode != 0 or not out.stdout.strip():
