@@ -4,11 +4,11 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import run_cli
 from mlflow.tracking import MlflowClient
 
 from spot import SpotError, config, results, tables
 from spot.tracking import recorded
+from tests.conftest import run_cli
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=100", "iql.chunk=50", "eval.every=50", "eval.episodes=1"]
 
@@ -141,3 +141,47 @@ def test_spot_run_record_then_import_matches_a_logged_run(tmp_path, spot_dirs, t
         assert a[col].tolist() == b[col].tolist(), col
     out = run_cli("results", "import", str(tmp_path / "rec"), "--tracking-uri", uri, env=env)
     assert "0 of 2 records imported" in out.stdout
+
+
+def test_an_interrupted_import_leaves_no_run_and_resumes(tmp_path, monkeypatch):
+    folder = _record(tmp_path)
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+
+    def broken(self, run_id, local_dir, artifact_path=None):
+        raise KeyboardInterrupt("stopped while copying artifacts")
+
+    monkeypatch.setattr(MlflowClient, "log_artifacts", broken)
+    with pytest.raises(KeyboardInterrupt):
+        recorded.import_records(tmp_path / "rec", uri, "imported")
+    assert tables.load_runs(uri, ["imported"]).empty  # the half-written run was deleted
+    monkeypatch.undo()
+    done = recorded.import_records(tmp_path / "rec", uri, "imported")
+    assert [d["action"] for d in done] == ["imported"]
+    runs = tables.load_runs(uri, ["imported"])
+    assert runs["run_id"].tolist() == [done[0]["run_id"]] and runs["tags.record_id"].tolist() == [folder.name]
+
+
+@pytest.mark.slow  # a tiny run stopped by SIGTERM (~30 s)
+def test_sigterm_ends_a_spot_run_killed(tmp_path, spot_dirs, tiny_drawer):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "SPOT_CACHE_DIR": str(tmp_path / "cache")}
+    cmd = [sys.executable, "-m", "spot.cli", "run", *TINY, "iql.steps=20000", "method=oracle", "--quiet"]
+    proc = subprocess.Popen([*cmd, "--record", str(tmp_path / "rec")], env=env, text=True, stderr=subprocess.PIPE)
+    deadline = time.time() + 300
+    while not list((tmp_path / "rec").glob("*/metrics.jsonl")) or not any(
+        '"eval/score"' in p.read_text() for p in (tmp_path / "rec").glob("*/metrics.jsonl")
+    ):
+        assert proc.poll() is None and time.time() < deadline, "the run ended or never evaluated"
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130 and "interrupted" in err
+    (folder,) = recorded.find_records(tmp_path / "rec")
+    head = recorded.read_record(folder)
+    assert head["status"] == "KILLED" and head["tags"]["failure_reason"] == "KeyboardInterrupt: signal SIGTERM"
+    assert [k for k, *_ in recorded.read_metrics(folder)].count("eval/score") >= 1  # its curve so far

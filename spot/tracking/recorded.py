@@ -16,10 +16,11 @@ metric point is appended as it is logged, so a killed run leaves its curve so fa
 
 :func:`import_records` (``spot results import DIR``) logs every finished record into an MLflow
 experiment as a run with the record's own start and end times, metric timestamps and steps, then
-tags it ``record_id``: importing again skips the records already there, so an interrupted import
-resumes without duplicating runs. Records still ``RUNNING`` (the run goes on, or its process was
-killed) are skipped and listed. Reading a record parses JSON and copies files; nothing in it is
-executed.
+tags it ``record_id`` last: importing again skips the records already there, so an interrupted
+import resumes without duplicating runs (a run it was writing is deleted; one a SIGKILL left
+RUNNING is closed as KILLED by the next import and has no ``record_id``). Records still
+``RUNNING`` (the run goes on, or its process was killed) are skipped and listed. Reading a
+record parses JSON and copies files; nothing in it is executed.
 """
 
 from __future__ import annotations
@@ -286,17 +287,22 @@ def import_records(
             exp_id, start_time=head["start_time"], run_name=head["run_name"], tags={**tags, **process_tags()}
         )
         run_id = run.info.run_id
-        params = [Param(k, v) for k, v in head["params"].items()]
-        for i in range(0, len(params), 100):
-            client.log_batch(run_id, params=params[i : i + 100])
-        metrics = [Metric(k, v, t, s) for k, v, s, t in read_metrics(folder)]
-        for i in range(0, len(metrics), 1000):
-            client.log_batch(run_id, metrics=metrics[i : i + 1000])
-        artifacts = folder / ARTIFACTS_DIR
-        if artifacts.is_dir() and any(artifacts.iterdir()):
-            client.log_artifacts(run_id, str(artifacts))
-        client.log_batch(run_id, tags=[RunTag(RECORD_TAG, rid), RunTag("imported_from", str(folder.resolve()))])
-        client.set_terminated(run_id, head["status"], end_time=head["end_time"] or head["start_time"])
+        try:
+            params = [Param(k, v) for k, v in head["params"].items()]
+            for i in range(0, len(params), 100):
+                client.log_batch(run_id, params=params[i : i + 100])
+            metrics = [Metric(k, v, t, s) for k, v, s, t in read_metrics(folder)]
+            for i in range(0, len(metrics), 1000):
+                client.log_batch(run_id, metrics=metrics[i : i + 1000])
+            artifacts = folder / ARTIFACTS_DIR
+            if artifacts.is_dir() and any(artifacts.iterdir()):
+                client.log_artifacts(run_id, str(artifacts))
+            tags_last = [RunTag(RECORD_TAG, rid), RunTag("imported_from", str(folder.resolve()))]
+            client.log_batch(run_id, tags=tags_last)
+            client.set_terminated(run_id, head["status"], end_time=head["end_time"] or head["start_time"])
+        except BaseException:  # a half-imported run is removed; the next import logs the record whole
+            client.delete_run(run_id)
+            raise
         out.append({"record_id": rid, "run_id": run_id, "action": "imported"})
     return out
 
