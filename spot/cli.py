@@ -887,7 +887,7 @@ def _add_tables(sub: Any) -> None:
     d.add_argument("--results", nargs="+", help="read runs from results CSVs (files or folders) instead of MLflow")
     d.set_defaults(fn=_tables)
 
-    res = sub.add_parser("results", help="export finished runs from MLflow to a small CSV").add_subparsers(
+    res = sub.add_parser("results", help="export runs from MLflow to a small CSV; import recorded runs").add_subparsers(
         dest="sub", required=True, metavar="SUB"
     )
     d = _parser(

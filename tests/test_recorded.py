@@ -185,3 +185,12 @@ def test_sigterm_ends_a_spot_run_killed(tmp_path, spot_dirs, tiny_drawer):
     head = recorded.read_record(folder)
     assert head["status"] == "KILLED" and head["tags"]["failure_reason"] == "KeyboardInterrupt: signal SIGTERM"
     assert [k for k, *_ in recorded.read_metrics(folder)].count("eval/score") >= 1  # its curve so far
+
+
+def test_a_sweep_may_not_record(tmp_path):
+    from spot import sweep
+
+    path = tmp_path / "s.yaml"
+    path.write_text("name: s\nbase: {method: oracle, budget: tiny, tracking.record: /tmp/x}\nseeds: [0]\n")
+    with pytest.raises(SpotError, match=r"'base.tracking.record': may not be set here: a sweep logs to MLflow"):
+        sweep.load(path)

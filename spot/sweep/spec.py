@@ -40,7 +40,7 @@ SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources", "fa
 SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
-RESERVED_KEYS = ("seed", "tracking.uri", "tracking.experiment")
+RESERVED_KEYS = ("seed", "tracking.uri", "tracking.experiment", "tracking.record")
 
 
 # --------------------------------------------------------------------------- keys and tags
@@ -162,7 +162,11 @@ def _config_keys(data: Any, where: str, section: str) -> dict[str, Any]:
     flat = config_lib.check_keys(config_lib.flatten_yaml(data, at), at)
     for key in flat:
         if key in RESERVED_KEYS:
-            what = "give seeds in 'seeds:'" if key == "seed" else "set by the sweep (name: / --tracking-uri)"
+            what = {
+                "seed": "give seeds in 'seeds:'",
+                "tracking.record": "a sweep logs to MLflow, where --resume finds its runs (record single runs with "
+                "'spot run --record')",
+            }.get(key, "set by the sweep (name: / --tracking-uri)")
             raise _err(where, f"{section}.{key}", f"may not be set here: {what}")
     return flat
 
