@@ -194,3 +194,37 @@ def test_a_sweep_may_not_record(tmp_path):
     path.write_text("name: s\nbase: {method: oracle, budget: tiny, tracking.record: /tmp/x}\nseeds: [0]\n")
     with pytest.raises(SpotError, match=r"'base.tracking.record': may not be set here: a sweep logs to MLflow"):
         sweep.load(path)
+
+
+@pytest.mark.slow  # Oracle and PT at one tiny seed through the GPU script, on CPU (~1 min)
+def test_the_gpu_script_records_every_method(tmp_path, spot_dirs, tiny_drawer):
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    env = {
+        **os.environ,
+        "SPOT_CACHE_DIR": str(tmp_path / "cache"),
+        "RECORDS": str(tmp_path / "rec"),
+        "SEEDS": "0",
+        "METHODS": "oracle,pt",
+        "LIMIT_S": "600",
+        "SPOT": f"{sys.executable} -m spot.cli",
+    }
+    overrides = [*TINY, "data.size=tiny", "labels.num_queries=30", "labels.segment_length=25"]
+    out = subprocess.run(
+        ["bash", str(root / "scripts" / "paper_cells_gpu.sh"), *overrides],
+        env=env,
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
+    heads = [recorded.read_record(f) for f in recorded.find_records(tmp_path / "rec")]
+    assert sorted(h["tags"]["method"] for h in heads) == ["oracle", "pt"]
+    for head in heads:
+        assert head["status"] == "FINISHED" and head["experiment"] == "gpu_paper_hopper_fr_pf"
+        assert head["params"]["budget"] == "tiny" and head["params"]["variant"] == "paper"
+        assert head["tags"]["vmap.members"] == "oracle:0,pt:0"
