@@ -242,13 +242,17 @@ def _run(args: argparse.Namespace) -> None:
     overrides += [f"tracking.record={args.record}"] if args.record else []
     cfg = config.load(args.config, overrides)
     methods = [config.load(args.config, [*overrides, f"method={m}"]) for m in args.methods] if args.methods else [cfg]
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _terminate_as_interrupt)
-    if args.seeds or args.methods:
-        cfgs = [config.replace(c, seed=s) for c in methods for s in (args.seeds or [c.seed])]
-        finals = multiseed.run(cfgs, progress=not args.quiet)
-    else:
-        cfgs, finals = [cfg], [pipeline.run(cfg, progress=not args.quiet)]
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if main_thread else None
+    try:
+        if args.seeds or args.methods:
+            cfgs = [config.replace(c, seed=s) for c in methods for s in (args.seeds or [c.seed])]
+            finals = multiseed.run(cfgs, progress=not args.quiet)
+        else:
+            cfgs, finals = [cfg], [pipeline.run(cfg, progress=not args.quiet)]
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     for c, final in zip(cfgs, finals, strict=True):
         print(f"run {final['run_id']}: {c.method} on {c.data.name} (seed {c.seed})")
         for key in sorted(final):

@@ -32,6 +32,7 @@ LONGEST_FIRST = (
     "test_pipeline.py",
     "test_bench_sweep.py",
     "test_cli.py",
+    "test_recorded.py",
     "test_recipe_robosuite.py",
     "test_docker.py",
     "test_envs.py",

@@ -8,7 +8,6 @@ from mlflow.tracking import MlflowClient
 
 from spot import SpotError, config, results, tables
 from spot.tracking import recorded
-from tests.conftest import run_cli
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=100", "iql.chunk=50", "eval.every=50", "eval.episodes=1"]
 
@@ -115,32 +114,36 @@ def test_an_artifact_cannot_leave_its_record(tmp_path):
     assert not (tmp_path / "outside.txt").exists()
 
 
-@pytest.mark.slow  # two tiny runs of two seeds each (~1 min on 2 cores)
-def test_spot_run_record_then_import_matches_a_logged_run(tmp_path, spot_dirs, tiny_drawer):
+@pytest.mark.slow  # two tiny runs of two seeds each, in this process (~40 s on 2 cores)
+def test_spot_run_record_then_import_matches_a_logged_run(tmp_path, spot_dirs, tiny_drawer, monkeypatch, capsys):
     """`spot run --seeds 0,1 --record` then `spot results import` and export: the same rows (config
-    hash, data digest, finals) as the same runs logged to MLflow directly."""
-    env = {"SPOT_CACHE_DIR": str(tmp_path / "cache")}
+    hash, data digest, finals, curves) as the same runs logged to MLflow directly."""
+    import signal
+
+    from spot import cli
+
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "cache"))
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    handler = signal.getsignal(signal.SIGTERM)
     args = ["run", *TINY, "method=oracle", "--seeds", "0,1", "--quiet"]
-    out = run_cli(*args, "tracking.experiment=direct", "--tracking-uri", uri, env=env)
-    assert out.returncode == 0, out.stderr[-2000:]
-    out = run_cli(*args, "tracking.experiment=recorded", "--record", str(tmp_path / "rec"), env=env)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert "spot results import" in out.stdout
-    out = run_cli("results", "import", str(tmp_path / "rec"), "--tracking-uri", uri, env=env)
-    assert out.returncode == 0 and "2 of 2 records imported" in out.stdout, out.stdout + out.stderr[-2000:]
+    assert cli.main([*args, "tracking.experiment=direct", "--tracking-uri", uri]) == 0
+    assert cli.main([*args, "tracking.experiment=recorded", "--record", str(tmp_path / "rec")]) == 0
+    assert "spot results import" in capsys.readouterr().out
+    assert signal.getsignal(signal.SIGTERM) is handler  # spot run's SIGTERM handler is its own
+    assert cli.main(["results", "import", str(tmp_path / "rec"), "--tracking-uri", uri]) == 0
+    assert "2 of 2 records imported" in capsys.readouterr().out
     frames = {}
     for name in ("direct", "recorded"):
         path = tmp_path / f"{name}.csv"
-        out = run_cli("results", "export", "--experiment", name, "--tracking-uri", uri, "--out", str(path), env=env)
-        assert out.returncode == 0, out.stderr[-2000:]
+        assert cli.main(["results", "export", "--experiment", name, "--tracking-uri", uri, "--out", str(path)]) == 0
         frames[name] = results.read(path).sort_values("seed").reset_index(drop=True)
     a, b = frames["direct"], frames["recorded"]
     assert b["status"].tolist() == ["FINISHED", "FINISHED"] and b["seed"].tolist() == [0, 1]
     for col in ("config_hash", "data_digest", "method", "dataset", "metrics.eval/score_final", "curve.eval/score"):
         assert a[col].tolist() == b[col].tolist(), col
-    out = run_cli("results", "import", str(tmp_path / "rec"), "--tracking-uri", uri, env=env)
-    assert "0 of 2 records imported" in out.stdout
+    capsys.readouterr()
+    assert cli.main(["results", "import", str(tmp_path / "rec"), "--tracking-uri", uri]) == 0
+    assert "0 of 2 records imported" in capsys.readouterr().out
 
 
 def test_an_interrupted_import_leaves_no_run_and_resumes(tmp_path, monkeypatch):
