@@ -526,6 +526,17 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
     return out
 
 
+def log_run_files(tracker: Tracker, cfg: config_lib.ExperimentConfig, card: dict[str, Any]) -> None:
+    """The files every run starts with: the config YAML, the dataset card, package versions and the
+    environment (``environment.json``, ``requirements.txt``)."""
+    tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
+    tracker.log_dict(card, "dataset_card.json")
+    tracker.log_dict(package_versions(), "package_versions.json")
+    env = environment()
+    tracker.log_dict(env, "environment.json")
+    tracker.log_text(requirements_text(env["packages"]), "requirements.txt")
+
+
 RUN_TEMP_PREFIX = "spot-run-"
 
 
@@ -633,12 +644,7 @@ def start_run(
         log_params(client, run.info.run_id, cfg, lookup_tags(tags))
         if digest:
             log_dataset_input(client, run.info.run_id, dataset, card, cfg, digest)
-        tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
-        tracker.log_dict(card, "dataset_card.json")
-        tracker.log_dict(package_versions(), "package_versions.json")
-        env = environment()
-        tracker.log_dict(env, "environment.json")
-        tracker.log_text(requirements_text(env["packages"]), "requirements.txt")
+        log_run_files(tracker, cfg, card)
         yield tracker
     except BaseException as e:
         if monitor is not None:

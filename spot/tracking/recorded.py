@@ -155,12 +155,7 @@ def start_record(
     }
     tracker = RecordTracker(root / record_id, head)
     try:
-        tracker.log_text(config_lib.to_yaml(cfg), "config.yaml")
-        tracker.log_dict(card, "dataset_card.json")
-        tracker.log_dict(rec.package_versions(), "package_versions.json")
-        env = rec.environment()
-        tracker.log_dict(env, "environment.json")
-        tracker.log_text(rec.requirements_text(env["packages"]), "requirements.txt")
+        rec.log_run_files(tracker, cfg, card)
         yield tracker
     except BaseException as e:
         tracker.head["tags"]["failure_reason"] = f"{type(e).__name__}: {e}"[:4000]
