@@ -116,12 +116,12 @@ def run(
     n = len(cfgs)
     extra_tags, on_eval, trackers = extra_tags or [None] * n, on_eval or [None] * n, trackers or [None] * n
     ds, card, env_name, data_s = pipeline._load(cfgs[0], progress)
-    mode_tags = {"seed_mode": "vmap", "vmap.seeds": ",".join(str(c.seed) for c in cfgs)}
-    if len({c.method for c in cfgs}) > 1 or len({_identity(c) for c in cfgs}) > 1:
-        mode_tags["vmap.members"] = ",".join(f"{c.method}:{c.seed}" for c in cfgs)
-    groups: dict[ExperimentConfig, list[int]] = {}
+    groups: dict[ExperimentConfig, list[int]] = {}  # the members of each config, in order
     for i, cfg in enumerate(cfgs):
         groups.setdefault(_identity(cfg), []).append(i)
+    mode_tags = {"seed_mode": "vmap", "vmap.seeds": ",".join(str(c.seed) for c in cfgs)}
+    if len(groups) > 1:
+        mode_tags["vmap.members"] = ",".join(f"{c.method}:{c.seed}" for c in cfgs)
     with contextlib.ExitStack() as stack:
         ctxs, labelled = [], []
         for cfg, tags, callback, tracker, kind in zip(cfgs, extra_tags, on_eval, trackers, kinds, strict=True):

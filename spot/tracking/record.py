@@ -68,11 +68,10 @@ def git_commit() -> str:
     given = os.environ.get(GIT_COMMIT_ENV, "").strip()
     if given:
         return given
-    fallback = "unknown"
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
         if out.returncode != 0 or not out.stdout.strip():
-            return fallback
+            return "unknown"
         commit = out.stdout.strip()
         dirty = subprocess.run(
             ["git", "status", "--porcelain", "--untracked-files=no"],
@@ -83,7 +82,7 @@ def git_commit() -> str:
         ).stdout.strip()
         return commit + ("-dirty" if dirty else "")
     except (OSError, subprocess.SubprocessError):
-        return fallback
+        return "unknown"
 
 
 def commit_hash() -> str | None:
@@ -526,6 +525,25 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
     return out
 
 
+def start_tags(
+    cfg: config_lib.ExperimentConfig,
+    card: dict[str, Any],
+    extra_tags: dict[str, str] | None,
+    parent_run_id: str | None,
+    digest: str | None,
+) -> dict[str, str]:
+    """The tags a run starts with, logged to MLflow or recorded as files: :func:`run_tags`, the
+    dataset's fingerprint as ``data_digest``, MLflow's own fields (:func:`mlflow_tags`) and the
+    parent run."""
+    tags = run_tags(cfg, card, extra_tags)
+    if digest:
+        tags["data_digest"] = digest
+    tags.update(mlflow_tags(cfg, tags))
+    if parent_run_id:
+        tags["mlflow.parentRunId"] = parent_run_id
+    return tags
+
+
 def log_run_files(tracker: Tracker, cfg: config_lib.ExperimentConfig, card: dict[str, Any]) -> None:
     """The files every run starts with: the config YAML, the dataset card, package versions and the
     environment (``environment.json``, ``requirements.txt``)."""
@@ -629,13 +647,8 @@ def start_run(
     client = phases.timed_calls(MlflowClient(uri))  # its calls are a sweep trial's 'tracking' phase
     exp_id = experiment_id(cfg.tracking.experiment, uri)
     close_dead_runs(client, [exp_id])  # runs left RUNNING by dead processes of this host
-    tags = {**run_tags(cfg, card, extra_tags), **process_tags()}
     digest = dataset.fingerprint() if dataset is not None else None
-    if digest:
-        tags["data_digest"] = digest
-    tags.update(mlflow_tags(cfg, tags))
-    if parent_run_id:
-        tags["mlflow.parentRunId"] = parent_run_id
+    tags = {**start_tags(cfg, card, extra_tags, parent_run_id, digest), **process_tags()}
     name = run_name or f"{cfg.method}-{tags['dataset']}-s{cfg.seed}"
     run = create_run(client, exp_id, name, tags, cfg)
     tracker = MlflowTracker(client, run.info.run_id)

@@ -134,13 +134,8 @@ def start_record(
         root.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise SpotError(f"tracking.record: cannot make the folder {root} ({e})") from None
-    tags = rec.run_tags(cfg, card, extra_tags)
     digest = dataset.fingerprint() if dataset is not None else None
-    if digest:
-        tags["data_digest"] = digest
-    tags.update(rec.mlflow_tags(cfg, tags))
-    if parent_run_id:
-        tags["mlflow.parentRunId"] = parent_run_id
+    tags = rec.start_tags(cfg, card, extra_tags, parent_run_id, digest)
     record_id = uuid.uuid4().hex
     head = {
         "format": FORMAT,
