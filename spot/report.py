@@ -11,7 +11,20 @@ Effects (``x`` is the arm the paper says is better):
 * a **mean difference**: over datasets, ``mean(x) - mean(y)`` (each dataset weighs the same);
   verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*, and
   *too few seeds* while an arm has fewer than :data:`MIN_SEEDS` finished runs on a dataset;
-* the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it.
+* the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it;
+* a **stratified permutation test** of the mean difference (:func:`spot.stats.permutation_p`):
+  *supported* and *not supported* also need its two-sided p below 0.05. The percentile bootstrap
+  over three runs an arm calls a difference between two arms of one distribution in about 19 % of
+  trials, not 5 % (docs/tables.md); the permutation test holds its level at any n, and over one
+  dataset at 3 vs 3 runs its p is never below 0.1. Claim 4's difference in differences has no
+  permutation test and keeps the CI's verdict;
+* a **seed-matched difference**, a second reading beside the verdict (:func:`seed_matched`): runs
+  of one seed start from the same PRNG keys (the queries are the same at every seed), and arms that
+  train the same reward model (PT, SPOT and its variants) share that seed's model, so the per-seed
+  differences x − y remove what the seed moves in both arms. Their mean per dataset, averaged over
+  datasets, with a stratified bootstrap over seeds, and the exact sign-flip test's p-value, which
+  gives the reading (p < 0.05). The verdict column stays the unpaired one: the pairing was chosen
+  after the runs were seen (docs/tables.md).
 
 CIs are 95 % stratified-bootstrap percentile intervals (:mod:`spot.stats`). Both the last
 evaluation (``eval/score_final``) and the best (``eval/score_best``) are reported, in separate
@@ -67,6 +80,8 @@ OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 LENGTH = "metrics.eval/length"  # the last evaluation's mean episode length (logged from 2026-11-26 on)
 # On the local Hopper data the runs are bimodal (docs/reproduction.md): ~20 or 55-91 normalised.
 HIGH_MODE = 50.0
+PAIRED_ALPHA = 0.05  # the seed-matched reading's two-sided level (sign-flip test)
+PERMUTATION_ALPHA = 0.05  # a verdict also needs the stratified permutation test's two-sided p below this
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
@@ -237,6 +252,23 @@ class Row:
     notes: list[str] = field(default_factory=list)
     high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
     high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
+    # seed-matched reading (seed_matched): per dataset, the seeds both arms ran and x − y at each
+    perm_p: float = float("nan")  # the effect's stratified permutation p-value (nan: claim 4, no test)
+    paired: stats.Estimate | None = None
+    paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
+    pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # dataset -> (seeds, diffs)
+
+    @property
+    def paired_verdict(self) -> str:
+        """The seed-matched reading: from the exact sign-flip test, not the bootstrap CI, whose
+        percentile interval over three pairs is their range (the test cannot pass below six)."""
+        if self.paired is None:
+            return "no pairs"
+        if min(len(d) for _, d in self.pairs.values()) < MIN_SEEDS:
+            return stats.TOO_FEW
+        if self.paired_p < PAIRED_ALPHA:
+            return stats.SUPPORTED if self.paired.value > 0 else stats.NOT_SUPPORTED
+        return stats.INCONCLUSIVE
 
     @property
     def verdict(self) -> str:
@@ -245,6 +277,9 @@ class Row:
         if self.min_n < MIN_SEEDS:
             return stats.TOO_FEW
         v = stats.verdict(self.effect)
+        if v != stats.INCONCLUSIVE and np.isfinite(self.perm_p) and self.perm_p >= PERMUTATION_ALPHA:
+            # the CI excludes 0 but relabelling the runs gives as large a difference too often
+            return f"{stats.INCONCLUSIVE} (the CI alone: {v}; permutation p = {self.perm_p:.2g})"
         if self.effect.other_verdicts:  # the CI bound near 0 changes side with the bootstrap seed
             return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
         return v
@@ -326,6 +361,33 @@ def _digest_spread(runs: pd.DataFrame) -> list[str]:
     return out
 
 
+def seed_matched(
+    done: pd.DataFrame, x: Filter, y: Filter, metric: str, shared: Sequence[str]
+) -> dict[str, tuple[np.ndarray, np.ndarray]] | None:
+    """Per dataset of ``shared``: the seeds (ascending) at which both arms have a finished run with a
+    finite ``metric``, and x − y at each. ``None`` when an arm holds two runs of one seed on a dataset
+    (several configs in one arm: no single pair per seed) or a dataset has no seed in common."""
+    key, out = _dataset_column(done), {}
+    for name in shared:
+        per_arm = []
+        for select in (x, y):
+            arm = done[select(done) & (done[key].astype(str) == name)]
+            values = pd.Series(
+                pd.to_numeric(arm[metric], errors="coerce").to_numpy(np.float64),
+                index=pd.to_numeric(arm["seed"], errors="coerce").to_numpy(),
+            )
+            values = values[np.isfinite(values.to_numpy()) & np.isfinite(values.index.to_numpy(np.float64))]
+            if values.index.duplicated().any():
+                return None
+            per_arm.append(values)
+        common = per_arm[0].index.intersection(per_arm[1].index).sort_values()
+        if len(common) == 0:
+            return None
+        diffs = per_arm[0].loc[common].to_numpy() - per_arm[1].loc[common].to_numpy()
+        out[name] = (common.to_numpy().astype(np.int64), diffs)
+    return out
+
+
 def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
     """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
     done = finished(df)
@@ -340,9 +402,15 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     sx, sy = [xs[d] for d in shared], [ys[d] for d in shared]
     row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
     row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement, checks=0)  # no verdict is read from it
+    row.perm_p = stats.permutation_p([*sx, *sy])
     row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     row.min_n = min(len(a) for a in [*sx, *sy])
+    pairs = seed_matched(done, x, y, metric, shared) if "seed" in done else None
+    if pairs:
+        row.pairs = pairs
+        row.paired = stats.estimate([d for _, d in pairs.values()], stats.mean_of_means, checks=0)
+        row.paired_p = stats.sign_flip_p([d for _, d in pairs.values()])
     if row.stat == "last":  # the arms are the same for every statistic: counted once, shown once
         key = _dataset_column(done)
         arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
@@ -822,9 +890,43 @@ def format_high(rows: Sequence[Row]) -> list[str]:
     return [*lines, ""]
 
 
+def format_paired(rows: Sequence[Row]) -> list[str]:
+    """Lines of the seed-matched section: per row with pairs, each seed's x − y, their mean over
+    datasets with its CI, and the reading it gives (not the verdict: that stays the unpaired one)."""
+    sel = [r for r in rows if r.paired is not None]
+    if not sel:
+        return []
+    lines = [
+        "### Seed-matched differences (a second reading; the verdicts above are unpaired)",
+        "",
+        "Runs of one seed start from the same PRNG keys, and arms that train the same reward model "
+        "share that seed's model; x − y per seed, its mean per dataset averaged over datasets, "
+        "95% stratified bootstrap over seeds (over three pairs the interval is their range). The reading "
+        "is the exact sign-flip test's (two-sided p < 0.05), which no five or fewer pairs can pass "
+        "(the smallest p of N pairs is 2 / 2^N). Seeds that only one arm ran are left out.",
+        "",
+        "| # | comparison | statistic | x − y by seed | effect [95% CI] | pairs | sign-flip p | reading |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sel:
+        assert r.paired is not None
+        digits = 3 if r.stat == "ood" else 1
+        many = len(r.pairs) > 1
+        by_seed = "; ".join(
+            (f"{name}: " if many else "") + ", ".join(f"s{s} {d:+.{digits}f}" for s, d in zip(seeds, diffs, strict=True))
+            for name, (seeds, diffs) in r.pairs.items()
+        )
+        n = sum(len(d) for _, d in r.pairs.values())
+        lines.append(
+            f"| {r.claim} | {r.comparison} | {r.stat} | {by_seed} | {r.paired.text(digits)} | {n} "
+            f"| {r.paired_p:.3g} | {r.paired_verdict} |"
+        )
+    return [*lines, ""]
+
+
 def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
-    """The report as Markdown: one table per statistic, the high-mode counts, ``extra`` lines (the
-    dose-and-response section), then the notes."""
+    """The report as Markdown: one table per statistic, the high-mode counts, the seed-matched
+    differences, ``extra`` lines (the dose-and-response section), then the notes."""
     titles = {
         "last": "Last evaluation (`eval/score_final`): verdicts",
         "best": "Best evaluation (`eval/score_best`), for comparison",
@@ -838,20 +940,23 @@ def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
         parts += [
             f"### {title}",
             "",
-            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | means x / y | n | verdict |",
-            "|---|---|---|---|---|---|---|---|---|",
+            "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | means x / y | n | perm. p "
+            "| verdict |",
+            "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in sel:
             eff = r.effect.text(3 if stat == "ood" else 1) if r.effect else "–"
             poi = r.poi.text(2) if r.poi else "–"
             digits = 3 if stat == "ood" else 1
             means = f"{r.means[0]:.{digits}f} / {r.means[1]:.{digits}f}" if r.means else "–"
+            perm = f"{r.perm_p:.2g}" if np.isfinite(r.perm_p) else "–"
             parts.append(
                 f"| {r.claim} | {r.text} | {r.comparison} | {_label(r.experiment)} | {eff} | {poi} | {means} | {_n(r)} "
-                f"| {r.verdict} |"
+                f"| {perm} | {r.verdict} |"
             )
         parts.append("")
     parts += format_high(rows)
+    parts += format_paired(rows)
     parts += extra
     sets = sorted({(_label(r.experiment), r.experiment) for r in rows if _label(r.experiment) != r.experiment})
     if sets:

@@ -193,9 +193,15 @@ def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
     rnd = _row(rows, "C", "spot vs random")
     # hopper only (the controls ran there): mean(61, 64, 66) - mean(40, 44, 45) = 63.667 - 43 = 20.667
     assert rnd.experiment == "lab_table1+lab_controls" and rnd.datasets == ["hopper-medium-replay"]
-    assert rnd.effect.value == pytest.approx(191 / 3 - 43) and rnd.verdict == stats.SUPPORTED
+    assert rnd.effect.value == pytest.approx(191 / 3 - 43) and rnd.effect.low > 0
+    # 3 vs 3 runs on one dataset, every SPOT run above every control run: of the C(6, 3) = 20 ways to
+    # split the six runs, only this one and its mirror are as far apart, p = 2/20; the CI alone would
+    # say supported, the permutation test cannot pass at this n
+    assert rnd.perm_p == pytest.approx(0.1)
+    assert rnd.verdict == "inconclusive (the CI alone: supported; permutation p = 0.1)"
     const = _row(rows, "C", "spot vs constant")
-    assert const.effect.value == pytest.approx(191 / 3 - 72) and const.verdict == stats.NOT_SUPPORTED
+    assert const.effect.value == pytest.approx(191 / 3 - 72) and const.effect.high < 0
+    assert const.verdict == "inconclusive (the CI alone: not supported; permutation p = 0.1)"
     assert any("walker2d-medium-replay left out" in n for n in const.notes)
     # the bonus alone on hopper: mean(70, 71, 75) - mean(50, 52, 57) = 72 - 53 = 19
     assert _row(rows, "C", "constant bonus vs pt").effect.value == pytest.approx(19.0)
@@ -225,11 +231,13 @@ def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
     ap = _row(rows, "F", "variant authors vs paper")
     # mean(60, 62, 65) - mean(70, 72, 77) = 62.333 - 73 = -10.667; every paper seed beats every authors seed
     assert ap.experiment == "lab_fidelity+lab_table1" and ap.effect.value == pytest.approx(187 / 3 - 73)
-    assert ap.verdict == stats.NOT_SUPPORTED and ap.poi.value == 0.0
+    # the CI lies below 0, but 3 vs 3 separated runs on one dataset give permutation p = 2/20
+    assert ap.effect.high < 0 and ap.poi.value == 0.0 and ap.perm_p == pytest.approx(0.1)
+    assert ap.verdict == "inconclusive (the CI alone: not supported; permutation p = 0.1)"
     ps = _row(rows, "F", "variant paper vs spot")
     # hopper only (the variants ran there): 73 - mean(61, 64, 66) = 73 - 63.667 = 9.333
     assert ps.effect.value == pytest.approx(73 - 191 / 3) and ps.datasets == ["hopper-medium-replay"]
-    assert ps.n_x == 3 and ps.n_y == 3 and ps.verdict == stats.SUPPORTED
+    assert ps.n_x == 3 and ps.n_y == 3 and ps.verdict.startswith("inconclusive (the CI alone: supported")
     assert any("walker2d-medium-replay left out" in n for n in ps.notes)
 
 
@@ -263,7 +271,7 @@ def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
     pt = _row(rows, "1P", "spot vs pt")
     # mean(70, 80, 90) = 80 against mean(20, 25, 30) = 25: 55
     assert pt.experiment == report.EXPERIMENTS["P"][0] and pt.effect.value == pytest.approx(55.0)
-    assert pt.n_x == 3 and pt.n_y == 3 and pt.verdict == stats.SUPPORTED
+    assert pt.n_x == 3 and pt.n_y == 3 and pt.effect.low > 0 and pt.perm_p == pytest.approx(0.1)
     assert _row(rows, "1P", "spot vs mr").effect.value == pytest.approx(80 - 40)
     assert _row(rows, "1P", "spot vs oracle").effect.value == pytest.approx(80 - 22)
     assert _row(rows, "CP", "spot vs random").effect.value == pytest.approx(80 - 61)
@@ -586,3 +594,51 @@ def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
     assert row.verdict == "supported (borderline: inconclusive under another bootstrap seed)"
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12)
     assert row.verdict == stats.SUPPORTED
+
+
+def test_seed_matched_differences_against_an_independent_bootstrap(runs):
+    r = _row(report.build(runs), "1", "spot vs pt")
+    # SPOT − PT at seeds 0, 1, 2: hopper 61−50, 64−52, 66−57 = 11, 12, 9; walker 65−58, 69−61, 64−60 = 7, 8, 4
+    seeds, hopper = r.pairs["hopper-medium-replay"]
+    assert list(seeds) == [0, 1, 2] and list(hopper) == [11.0, 12.0, 9.0]
+    assert list(r.pairs["walker2d-medium-replay"][1]) == [7.0, 8.0, 4.0]
+    assert r.paired.value == pytest.approx((32 / 3 + 19 / 3) / 2)
+    d = [np.array([11.0, 12, 9]), np.array([7.0, 8, 4])]
+    rng = np.random.default_rng(3)
+    boot = [np.mean([rng.choice(a, 3).mean() for a in d]) for _ in range(20000)]
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    assert abs(r.paired.low - lo) < 0.15 and abs(r.paired.high - hi) < 0.15
+    # narrower than the unpaired CI: the seed's shifts cancel in the differences
+    assert r.paired.high - r.paired.low < r.effect.high - r.effect.low
+    # the reading is the exact sign-flip test's: all 6 differences positive, and of the 2^6 sign patterns
+    # only all-plus and all-minus reach |mean of means| >= 8.5: p = 2/64
+    assert r.paired_p == pytest.approx(2 / 64)
+    assert r.paired_verdict == stats.SUPPORTED
+    text = report.format_rows(report.build(runs))
+    assert "### Seed-matched differences" in text
+    assert "hopper-medium-replay: s0 +11.0, s1 +12.0, s2 +9.0; walker2d-medium-replay: s0 +7.0" in text
+
+
+def test_seed_matched_differences_leave_out_unmatched_seeds_and_need_one_run_per_seed(runs):
+    hopper_spot = (runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")
+    without_s1 = runs[~(hopper_spot & (runs["seed"] == 1))]
+    r = _row(report.build(without_s1), "1", "spot vs pt")
+    seeds, diffs = r.pairs["hopper-medium-replay"]
+    assert list(seeds) == [0, 2] and list(diffs) == [11.0, 9.0]  # PT's seed 1 has no SPOT run to pair with
+    assert r.paired_verdict == stats.TOO_FEW and r.verdict == stats.TOO_FEW
+    # a second SPOT config in the arm (another run at seed 0): no single pair per seed, no paired reading
+    extra = runs[hopper_spot & (runs["seed"] == 0)].assign(run_id="run999", config_hash="ffffffffffffffff")
+    r = _row(report.build(pd.concat([runs, extra], ignore_index=True)), "1", "spot vs pt")
+    assert r.paired is None and r.paired_verdict == "no pairs" and r.effect is not None
+
+
+def test_sign_flip_p_counts_sign_patterns_by_hand():
+    # 3 differences all positive: 2 of the 8 patterns (all +, all −) are as extreme
+    assert stats.sign_flip_p([[27.5, 7.7, 36.1]]) == pytest.approx(2 / 8)
+    # 1, −2, 3 (mean 2/3): the signed sums are ±6, ±4, ±2, 0, 0; six of eight reach |sum| >= 2
+    assert stats.sign_flip_p([[1.0, -2.0, 3.0]]) == pytest.approx(6 / 8)
+    # two datasets weigh the same: the mean of means of (1, 1) and (10,) is 5.5, reached only by
+    # the all-plus and all-minus patterns of the 2^3 = 8: flipping 10 alone gives -4.5, flipping
+    # one 1 gives 5.0
+    assert stats.sign_flip_p([[1.0, 1.0], [10.0]]) == pytest.approx(2 / 8)
+    assert np.isnan(stats.sign_flip_p([]))
