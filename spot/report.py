@@ -9,7 +9,8 @@ seed replaces the earlier run; FAILED, KILLED and unfinished runs never count an
 Effects (``x`` is the arm the paper says is better):
 
 * a **mean difference**: over datasets, ``mean(x) - mean(y)`` (each dataset weighs the same);
-  verdict *supported* if its CI lies above 0, *not supported* if below, else *inconclusive*, and
+  verdict *supported* if its CI lies above 0, *not supported* if below (each only with the
+  permutation test below passing), else *inconclusive*, and
   *too few seeds* while an arm has fewer than :data:`MIN_SEEDS` finished runs on a dataset;
 * the **probability of improvement** P(x > y) with its CI (0.5 = no difference), shown beside it;
 * a **stratified permutation test** of the mean difference (:func:`spot.stats.permutation_p`):
