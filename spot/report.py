@@ -262,7 +262,8 @@ class Row:
     @property
     def paired_verdict(self) -> str:
         """The seed-matched reading: from the exact sign-flip test, not the bootstrap CI, whose
-        percentile interval over three pairs is their range (the test cannot pass below six)."""
+        percentile interval over three pairs on one dataset is their range (the test cannot pass
+        below six pairs)."""
         if self.paired is None:
             return "no pairs"
         if min(len(d) for _, d in self.pairs.values()) < MIN_SEEDS:
@@ -278,10 +279,11 @@ class Row:
         if self.min_n < MIN_SEEDS:
             return stats.TOO_FEW
         v = stats.verdict(self.effect)
-        if v != stats.INCONCLUSIVE and np.isfinite(self.perm_p) and self.perm_p >= PERMUTATION_ALPHA:
+        test_fails = np.isfinite(self.perm_p) and self.perm_p >= PERMUTATION_ALPHA
+        if v != stats.INCONCLUSIVE and test_fails:
             # the CI excludes 0 but relabelling the runs gives as large a difference too often
             return f"{stats.INCONCLUSIVE} (the CI alone: {v}; permutation p = {self.perm_p:.2g})"
-        if self.effect.other_verdicts:  # the CI bound near 0 changes side with the bootstrap seed
+        if self.effect.other_verdicts and not test_fails:  # with the test failing no bootstrap seed passes  # the CI bound near 0 changes side with the bootstrap seed
             return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
         return v
 
@@ -902,7 +904,7 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
         "",
         "Runs of one seed start from the same PRNG keys, and arms that train the same reward model "
         "share that seed's model; x − y per seed, its mean per dataset averaged over datasets, "
-        "95% stratified bootstrap over seeds (over three pairs the interval is their range). The reading "
+        "95% stratified bootstrap over seeds (over three pairs on one dataset the interval is their range). The reading "
         "is the exact sign-flip test's (two-sided p < 0.05), which no five or fewer pairs can pass "
         "(the smallest p of N pairs is 2 / 2^N). Seeds that only one arm ran are left out.",
         "",

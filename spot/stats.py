@@ -211,10 +211,12 @@ def permutation_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RES
 
     The smallest p over one task is 2 / C(n_x + n_y, n_x): 0.1 at 3 vs 3, so that no verdict on
     one task at 3 vs 3 runs can pass at 0.05; 2/56 = 0.036 at 5 vs 3; 2/252 at 5 vs 5. ``nan``
-    when a task has no runs in an arm."""
+    when a task has no runs in an arm or a score is not finite."""
     xs, ys = _split(_arrays(strata))
     if not xs or min(min(len(x) for x in xs), min(len(y) for y in ys)) == 0:
         return float("nan")
+    if not all(np.isfinite(a).all() for a in (*xs, *ys)):
+        return float("nan")  # a missing score is the caller's to drop, not a value to relabel
     pooled = [np.concatenate([x, y]) for x, y in zip(xs, ys, strict=True)]
     observed = float(mean_difference(*xs, *ys))
     sizes = [math.comb(len(v), len(x)) for v, x in zip(pooled, xs, strict=True)]
@@ -277,9 +279,9 @@ def sign_flip_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RESAM
     as likely to carry either sign. SciPy's :func:`scipy.stats.permutation_test` on one sample
     (``permutation_type="samples"`` flips signs), exact while the 2^N sign patterns of the N
     differences number at most ``n_resamples``. The smallest p it can give is 2 / 2^N: no pattern
-    of five or fewer differences reaches 0.05. ``nan`` without differences."""
+    of five or fewer differences reaches 0.05. ``nan`` without differences or with a non-finite one."""
     arrays = _arrays(strata)
-    if not arrays or min(len(a) for a in arrays) == 0:
+    if not arrays or min(len(a) for a in arrays) == 0 or not all(np.isfinite(a).all() for a in arrays):
         return float("nan")
     bounds = np.cumsum([len(a) for a in arrays])[:-1]
 

@@ -642,3 +642,13 @@ def test_sign_flip_p_counts_sign_patterns_by_hand():
     # one 1 gives 5.0
     assert stats.sign_flip_p([[1.0, 1.0], [10.0]]) == pytest.approx(2 / 8)
     assert np.isnan(stats.sign_flip_p([]))
+
+
+def test_a_failing_permutation_test_drops_the_borderline_note():
+    # the CI is inconclusive and another bootstrap seed would say supported, but the permutation test
+    # fails: no bootstrap seed can make this row pass, so no borderline note
+    row = report.Row("CP", "t", "c", "e", "last", min_n=3, perm_p=0.1)
+    row.effect = stats.Estimate(15.9, -0.3, 31.1, 6, other_verdicts=(stats.SUPPORTED,))
+    assert row.verdict == stats.INCONCLUSIVE
+    row.perm_p = 0.01
+    assert row.verdict.startswith("inconclusive (borderline: supported")

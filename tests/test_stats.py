@@ -151,6 +151,8 @@ def test_permutation_p_by_hand_and_against_scipy():
         2 / 400
     )
     assert stats.permutation_p([[1.0, 2, 3], [1.0, 2, 3]]) == 1.0
+    assert np.isnan(stats.permutation_p([[1.0, np.nan, 3], [1.0, 2, 3]]))  # not a p of 0
+    assert np.isnan(stats.sign_flip_p([[1.0, np.nan, 3]]))
     # one task: SciPy's own permutation test (exact at 13 runs, C(13, 7) = 1716 splits)
     rng = np.random.default_rng(0)
     x, y = rng.normal(size=7) + 1, rng.normal(size=6)
