@@ -283,7 +283,8 @@ class Row:
         if v != stats.INCONCLUSIVE and test_fails:
             # the CI excludes 0 but relabelling the runs gives as large a difference too often
             return f"{stats.INCONCLUSIVE} (the CI alone: {v}; permutation p = {self.perm_p:.2g})"
-        if self.effect.other_verdicts and not test_fails:  # with the test failing no bootstrap seed passes  # the CI bound near 0 changes side with the bootstrap seed
+        # the CI bound near 0 changes side with the bootstrap seed (no seed passes while the test fails)
+        if self.effect.other_verdicts and not test_fails:
             return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
         return v
 
@@ -904,7 +905,8 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
         "",
         "Runs of one seed start from the same PRNG keys, and arms that train the same reward model "
         "share that seed's model; x − y per seed, its mean per dataset averaged over datasets, "
-        "95% stratified bootstrap over seeds (over three pairs on one dataset the interval is their range). The reading "
+        "95% stratified bootstrap over seeds (over three pairs on one dataset the interval is their range). "
+        "The reading "
         "is the exact sign-flip test's (two-sided p < 0.05), which no five or fewer pairs can pass "
         "(the smallest p of N pairs is 2 / 2^N). Seeds that only one arm ran are left out.",
         "",
@@ -916,7 +918,8 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
         digits = 3 if r.stat == "ood" else 1
         many = len(r.pairs) > 1
         by_seed = "; ".join(
-            (f"{name}: " if many else "") + ", ".join(f"s{s} {d:+.{digits}f}" for s, d in zip(seeds, diffs, strict=True))
+            (f"{name}: " if many else "")
+            + ", ".join(f"s{s} {d:+.{digits}f}" for s, d in zip(seeds, diffs, strict=True))
             for name, (seeds, diffs) in r.pairs.items()
         )
         n = sum(len(d) for _, d in r.pairs.values())

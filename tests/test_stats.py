@@ -171,8 +171,10 @@ def test_permutation_p_keeps_tasks_apart():
     import itertools
 
     def split_means(v, k):
-        return [np.mean([v[i] for i in c]) - np.mean([v[i] for i in range(len(v)) if i not in c])
-                for c in itertools.combinations(range(len(v)), k)]
+        return [
+            np.mean([v[i] for i in c]) - np.mean([v[i] for i in range(len(v)) if i not in c])
+            for c in itertools.combinations(range(len(v)), k)
+        ]
 
     null = [(a + b) / 2 for a in split_means(x1 + y1, 3) for b in split_means(x2 + y2, 3)]
     expected = 2 * min(np.mean(np.array(null) >= 1 - 1e-9), np.mean(np.array(null) <= 1 + 1e-9))
@@ -191,7 +193,5 @@ def test_the_percentile_bootstrap_alone_calls_too_many_differences_and_the_permu
     assert both <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300)
     # and it still finds a real difference: x shifted by 3 standard deviations, 5 vs 5
     rng = np.random.default_rng(2)
-    found = sum(
-        stats.permutation_p([rng.normal(size=5) + 3, rng.normal(size=5)]) < 0.05 for _ in range(50)
-    )
+    found = sum(stats.permutation_p([rng.normal(size=5) + 3, rng.normal(size=5)]) < 0.05 for _ in range(50))
     assert found >= 45
