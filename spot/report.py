@@ -81,8 +81,9 @@ OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 LENGTH = "metrics.eval/length"  # the last evaluation's mean episode length (logged from 2026-11-26 on)
 # On the local Hopper data the runs are bimodal (docs/reproduction.md): ~20 or 55-91 normalised.
 HIGH_MODE = 50.0
-PAIRED_ALPHA = 0.05  # the seed-matched reading's two-sided level (sign-flip test)
-PERMUTATION_ALPHA = 0.05  # a verdict also needs the stratified permutation test's two-sided p below this
+# a verdict also needs the stratified permutation test's two-sided p below this; the seed-matched
+# reading's sign-flip test uses the same level
+ALPHA = 0.05
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
@@ -253,8 +254,8 @@ class Row:
     notes: list[str] = field(default_factory=list)
     high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
     high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
-    # seed-matched reading (seed_matched): per dataset, the seeds both arms ran and x − y at each
     perm_p: float = float("nan")  # the effect's stratified permutation p-value (nan: claim 4, no test)
+    # seed-matched reading (seed_matched): per dataset, the seeds both arms ran and x − y at each
     paired: stats.Estimate | None = None
     paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
     pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # dataset -> (seeds, diffs)
@@ -268,7 +269,7 @@ class Row:
             return "no pairs"
         if min(len(d) for _, d in self.pairs.values()) < MIN_SEEDS:
             return stats.TOO_FEW
-        if self.paired_p < PAIRED_ALPHA:
+        if self.paired_p < ALPHA:
             return stats.SUPPORTED if self.paired.value > 0 else stats.NOT_SUPPORTED
         return stats.INCONCLUSIVE
 
@@ -279,7 +280,7 @@ class Row:
         if self.min_n < MIN_SEEDS:
             return stats.TOO_FEW
         v = stats.verdict(self.effect)
-        test_fails = np.isfinite(self.perm_p) and self.perm_p >= PERMUTATION_ALPHA
+        test_fails = np.isfinite(self.perm_p) and self.perm_p >= ALPHA
         if v != stats.INCONCLUSIVE and test_fails:
             # the CI excludes 0 but relabelling the runs gives as large a difference too often
             return f"{stats.INCONCLUSIVE} (the CI alone: {v}; permutation p = {self.perm_p:.2g})"
