@@ -84,6 +84,7 @@ HIGH_MODE = 50.0
 # a verdict also needs the stratified permutation test's two-sided p below this; the seed-matched
 # reading's sign-flip test uses the same level
 ALPHA = 0.05
+POWER = 0.8  # the planning section's power (format_plan)
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
@@ -259,6 +260,7 @@ class Row:
     paired: stats.Estimate | None = None
     paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
     pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # dataset -> (seeds, diffs)
+    plan: stats.Plan | None = None  # what these runs could detect, and the runs the observed effect needs
 
     @property
     def paired_verdict(self) -> str:
@@ -411,6 +413,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.n_x, row.n_y, row.datasets = sum(map(len, sx)), sum(map(len, sy)), shared
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     row.min_n = min(len(a) for a in [*sx, *sy])
+    row.plan = stats.power_plan([*sx, *sy], power=POWER, alpha=ALPHA)
     pairs = seed_matched(done, x, y, metric, shared) if "seed" in done else None
     if pairs:
         row.pairs = pairs
@@ -931,9 +934,49 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
     return [*lines, ""]
 
 
+def _plan_number(value: float, digits: int, inf: str) -> str:
+    if np.isnan(value):
+        return "–"
+    return inf if np.isinf(value) else f"{value:.{digits}f}"
+
+
+def format_plan(rows: Sequence[Row]) -> list[str]:
+    """Lines of the planning section: per comparison with a permutation test, the pooled sd, the
+    smallest effect its runs find with :data:`POWER`, and the runs the observed effect would need
+    (:func:`spot.stats.power_plan`)."""
+    sel = [r for r in rows if r.plan is not None and r.effect is not None and r.stat in ("last", "ood")]
+    if not sel:
+        return []
+    lines = [
+        "### Runs for a verdict (planning numbers, not findings)",
+        "",
+        f"From the two-sided two-sample t-test's power (noncentral t, α = {ALPHA:g}, "
+        f"power {POWER:.0%}) at the pooled within-dataset standard deviation of both arms: the smallest "
+        f"effect the runs at hand find {POWER:.0%} of the time, and the runs per arm and dataset (equal "
+        "arms) that would find the observed effect as often, never fewer than the permutation test needs "
+        f"to reach p < {ALPHA:g} ({stats.permutation_floor(1, ALPHA)} per arm on one dataset). ∞: no "
+        f"split of the runs at hand gives p < {ALPHA:g}. "
+        "The observed effect is itself uncertain (its CI is above) and the scores are often bimodal, "
+        "so these numbers size the next runs; they are not evidence.",
+        "",
+        "| # | comparison | statistic | n | pooled sd | smallest effect found at this n | observed effect "
+        "| runs per arm and dataset to find it |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sel:
+        assert r.plan is not None and r.effect is not None
+        digits = 3 if r.stat == "ood" else 1
+        lines.append(
+            f"| {r.claim} | {r.comparison} | {r.stat} | {_n(r)} | {_plan_number(r.plan.sd, digits, '–')} "
+            f"| {_plan_number(r.plan.mde, digits, '∞')} | {r.effect.value:+.{digits}f} "
+            f"| {_plan_number(r.plan.runs, 0, f'> {stats.MAX_PLAN:,}')} |"
+        )
+    return [*lines, ""]
+
+
 def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
     """The report as Markdown: one table per statistic, the high-mode counts, the seed-matched
-    differences, ``extra`` lines (the dose-and-response section), then the notes."""
+    differences, the runs a verdict would need, ``extra`` lines (the dose-and-response section), then the notes."""
     titles = {
         "last": "Last evaluation (`eval/score_final`): verdicts",
         "best": "Best evaluation (`eval/score_best`), for comparison",
@@ -964,6 +1007,7 @@ def format_rows(rows: Sequence[Row], extra: Sequence[str] = ()) -> str:
         parts.append("")
     parts += format_high(rows)
     parts += format_paired(rows)
+    parts += format_plan(rows)
     parts += extra
     sets = sorted({(_label(r.experiment), r.experiment) for r in rows if _label(r.experiment) != r.experiment})
     if sets:

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 from scipy import stats as sps
+from scipy.optimize import brentq
 
 CONFIDENCE = 0.95
 N_RESAMPLES = 20000
@@ -247,30 +248,107 @@ def permutation_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RES
     return min(1.0, 2 * one_sided)
 
 
-def false_verdict_rate(
+def verdict_rate(
     pool: Sequence[float],
     n_x: int,
     n_y: int,
     *,
+    shift: float = 0.0,
     permutation: bool,
     trials: int = 1000,
     n_resamples: int = 2000,
     alpha: float = 1 - CONFIDENCE,
     seed: int = 0,
 ) -> float:
-    """How often the verdict rule calls a difference between two arms that have none: per trial,
-    ``n_x`` and ``n_y`` scores drawn from ``pool`` with replacement (exchangeable arms), and a
-    *supported* or *not supported* if the 95 % bootstrap CI of the mean difference excludes 0 (and,
-    with ``permutation``, :func:`permutation_p` is below ``alpha``). Nominal: ``alpha``."""
+    """How often the verdict rule calls a difference: per trial, ``n_x`` and ``n_y`` scores drawn
+    from ``pool`` with replacement, ``shift`` added to x's, and a call (*supported* or *not
+    supported*) if the 95 % bootstrap CI of the mean difference excludes 0 (and, with
+    ``permutation``, :func:`permutation_p` is below ``alpha``). At ``shift`` 0 the arms are
+    exchangeable and this is the rule's false-verdict rate (nominal: ``alpha``); above 0, its power."""
     values = np.asarray(pool, np.float64)
     rng = np.random.default_rng(seed)
     called = 0
     for t in range(trials):
-        x, y = rng.choice(values, n_x), rng.choice(values, n_y)
+        x, y = rng.choice(values, n_x) + shift, rng.choice(values, n_y)
         low, high = bootstrap_ci([x, y], mean_difference, n_resamples=n_resamples, seed=seed + t)
         if (low > 0 or high < 0) and (not permutation or permutation_p([x, y]) < alpha):
             called += 1
     return called / trials
+
+
+def min_permutation_p(sizes: Sequence[tuple[int, int]]) -> float:
+    """The smallest p :func:`permutation_p` can return for arms of ``sizes`` (``(n_x, n_y)`` per task)
+    when it enumerates: 2 / (the number of relabellings), at most 1."""
+    return min(1.0, 2.0 / math.prod(math.comb(a + b, a) for a, b in sizes))
+
+
+def permutation_floor(tasks: int, alpha: float = 1 - CONFIDENCE) -> int:
+    """The fewest runs per arm and task (equal arms) at which :func:`permutation_p` can fall below
+    ``alpha``: 4 on one task at 0.05 (2/70), 3 on two (2/400)."""
+    return next(m for m in itertools.count(1) if min_permutation_p([(m, m)] * tasks) < alpha)
+
+
+def t_test_power(d: float, n_x: float, n_y: float, alpha: float = 1 - CONFIDENCE) -> float:
+    """Power of the two-sided two-sample t-test (equal variances) at standardised effect ``d``:
+    P(|T| > t_crit) with T noncentral t on n_x + n_y − 2 degrees of freedom and noncentrality
+    d / √(1/n_x + 1/n_y) (SciPy's ``nct``). Where ``nct`` returns nan (noncentralities of ~10–40,
+    at which the power is 1 to many digits) the normal approximation stands in."""
+    df, nc = n_x + n_y - 2, d / math.sqrt(1 / n_x + 1 / n_y)
+    crit = float(sps.t.ppf(1 - alpha / 2, df))
+    power = float(sps.nct.sf(crit, df, nc) + sps.nct.cdf(-crit, df, nc))
+    if math.isnan(power):
+        power = float(sps.norm.sf(crit - nc) + sps.norm.cdf(-crit - nc))
+    return power
+
+
+MAX_PLAN = 10_000  # power_plan's runs per arm and task: beyond this many it says inf
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What a comparison's runs could detect, and how many would detect its observed effect."""
+
+    sd: float  # the pooled within-task standard deviation of both arms' runs (ddof 1 per task and arm)
+    mde: float  # the smallest |effect| found with ``power`` at the arms' sizes (inf: the test cannot pass)
+    runs: float  # runs per arm and task to find the observed |effect| with ``power`` (inf: > MAX_PLAN)
+
+
+def power_plan(strata: Sequence[Sequence[float]], *, power: float = 0.8, alpha: float = 1 - CONFIDENCE) -> Plan:
+    """Planning numbers for :func:`mean_difference` over ``strata = (x_1..x_M, y_1..y_M)``, from the
+    two-sided two-sample t-test's power (:func:`t_test_power`) at the pooled within-task standard
+    deviation. The effect averages the tasks' differences, so its variance with m_x and m_y
+    runs per task is sd² (1/(M m_x) + 1/(M m_y)): the t-test's with M m_x and M m_y runs per arm.
+    ``mde``: the effect the arms' current sizes find with ``power`` (inf where even the most extreme
+    split gives a permutation p of at least ``alpha``: :func:`min_permutation_p`); ``runs``: the
+    fewest runs per arm and task, equal arms, that find the observed |effect| with ``power`` and can
+    reach a permutation p below ``alpha``. The observed effect is itself an estimate with its CI:
+    ``runs`` plans the next runs, it is no finding. ``nan`` where an arm of a task has fewer than 2
+    runs or the sd is 0 or not finite."""
+    xs, ys = _split(_arrays(strata))
+    nan = Plan(float("nan"), float("nan"), float("nan"))
+    if not xs or min(len(a) for a in (*xs, *ys)) < 2 or not all(np.isfinite(a).all() for a in (*xs, *ys)):
+        return nan
+    dof = sum(len(a) - 1 for a in (*xs, *ys))
+    sd = math.sqrt(sum(float(np.sum((a - a.mean()) ** 2)) for a in (*xs, *ys)) / dof)
+    if not sd > 0:
+        return nan
+    tasks, n_x, n_y = len(xs), sum(map(len, xs)), sum(map(len, ys))
+    # power rises with the effect and with the runs: the effect is a root (brentq), the runs a
+    # bisection over integers
+    if min_permutation_p([(len(x), len(y)) for x, y in zip(xs, ys, strict=True)]) >= alpha:
+        mde = math.inf
+    else:
+        mde = sd * float(brentq(lambda d: t_test_power(d, n_x, n_y, alpha) - power, 1e-9, 1e3))
+    low, high = permutation_floor(tasks, alpha), MAX_PLAN  # runs per arm and task
+    d = abs(float(mean_difference(*xs, *ys))) / sd
+    if d == 0 or t_test_power(d, high * tasks, high * tasks, alpha) < power:
+        return Plan(sd, mde, math.inf)
+    if t_test_power(d, low * tasks, low * tasks, alpha) >= power:
+        return Plan(sd, mde, float(low))
+    while high - low > 1:  # the power at low runs < power <= the power at high runs
+        mid = (low + high) // 2
+        low, high = (low, mid) if t_test_power(d, mid * tasks, mid * tasks, alpha) >= power else (mid, high)
+    return Plan(sd, mde, float(high))
 
 
 def sign_flip_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RESAMPLES, seed: int = 0) -> float:

@@ -652,3 +652,23 @@ def test_a_failing_permutation_test_drops_the_borderline_note():
     assert row.verdict == stats.INCONCLUSIVE
     row.perm_p = 0.01
     assert row.verdict.startswith("inconclusive (borderline: supported")
+
+
+def test_planning_section_sizes_the_next_runs_from_the_pooled_sd(runs):
+    from scipy import stats as sps
+
+    rows = report.build(runs)
+    r = _row(rows, "1", "spot vs pt")
+    # within-dataset sums of squares: hopper SPOT (61, 64, 66) 38/3, PT (50, 52, 57) 26; walker SPOT
+    # (65, 69, 64) 14, PT (58, 61, 60) 14/3; 172/3 over 8 dof
+    sd = np.sqrt(172 / 3 / 8)
+    assert r.plan.sd == pytest.approx(sd)
+    # the smallest effect found 80 % of the time by a t-test over 6 vs 6 runs (noncentral t by hand)
+    d, crit = r.plan.mde / sd, sps.t.ppf(0.975, 10)
+    nc = d / np.sqrt(1 / 6 + 1 / 6)
+    assert sps.nct.sf(crit, 10, nc) + sps.nct.cdf(-crit, 10, nc) == pytest.approx(0.8, abs=1e-3)
+    # the observed 8.5 is 3.2 sd: the permutation test's floor on two datasets (3 per arm) is enough
+    assert r.plan.runs == 3
+    text = report.format_rows(rows)
+    assert "### Runs for a verdict (planning numbers, not findings)" in text
+    assert f"| 1 | spot vs pt | last | 6 vs 6 runs, 2 datasets | {sd:.1f} | {r.plan.mde:.1f} | +8.5 | 3 |" in text

@@ -191,12 +191,87 @@ def test_the_percentile_bootstrap_alone_calls_too_many_differences_and_the_permu
     # 0 far more often than 5 % (docs/tables.md measures ~19 %); with the permutation test beside it
     # no verdict is called at 3 vs 3 (p >= 0.1) and at 5 vs 5 the rate stays near its 5 %
     pool = np.random.default_rng(1).normal(size=10000)
-    ci_alone = stats.false_verdict_rate(pool, 3, 3, permutation=False, trials=300, n_resamples=500)
+    ci_alone = stats.verdict_rate(pool, 3, 3, permutation=False, trials=300, n_resamples=500)
     assert ci_alone > 0.10
-    assert stats.false_verdict_rate(pool, 3, 3, permutation=True, trials=100, n_resamples=500) == 0.0
-    both = stats.false_verdict_rate(pool, 5, 5, permutation=True, trials=300, n_resamples=500, seed=1)
+    assert stats.verdict_rate(pool, 3, 3, permutation=True, trials=100, n_resamples=500) == 0.0
+    both = stats.verdict_rate(pool, 5, 5, permutation=True, trials=300, n_resamples=500, seed=1)
     assert both <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 300)
     # and it still finds a real difference: x shifted by 3 standard deviations, 5 vs 5
     rng = np.random.default_rng(2)
     found = sum(stats.permutation_p([rng.normal(size=5) + 3, rng.normal(size=5)]) < 0.05 for _ in range(50))
     assert found >= 45
+
+
+def _t_power(d, n_x, n_y, alpha=0.05):
+    """Two-sided two-sample t-test power from the noncentral t, written out here (not statsmodels)."""
+    df = n_x + n_y - 2
+    nc = d / np.sqrt(1 / n_x + 1 / n_y)
+    crit = scipy_stats.t.ppf(1 - alpha / 2, df)
+    return scipy_stats.nct.sf(crit, df, nc) + scipy_stats.nct.cdf(-crit, df, nc)
+
+
+def _unit_sd_arms(effect):
+    # x = effect ± a, y = ± a with a = 1/√2: each arm's sample variance (ddof 1) is 2a² = 1
+    a = np.sqrt(0.5)
+    return [np.array([effect - a, effect + a]), np.array([-a, a])]
+
+
+@pytest.mark.parametrize("d, n", [(0.2, 394), (0.5, 64), (0.8, 26)])
+def test_power_plan_runs_match_the_textbook_sample_sizes(d, n):
+    # per group for power .80, two-tailed alpha .05, exact t-test: G*Power's 394 / 64 / 26 (total
+    # 788 / 128 / 52); Cohen's (1988) Table 2.4.1, from a normal approximation, gives 393 / 64 / 26
+    plan = stats.power_plan(_unit_sd_arms(d))
+    assert plan.sd == pytest.approx(1.0)
+    assert plan.runs == n
+    assert _t_power(d, n, n) >= 0.8 > _t_power(d, n - 1, n - 1)
+
+
+def test_power_plan_smallest_effect_has_the_power_by_the_noncentral_t():
+    x = np.array([1.0, 2, 3, 4, 5]) + 10
+    y = np.array([2.0, 4, 6, 8, 10])
+    # pooled sd: both arms centred, sums of squares 10 and 40 over 4 + 4 dof -> sqrt(50 / 8)
+    plan = stats.power_plan([x, y])
+    assert plan.sd == pytest.approx(np.sqrt(50 / 8))
+    assert _t_power(plan.mde / plan.sd, 5, 5) == pytest.approx(0.8, abs=1e-3)
+    assert 1.9 < plan.mde / plan.sd < 2.1  # ~2.02 sd at 5 vs 5
+    # the observed effect (+7) is 2.8 sd: 4 runs per arm have that power, and 4 is the test's floor
+    assert _t_power(7 / plan.sd, 4, 4) > 0.8 and plan.runs == 4
+
+
+def test_power_plan_respects_what_the_permutation_test_can_reach():
+    assert stats.min_permutation_p([(3, 3)]) == pytest.approx(2 / 20)
+    assert stats.min_permutation_p([(3, 3), (3, 3)]) == pytest.approx(2 / 400)
+    assert stats.permutation_floor(1) == 4 and stats.permutation_floor(2) == 3 and stats.permutation_floor(3) == 2
+    three = [np.array([10.0, 11, 12]), np.array([0.0, 1, 2])]
+    plan = stats.power_plan(three)
+    assert plan.mde == np.inf  # no split of 3 vs 3 reaches p < 0.05
+    assert plan.runs == 4  # a 10-sd effect needs only the floor
+    # on two datasets 3 vs 3 each can pass, and the runs are per dataset: Cohen's 64 per arm at d = 0.5
+    # spread over two datasets is 32 each
+    two = stats.power_plan([*_unit_sd_arms(0.5)[:1], *_unit_sd_arms(0.5)[:1], *_unit_sd_arms(0.5)[1:] * 2])
+    assert two.runs == 32
+    # no effect, and no spread or too few runs
+    assert stats.power_plan([np.array([1.0, 2]), np.array([1.0, 2])]).runs == np.inf
+    assert np.isnan(stats.power_plan([np.array([1.0]), np.array([1.0, 2])]).sd)
+    assert np.isnan(stats.power_plan([np.array([1.0, 1]), np.array([1.0, 1])]).runs)
+
+
+def test_the_verdict_rule_has_about_the_planned_power_at_the_planned_runs():
+    # a normal pool with a shift of 1.5 sd: the plan asks for 8 runs per arm; the full rule (bootstrap
+    # CI and permutation test) then calls the difference close to 80 % of the time
+    pool = np.random.default_rng(4).normal(size=10000)
+    plan = stats.power_plan(_unit_sd_arms(1.5))
+    n = int(plan.runs)  # the fewest runs per arm whose t-test power reaches 80 %
+    assert _t_power(1.5, n, n) >= 0.8 > _t_power(1.5, n - 1, n - 1)
+    power = stats.verdict_rate(pool, n, n, shift=1.5, permutation=True, trials=200)
+    assert 0.65 <= power <= 0.95
+    assert stats.verdict_rate(pool, 4, 4, shift=1.5, permutation=True, trials=200) < power
+
+
+def test_t_test_power_against_simulated_t_tests_and_where_scipys_nct_gives_nan():
+    rng = np.random.default_rng(5)
+    x, y = rng.normal(size=(20000, 5)) + 1.5, rng.normal(size=(20000, 5))
+    simulated = np.mean(scipy_stats.ttest_ind(x, y, axis=1).pvalue < 0.05)
+    assert stats.t_test_power(1.5, 5, 5) == pytest.approx(simulated, abs=0.015)  # ~0.54
+    assert stats.t_test_power(12.0, 6, 6) == pytest.approx(1.0)  # nct is nan here: the normal fallback
+    assert stats.t_test_power(0.0, 5, 5) == pytest.approx(0.05)
