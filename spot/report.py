@@ -85,6 +85,7 @@ HIGH_MODE = 50.0
 # reading's sign-flip test uses the same level
 ALPHA = 0.05
 POWER = 0.8  # the planning section's power (format_plan)
+RUN_TIME = "metrics.time/total_s"  # a run's wall time (one core at budget lab): the planning section's cost
 # Where each claim's runs are: the first entry in the list that has runs is used; "a+b" is the runs
 # of experiments a and b together (the controls compare SPOT's Table 1 runs with the control runs).
 # Claims 1 and 6 read lab_table1 (local hopper-medium-replay) and lab_table1_fr (hopper-full-replay).
@@ -261,6 +262,8 @@ class Row:
     paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
     pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # dataset -> (seeds, diffs)
     plan: stats.Plan | None = None  # what these runs could detect, and the runs the observed effect needs
+    sizes: tuple[list[int], list[int]] = ([], [])  # finished runs per dataset of each arm (as ``datasets``)
+    run_s: tuple[float, float] = (float("nan"), float("nan"))  # each arm's median run time (RUN_TIME)
 
     @property
     def paired_verdict(self) -> str:
@@ -395,6 +398,14 @@ def seed_matched(
     return out
 
 
+def _median_time(runs: pd.DataFrame) -> float:
+    """The median :data:`RUN_TIME` of ``runs`` (nan without the metric)."""
+    if RUN_TIME not in runs:
+        return float("nan")
+    t = pd.to_numeric(runs[RUN_TIME], errors="coerce").dropna()
+    return float(t.median()) if len(t) else float("nan")
+
+
 def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, labels: tuple[str, str]) -> Row:
     """Fill ``row`` with the mean difference x − y and P(x > y) over the datasets both arms have."""
     done = finished(df)
@@ -414,13 +425,15 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
     row.means = (float(np.mean([a.mean() for a in sx])), float(np.mean([a.mean() for a in sy])))
     row.min_n = min(len(a) for a in [*sx, *sy])
     row.plan = stats.power_plan([*sx, *sy], power=POWER, alpha=ALPHA)
+    row.sizes = ([len(a) for a in sx], [len(a) for a in sy])
+    key = _dataset_column(done)
+    row.run_s = tuple(_median_time(done[select(done) & done[key].astype(str).isin(shared)]) for select in (x, y))
     pairs = seed_matched(done, x, y, metric, shared) if "seed" in done else None
     if pairs:
         row.pairs = pairs
         row.paired = stats.estimate([d for _, d in pairs.values()], stats.mean_of_means, checks=0)
         row.paired_p = stats.sign_flip_p([d for _, d in pairs.values()])
     if row.stat == "last":  # the arms are the same for every statistic: counted once, shown once
-        key = _dataset_column(done)
         arms = [done[select(done) & done[key].astype(str).isin(shared)] for select in (x, y)]
         modes = [high_mode(arm, row.high_mode) for arm in arms]
         row.high = (modes[0], modes[1]) if modes[0] and modes[1] else None
@@ -940,6 +953,24 @@ def _plan_number(value: float, digits: int, inf: str) -> str:
     return inf if np.isinf(value) else f"{value:.{digits}f}"
 
 
+def _still_to_do(row: Row) -> str:
+    """The runs each arm lacks for :attr:`Row.plan`'s runs per dataset, and their time at the arm's
+    median run time (``time/total_s``; one core each at budget lab); none where the runs at hand
+    already give a verdict (the plan is then the n a replication would want)."""
+    assert row.plan is not None
+    if row.verdict in (stats.SUPPORTED, stats.NOT_SUPPORTED):
+        return "none: a verdict at this n"
+    if not np.isfinite(row.plan.runs):
+        return "–"
+    need = int(row.plan.runs)
+    missing = [sum(max(0, need - n) for n in sizes) for sizes in row.sizes]
+    if not any(missing):
+        return "none"
+    seconds = [m * t for m, t in zip(missing, row.run_s, strict=True) if m]
+    time = f"{sum(seconds) / 3600:,.0f} h" if all(np.isfinite(seconds)) else "time not logged"
+    return f"{missing[0]:,} + {missing[1]:,} ({time})"
+
+
 def format_plan(rows: Sequence[Row]) -> list[str]:
     """Lines of the planning section: per comparison with a permutation test, the pooled sd, the
     smallest effect its runs find with :data:`POWER`, and the runs the observed effect would need
@@ -957,11 +988,13 @@ def format_plan(rows: Sequence[Row]) -> list[str]:
         f"to reach p < {ALPHA:g} ({stats.permutation_floor(1, ALPHA)} per arm on one dataset). ∞: no "
         f"split of the runs at hand gives p < {ALPHA:g}. "
         "The observed effect is itself uncertain (its CI is above) and the scores are often bimodal, "
-        "so these numbers size the next runs; they are not evidence.",
+        "so these numbers size the next runs; they are not evidence. The time is each arm's median "
+        "`time/total_s` (one core per run at budget lab; a shared reward model's training counts "
+        "in the first run of a seed only).",
         "",
         "| # | comparison | statistic | n | pooled sd | smallest effect found at this n | observed effect "
-        "| runs per arm and dataset to find it |",
-        "|---|---|---|---|---|---|---|---|",
+        "| runs per arm and dataset to find it | runs still to do (time) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in sel:
         assert r.plan is not None and r.effect is not None
@@ -969,7 +1002,7 @@ def format_plan(rows: Sequence[Row]) -> list[str]:
         lines.append(
             f"| {r.claim} | {r.comparison} | {r.stat} | {_n(r)} | {_plan_number(r.plan.sd, digits, '–')} "
             f"| {_plan_number(r.plan.mde, digits, '∞')} | {r.effect.value:+.{digits}f} "
-            f"| {_plan_number(r.plan.runs, 0, f'> {stats.MAX_PLAN:,}')} |"
+            f"| {_plan_number(r.plan.runs, 0, f'> {stats.MAX_PLAN:,}')} | {_still_to_do(r)} |"
         )
     return [*lines, ""]
 

@@ -672,3 +672,19 @@ def test_planning_section_sizes_the_next_runs_from_the_pooled_sd(runs):
     text = report.format_rows(rows)
     assert "### Runs for a verdict (planning numbers, not findings)" in text
     assert f"| 1 | spot vs pt | last | 6 vs 6 runs, 2 datasets | {sd:.1f} | {r.plan.mde:.1f} | +8.5 | 3 |" in text
+
+
+def test_planning_section_counts_the_missing_runs_and_their_logged_time(runs):
+    rows = report.build(runs)  # the fixture logs no run time
+    mr = _row(rows, "1", "spot vs mr")  # inconclusive: the runs still to do are listed
+    need = int(mr.plan.runs)
+    assert mr.sizes == ([3, 3], [3, 3]) and need > 3
+    assert report._still_to_do(mr) == f"{2 * (need - 3):,} + {2 * (need - 3):,} (time not logged)"
+    timed = runs.copy()
+    timed[report.RUN_TIME] = np.where(timed["method"] == "mr", 1800.0, 900.0)  # MR runs 30 min, SPOT 15
+    mr = _row(report.build(timed), "1", "spot vs mr")
+    missing = 2 * (need - 3)  # per arm: two datasets short of `need` by 3 runs each
+    hours = missing * (900 + 1800) / 3600
+    assert report._still_to_do(mr) == f"{missing:,} + {missing:,} ({hours:,.0f} h)"
+    pt = _row(rows, "1", "spot vs pt")  # supported at this n: nothing to do
+    assert report._still_to_do(pt) == "none: a verdict at this n"
