@@ -257,7 +257,7 @@ def test_power_plan_respects_what_the_permutation_test_can_reach():
 
 
 def test_the_verdict_rule_has_about_the_planned_power_at_the_planned_runs():
-    # a normal pool with a shift of 1.5 sd: the plan asks for 8 runs per arm; the full rule (bootstrap
+    # a normal pool with a shift of 1.5 sd: the plan asks for 9 runs per arm; the full rule (bootstrap
     # CI and permutation test) then calls the difference close to 80 % of the time
     pool = np.random.default_rng(4).normal(size=10000)
     plan = stats.power_plan(_unit_sd_arms(1.5))
@@ -275,3 +275,25 @@ def test_t_test_power_against_simulated_t_tests_and_where_scipys_nct_gives_nan()
     assert stats.t_test_power(1.5, 5, 5) == pytest.approx(simulated, abs=0.015)  # ~0.54
     assert stats.t_test_power(12.0, 6, 6) == pytest.approx(1.0)  # nct is nan here: the normal fallback
     assert stats.t_test_power(0.0, 5, 5) == pytest.approx(0.05)
+
+
+def test_power_plan_uses_effective_sizes_where_the_datasets_sizes_differ():
+    # 10 and 2 runs per arm on two tasks: the mean of the tasks' differences has variance
+    # sd² (1/10 + 1/10 + 1/2 + 1/2) / 4, so it is as precise as 4 / 0.6 = 6.7 runs per arm, not 12.
+    # Simulated here: the stratified t statistic at the plan's mde, on t(24 − 4) = t(20)
+    rng = np.random.default_rng(6)
+    sizes = (10, 2)
+    strata = [rng.normal(size=n) for n in sizes] + [rng.normal(size=n) for n in sizes]
+    plan = stats.power_plan(strata)
+    trials = 20000
+    diffs, ss = np.zeros(trials), np.zeros(trials)
+    for n in sizes:
+        x, y = rng.normal(size=(trials, n)) + plan.mde / plan.sd, rng.normal(size=(trials, n))
+        diffs += (x.mean(1) - y.mean(1)) / 2
+        ss += ((x - x.mean(1, keepdims=True)) ** 2).sum(1) + ((y - y.mean(1, keepdims=True)) ** 2).sum(1)
+    se = np.sqrt(ss / 20) * np.sqrt(sum(1 / n + 1 / n for n in sizes)) / 2
+    found = np.mean(np.abs(diffs / se) > scipy_stats.t.ppf(0.975, 20))
+    assert found == pytest.approx(0.8, abs=0.015)
+    # and never fewer runs than a verdict needs: 3 tasks can pass the permutation test at 2 vs 2
+    big = [np.array([100.0, 101])] * 3 + [np.array([0.0, 1])] * 3
+    assert stats.power_plan(big).runs == 2 and stats.power_plan(big, min_runs=3).runs == 3
