@@ -209,13 +209,21 @@ def benched(tmp_path_factory, spot_dirs, tiny_drawer):
 
     root = tmp_path_factory.mktemp("bench")
     (root / "tiny.yaml").write_text(TINY_SWEEP)
-    env = {"SPOT_CACHE_DIR": str(root / "cache"), "PYTHONUNBUFFERED": "1", "MLFLOW_TRACKING_URI": ""}
+    # CPU slots of its own: another test's sweep holding the node's slots would leave this one's
+    # trials unpinned (time/trial_cpus 2, not 1)
+    env = {
+        "SPOT_CACHE_DIR": str(root / "cache"),
+        "SPOT_CPU_SLOTS_DIR": str(root / "slots"),
+        "PYTHONUNBUFFERED": "1",
+        "MLFLOW_TRACKING_URI": "",
+    }
     out = run_cli("bench", "sweep", "tiny.yaml", cwd=root, env=env, timeout=900)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     client = MlflowClient(f"sqlite:///{root / 'spot_runs' / 'mlflow.db'}")
     exp = client.get_experiment_by_name("benchtiny")
     runs = [r for r in client.search_runs([exp.experiment_id]) if "trial_key" in r.data.tags]
-    return {"stdout": out.stdout, "runs": sorted(runs, key=lambda r: int(r.data.tags["seed"])), "client": client}
+    runs = sorted(runs, key=lambda r: int(r.data.tags["seed"]))
+    return {"stdout": out.stdout, "runs": runs, "client": client, "slots": root / "slots"}
 
 
 @pytest.mark.slow
@@ -233,6 +241,7 @@ def test_every_run_carries_its_trials_breakdown_adding_up_to_the_wall_time(bench
         assert m["time/trial_train_s"] > 0 and m["time/trial_evaluate_s"] > 0 and m["time/trial_tracking_s"] > 0
         assert 0 < m["trial/cpu_util"] and m["time/trial_cpus"] == 1
         assert r.data.tags["trial_device"].startswith("cpu:")
+    assert sorted(p.name for p in benched["slots"].glob("cpu*"))  # the trials claimed their slots there
     # a fresh compilation cache: the first trial compiled its programs
     assert runs[0].data.metrics["time/trial_compile_s"] > 0
 

@@ -80,17 +80,18 @@ def _claim(folder: Path, cpus: list[int], n: int) -> list[tuple[int, Any]]:
 def cpu_slots(n: int) -> Iterator[list[int]]:
     """Claim ``n`` CPUs of this node for the trial and pin the whole process to them.
 
-    Slots are ``flock``s on files in ``$TMPDIR/spot-cpu-slots`` (released at the end of the block
-    or when the process dies, however it dies), so concurrent trials on one node get disjoint
-    CPUs. XLA sizes its CPU thread pools from the affinity mask, which makes this the thread-count
-    setting that works (an ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by
-    jaxlib 0.10). If ``n`` slots are not free (fractional CPUs, a trial as large as the node),
-    nothing is claimed or pinned. Yields the pinned CPUs (empty if none); the process's threads
-    get the CPUs they had back at the end (a reused actor runs the next trial in them).
+    Slots are ``flock``s on files in ``$SPOT_CPU_SLOTS_DIR`` (default ``$TMPDIR/spot-cpu-slots``;
+    released at the end of the block or when the process dies, however it dies), so concurrent
+    trials on one node that share the folder get disjoint CPUs. XLA sizes its CPU thread pools
+    from the affinity mask, which makes this the thread-count setting that works (an
+    ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by jaxlib 0.10). If ``n``
+    slots are not free (fractional CPUs, a trial as large as the node), nothing is claimed or
+    pinned. Yields the pinned CPUs (empty if none); the process's threads get the CPUs they had
+    back at the end (a reused actor runs the next trial in them).
     """
     allowed = sorted(os.sched_getaffinity(0))
-    folder = Path(tempfile.gettempdir()) / "spot-cpu-slots"
-    folder.mkdir(exist_ok=True)
+    folder = Path(os.environ.get("SPOT_CPU_SLOTS_DIR") or Path(tempfile.gettempdir()) / "spot-cpu-slots")
+    folder.mkdir(parents=True, exist_ok=True)
     held: list[tuple[int, Any]] = []
     try:
         held = _claim(folder, allowed, n)
