@@ -950,7 +950,7 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
 def _plan_number(value: float, digits: int, inf: str) -> str:
     if np.isnan(value):
         return "–"
-    return inf if np.isinf(value) else f"{value:.{digits}f}"
+    return inf if np.isinf(value) else f"{value:,.{digits}f}"
 
 
 def _still_to_do(row: Row) -> str:
