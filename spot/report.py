@@ -292,6 +292,9 @@ class Row:
         # the CI bound near 0 changes side with the bootstrap seed (no seed passes while the test fails)
         if self.effect.other_verdicts and not test_fails:
             return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
+        if v != stats.INCONCLUSIVE and not np.isfinite(self.perm_p):
+            # claim 4's difference in differences: no permutation test, and the CI alone calls too much
+            return f"{v} (the CI alone: no permutation test for this effect)"
         return v
 
 

@@ -589,11 +589,20 @@ def test_oracle_at_a_longer_discount_is_row_od_and_stays_out_of_every_other_orac
 
 
 def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
-    row = report.Row("CP", "text", "a vs b", "exp", "last", min_n=3)
+    row = report.Row("CP", "text", "a vs b", "exp", "last", min_n=3, perm_p=0.01)
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12, other_verdicts=(stats.INCONCLUSIVE,))
     assert row.verdict == "supported (borderline: inconclusive under another bootstrap seed)"
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12)
     assert row.verdict == stats.SUPPORTED
+
+
+def test_a_verdict_without_a_permutation_test_says_it_is_the_cis_alone():
+    # claim 4's difference in differences has no permutation test (perm_p nan): its CI decides, and says so
+    row = report.Row("4P", "text", "(spot few − most) − (pt few − most)", "exp", "last", min_n=3)
+    row.effect = stats.Estimate(-27.7, -53.3, -2.6, 16)
+    assert row.verdict == "not supported (the CI alone: no permutation test for this effect)"
+    row.effect = stats.Estimate(-27.7, -53.3, 2.6, 16)
+    assert row.verdict == stats.INCONCLUSIVE
 
 
 def test_seed_matched_differences_against_an_independent_bootstrap(runs):
