@@ -962,14 +962,14 @@ def _still_to_do(row: Row) -> str:
     already give a verdict (the plan is then the n a replication would want; a "borderline" verdict
     counts as one)."""
     assert row.plan is not None
-    if row.verdict.split(" (borderline")[0] in (stats.SUPPORTED, stats.NOT_SUPPORTED):
+    if row.verdict.startswith((stats.SUPPORTED, stats.NOT_SUPPORTED)):  # borderline ones too
         return "none: a verdict at this n"
     if not np.isfinite(row.plan.runs):
         return "–"
     need = int(row.plan.runs)
     missing = [sum(max(0, need - n) for n in sizes) for sizes in row.sizes]
     if not any(missing):
-        return "none"
+        return "0 + 0 (the runs at hand meet the plan; the verdict fell short at this n)"
     seconds = [m * t for m, t in zip(missing, row.run_s, strict=True) if m]
     time = f"{sum(seconds) / 3600:,.0f} h" if all(np.isfinite(seconds)) else "time not logged"
     return f"{missing[0]:,} + {missing[1]:,} ({time})"
