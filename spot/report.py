@@ -42,7 +42,8 @@ The claims (paper section; which runs):
    queries minus PT's (> 0: SPOT loses less).
 5. MSE + cosine beats MSE for the CVAE (Table 7): ``cvae.loss`` mse_cos vs mse.
 6. SPOT lowers out-of-distribution extrapolation error (Fig. 2): PT's
-   ``diag/extrapolation_error_ood`` minus SPOT's (> 0: SPOT lower), from the Table 1 runs.
+   ``diag/extrapolation_error_ood`` minus SPOT's (> 0: SPOT lower), from the Table 1 runs; row
+   ``6P`` the same from the ``variant=paper`` runs of set P (PT and SPOT proper of row 1P).
 
 Controls no table has (does the gain come from attention subgoals, or from a survival bonus?):
 SPOT vs SPOT with **random dataset states** as subgoals (``subgoal.source=random``), and SPOT vs a
@@ -707,8 +708,11 @@ def build(
         for claim, key, text, comparison, fn in CLAIMS:
             row, sub = row_for(claim, key, text, comparison, stat)
             rows.append(fn(sub, metric, row))
-    row, sub = row_for("6", "6", "SPOT lowers OOD extrapolation error (Fig. 2)", "pt − spot, OOD error", "ood")
-    rows.append(compare(sub, _method("pt"), _SPOT, OOD_METRIC, row, ("pt", "spot")))
+    for claim, key, variant, where in (("6", "6", "spot", ""), ("6P", "P", "paper", _suffix("paper"))):
+        text = f"SPOT lowers OOD extrapolation error (Fig. 2){where}"
+        row, sub = row_for(claim, key, text, "pt − spot, OOD error", "ood")
+        pt = _in_variant(_method("pt"), variant)
+        rows.append(compare(sub, pt, _variant(variant), OOD_METRIC, row, ("pt", "spot")))
     return rows
 
 

@@ -59,6 +59,23 @@ def test_claim_verdicts_mr_inconclusive_ood_supported_missing_tables_say_no_runs
     assert "| 1 | SPOT ≥ PT on average (Table 1) | spot vs pt | lab_table1+lab_table1_fr | 8.5 [" in text
 
 
+def test_claim6_under_variant_paper_reads_only_that_variants_runs(runs):
+    """Row 6P is claim 6 on set P's variant-paper runs: the fixture relabelled as variant paper gives
+    row 6's effect there, and row 6 (default variant) then has no runs."""
+    paper = runs.assign(**{"params.variant": "paper"})
+    rows = report.build(paper, {"P": ("lab_table1",)})
+    ood = _row(rows, "6P", "pt", stat="ood")
+    assert ood.effect.value == pytest.approx(0.25) and ood.verdict == stats.SUPPORTED
+    assert ood.text.endswith("(variant paper)")
+    assert _row(rows, "6", "pt", stat="ood").verdict == "no runs"
+    # a PT run of another variant never enters 6P's PT arm: one at an OOD error far off moves nothing
+    other = paper[paper["method"] == "pt"].head(1).assign(
+        **{"params.variant": "authors", "run_id": "run900", "config_hash": "0ther", "metrics.diag/extrapolation_error_ood": 99.0}
+    )
+    again = _row(report.build(pd.concat([paper, other]), {"P": ("lab_table1",)}), "6P", "pt", stat="ood")
+    assert again.effect.value == pytest.approx(0.25) and again.n_x == ood.n_x
+
+
 def test_aggregate_iqm_by_hand(runs):
     agg = report.aggregate(runs).set_index("method")
     # SPOT pooled: 61 64 64 65 66 69 -> trim one from each end -> mean(64, 64, 65, 66) = 64.75
