@@ -69,9 +69,8 @@ def test_claim6_under_variant_paper_reads_only_that_variants_runs(runs):
     assert ood.text.endswith("(variant paper)")
     assert _row(rows, "6", "pt", stat="ood").verdict == "no runs"
     # a PT run of another variant never enters 6P's PT arm: one at an OOD error far off moves nothing
-    other = paper[paper["method"] == "pt"].head(1).assign(
-        **{"params.variant": "authors", "run_id": "run900", "config_hash": "0ther", "metrics.diag/extrapolation_error_ood": 99.0}
-    )
+    far_off = {"params.variant": "authors", "run_id": "run900", "config_hash": "0ther", report.OOD_METRIC: 99.0}
+    other = paper[paper["method"] == "pt"].head(1).assign(**far_off)
     again = _row(report.build(pd.concat([paper, other]), {"P": ("lab_table1",)}), "6P", "pt", stat="ood")
     assert again.effect.value == pytest.approx(0.25) and again.n_x == ood.n_x
 
