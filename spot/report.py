@@ -39,7 +39,9 @@ The claims (paper section; which runs):
    best-scoring other (kind, λ) cell, named in the row (the runner-up is picked on the point
    estimates, so its CI is slightly optimistic for the runner-up).
 4. SPOT keeps its score with fewer queries (Table 4): SPOT's change from the most to the fewest
-   queries minus PT's (> 0: SPOT loses less).
+   queries minus PT's (> 0: SPOT loses less). Its permutation test exchanges the seed-matched gains
+   (SPOT − PT of one seed, which share that seed's reward model) between the two query counts within
+   each dataset; without such pairs the row has no test and says its verdict is the CI's alone.
 5. MSE + cosine beats MSE for the CVAE (Table 7): ``cvae.loss`` mse_cos vs mse.
 6. SPOT lowers out-of-distribution extrapolation error (Fig. 2): PT's
    ``diag/extrapolation_error_ood`` minus SPOT's (> 0: SPOT lower), from the Table 1 runs; row
@@ -257,7 +259,9 @@ class Row:
     notes: list[str] = field(default_factory=list)
     high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
     high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
-    perm_p: float = float("nan")  # the effect's stratified permutation p-value (nan: claim 4, no test)
+    perm_p: float = float(
+        "nan"
+    )  # the effect's stratified permutation p-value (nan: no test, e.g. claim 4 without seed-matched gains)
     # seed-matched reading (seed_matched): per dataset, the seeds both arms ran and x − y at each
     paired: stats.Estimate | None = None
     paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
@@ -265,6 +269,7 @@ class Row:
     plan: stats.Plan | None = None  # what these runs could detect, and the runs the observed effect needs
     sizes: tuple[list[int], list[int]] = ([], [])  # finished runs per dataset of each arm (as ``datasets``)
     run_s: tuple[float, float] = (float("nan"), float("nan"))  # each arm's median run time (RUN_TIME)
+    plan_unit: str = "runs"  # what ``plan`` and ``sizes`` count (claim 4: "seeds", each a SPOT and a PT run)
 
     @property
     def paired_verdict(self) -> str:
@@ -294,7 +299,7 @@ class Row:
         if self.effect.other_verdicts and not test_fails:
             return f"{v} (borderline: {' / '.join(self.effect.other_verdicts)} under another bootstrap seed)"
         if v != stats.INCONCLUSIVE and not np.isfinite(self.perm_p):
-            # claim 4's difference in differences: no permutation test, and the CI alone calls too much
+            # claim 4 without seed-matched gains has no permutation test, and the CI alone calls too much
             return f"{v} (the CI alone: no permutation test for this effect)"
         return v
 
@@ -485,6 +490,8 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
         return row
     q = pd.to_numeric(done["params.labels.num_queries"])
     strata: list[list[np.ndarray]] = [[], [], [], []]  # spot few, spot most, pt few, pt most
+    gains: list[list[np.ndarray] | None] = [[], []]  # per dataset, SPOT − PT of each seed: few, most
+    cells_at: list[list[pd.DataFrame]] = [[], []]  # the compared runs at the fewest and at the most queries
     for name, g in done.groupby("paper_dataset"):
         qs = q[g.index]
         few, most = qs.min(), qs.max()
@@ -498,6 +505,10 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
             continue
         for s, c in zip(strata, cells, strict=True):
             s.append(c)
+        for i, n in enumerate((few, most)):  # the seed-matched gains at each count, for the permutation test
+            cells_at[i].append(g[qs == n])
+            pairs = seed_matched(g[qs == n], _method("spot"), _method("pt"), metric, [name]) if "seed" in g else None
+            gains[i] = None if pairs is None or gains[i] is None else [*gains[i], pairs[name][1]]
         row.datasets.append(f"{name} ({few} vs {most} queries)")
         row.notes += _digest_spread(g[g["method"].isin(("spot", "pt")) & qs.isin((few, most))])
     if not strata[0]:
@@ -517,6 +528,26 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     ]
     row.means = (change[0], change[1])  # shown as "means x / y": SPOT's change, PT's change
     row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
+    if gains[0] is not None and gains[1] is not None:
+        row.perm_p = stats.permutation_p([*gains[0], *gains[1]])
+        matched = sum(map(len, gains[0] + gains[1])) * 2 == row.n_x + row.n_y
+        row.notes.append(
+            f"permutation p from the seed-matched gains (SPOT − PT of one seed at one query count; "
+            f"{sum(map(len, gains[0]))} at the fewest vs {sum(map(len, gains[1]))} at the most queries), "
+            "exchanged between the query counts within each dataset"
+            + ("" if matched else "; runs without a seed-matched partner are in the effect, not in the test")
+        )
+        # planning numbers for the same test: seeds per query count (each a SPOT and a PT run), their time
+        # the sum of the two methods' median run times at that count
+        row.plan = stats.power_plan([*gains[0], *gains[1]], power=POWER, alpha=ALPHA, min_runs=MIN_SEEDS)
+        row.sizes = ([len(a) for a in gains[0]], [len(a) for a in gains[1]])
+        runs_at = [pd.concat(c) for c in cells_at]
+        row.run_s = tuple(sum(_median_time(r[r["method"] == m]) for m in ("spot", "pt")) for r in runs_at)
+        row.plan_unit = "seeds"
+        row.notes.append(
+            "its planning numbers (Runs for a verdict) count seeds per query count, each a SPOT and a PT run, "
+            "and their time is both runs'"
+        )
     return row
 
 
@@ -895,6 +926,14 @@ def _label(experiment: str) -> str:
     return experiment
 
 
+def _plan_n(row: Row) -> str:
+    """The planning section's n: the runs of each arm, or what else the row's plan counts (claim 4: seeds)."""
+    if row.plan_unit == "runs":
+        return _n(row)
+    k = len(row.sizes[0])
+    return f"{sum(row.sizes[0])} vs {sum(row.sizes[1])} {row.plan_unit}, {k} dataset{'s' if k != 1 else ''}"
+
+
 def _n(row: Row) -> str:
     k = len(row.datasets)
     return f"{row.n_x} vs {row.n_y} runs, {k} dataset{'s' if k != 1 else ''}" if row.effect else "–"
@@ -976,7 +1015,8 @@ def _still_to_do(row: Row) -> str:
         return "0 + 0 (the runs at hand meet the plan; the verdict fell short at this n)"
     seconds = [m * t for m, t in zip(missing, row.run_s, strict=True) if m]
     time = f"{sum(seconds) / 3600:,.0f} h" if all(np.isfinite(seconds)) else "time not logged"
-    return f"{missing[0]:,} + {missing[1]:,} ({time})"
+    unit = "" if row.plan_unit == "runs" else f" {row.plan_unit}"
+    return f"{missing[0]:,} + {missing[1]:,}{unit} ({time})"
 
 
 def format_plan(rows: Sequence[Row]) -> list[str]:
@@ -1000,7 +1040,9 @@ def format_plan(rows: Sequence[Row]) -> list[str]:
         "The observed effect is itself uncertain (its CI is above) and the scores are often bimodal, "
         "so these numbers size the next runs; they are not evidence. The time is each arm's median "
         "`time/total_s` (one core per run at budget lab; a shared reward model's training counts "
-        "in the first run of a seed only).",
+        "in the first run of a seed only). Claim 4's rows count seeds per query count instead of runs "
+        "(its test compares the seed-matched gains SPOT − PT at the two counts; a seed is a SPOT and a "
+        "PT run, and its time both).",
         "",
         "| # | comparison | statistic | n | pooled sd | smallest effect found at this n | observed effect "
         "| runs per arm and dataset to find it | runs still to do (time) |",
@@ -1010,7 +1052,7 @@ def format_plan(rows: Sequence[Row]) -> list[str]:
         assert r.plan is not None and r.effect is not None
         digits = 3 if r.stat == "ood" else 1
         lines.append(
-            f"| {r.claim} | {r.comparison} | {r.stat} | {_n(r)} | {_plan_number(r.plan.sd, digits, '–')} "
+            f"| {r.claim} | {r.comparison} | {r.stat} | {_plan_n(r)} | {_plan_number(r.plan.sd, digits, '–')} "
             f"| {_plan_number(r.plan.mde, digits, '∞')} | {r.effect.value:+.{digits}f} "
             f"| {_plan_number(r.plan.runs, 0, f'> {stats.MAX_PLAN:,}')} | {_still_to_do(r)} |"
         )

@@ -113,7 +113,47 @@ def test_claim4_difference_in_differences():
     assert r.notes == [
         "spot: 1 KILLED (not counted)",
         "h: the runs span 2 data digests (7 on d-original, 1 on d-rebuilt); they may not share their data",
+        "permutation p from the seed-matched gains (SPOT − PT of one seed at one query count; 2 at the fewest "
+        "vs 2 at the most queries), exchanged between the query counts within each dataset",
+        "its planning numbers (Runs for a verdict) count seeds per query count, each a SPOT and a PT run, "
+        "and their time is both runs'",
     ]
+    # gains SPOT − PT: few 20, 20; most 11, 11. Of the C(4, 2) = 6 ways to pick the two "few" gains, one
+    # gives +9 and one -9: two-sided p = 2/6
+    assert r.perm_p == pytest.approx(2 / 6)
+
+
+def test_claim4_permutation_test_on_the_seed_matched_gains_by_hand():
+    # PT and SPOT at 50 queries (seeds 0-2) and 500 (seeds 0-4), SPOT = PT + the gain of its seed; one
+    # SPOT run at 500 without a PT partner (seed 7) enters the effect but not the test
+    few_gain, most_gain = [1.2, 8.4, 26.1], [28.9, 14.4, 73.4, 74.6, 6.8]
+    rows = []
+    for q, gain in ((50, few_gain), (500, most_gain)):
+        for s, g in enumerate(gain):
+            base = 10.0 + s
+            for m, v in (("pt", base), ("spot", base + g)):
+                rows.append({"run_id": f"{m}{q}{s}", "method": m, "seed": s, "q": q, "v": v})
+    rows.append({"run_id": "spot500s7", "method": "spot", "seed": 7, "q": 500, "v": 50.0})
+    frame = pd.DataFrame(rows).assign(experiment="lab_table4", status="FINISHED", dataset="h", paper_dataset="h")
+    frame = frame.assign(
+        config_hash=frame["method"] + frame["q"].astype(str),
+        **{"params.labels.num_queries": frame["q"].astype(str), "metrics.eval/score_final": frame["v"]},
+        **{"metrics.eval/score_best": frame["v"]},
+    )
+    r = _row(report.build(frame), "4", "(spot")
+    # the gains pooled, ascending: 1.2 6.8 8.4 14.4 26.1 28.9 73.4 74.6. A split's statistic falls with the
+    # sum of its three "few" gains; the observed sum is 35.7, and of the C(8, 3) = 56 triples six sum to
+    # at most that (1.2 with 6.8+8.4, 6.8+14.4, 6.8+26.1, 8.4+14.4 or 8.4+26.1; and 6.8+8.4+14.4):
+    # p = 2 * 6/56
+    assert r.perm_p == pytest.approx(12 / 56)
+    test_note = next(n for n in r.notes if n.startswith("permutation p"))
+    assert "5 at the most queries" in test_note and test_note.endswith("in the effect, not in the test")
+    assert r.verdict.startswith(stats.INCONCLUSIVE)
+    # its planning numbers are the gains': within-count sum of squares 328.38 (few, mean 11.9) + 4192.81
+    # (most, mean 39.62) over 3 + 5 - 2 = 6 dof: sd sqrt(753.53) = 27.45; counted in seeds per query count
+    assert r.plan.sd == pytest.approx(27.45, abs=0.01) and r.sizes == ([3], [5])
+    line = next(x for x in report.format_plan([r]) if x.startswith("| 4 |"))
+    assert "| 3 vs 5 seeds, 1 dataset |" in line and line.endswith("seeds (time not logged) |")
 
 
 def test_bad_results_files_are_clear_errors(tmp_path):
@@ -619,6 +659,11 @@ def test_a_verdict_without_a_permutation_test_says_it_is_the_cis_alone():
     assert row.verdict == "not supported (the CI alone: no permutation test for this effect)"
     row.effect = stats.Estimate(-27.7, -53.3, 2.6, 16)
     assert row.verdict == stats.INCONCLUSIVE
+    # with the seed-matched gains' test (perm_p set) the verdict needs it too
+    row.effect, row.perm_p = stats.Estimate(-27.7, -53.3, -2.6, 16), 12 / 56
+    assert row.verdict == "inconclusive (the CI alone: not supported; permutation p = 0.21)"
+    row.perm_p = 0.01
+    assert row.verdict == stats.NOT_SUPPORTED
 
 
 def test_seed_matched_differences_against_an_independent_bootstrap(runs):
