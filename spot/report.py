@@ -507,7 +507,12 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
             s.append(c)
         for i, n in enumerate((few, most)):  # the seed-matched gains at each count, for the permutation test
             cells_at[i].append(g[qs == n])
-            pairs = seed_matched(g[qs == n], _method("spot"), _method("pt"), metric, [name]) if "seed" in g else None
+            pairs = seed_matched(g[qs == n], _method("spot"), _method("pt"), metric, [name])
+            if pairs is None and gains[i] is not None:
+                row.notes.append(
+                    f"no permutation test: {name} at {n} queries has no seed-matched SPOT and PT runs "
+                    "(no seed in common, or two runs of one seed in an arm)"
+                )
             gains[i] = None if pairs is None or gains[i] is None else [*gains[i], pairs[name][1]]
         row.datasets.append(f"{name} ({few} vs {most} queries)")
         row.notes += _digest_spread(g[g["method"].isin(("spot", "pt")) & qs.isin((few, most))])
@@ -528,9 +533,20 @@ def _claim4(df: pd.DataFrame, metric: str, row: Row) -> Row:
     ]
     row.means = (change[0], change[1])  # shown as "means x / y": SPOT's change, PT's change
     row.n_x, row.n_y = sum(map(len, strata[0] + strata[1])), sum(map(len, strata[2] + strata[3]))
+    tested = gains[0] is not None and gains[1] is not None
+    matched = tested and sum(map(len, gains[0] + gains[1])) * 2 == sum(map(len, flat))
+    if tested and not matched:
+        # the test's statistic (the gains' difference) is the effect only when every run has its partner;
+        # where they point different ways the test cannot back the effect's verdict
+        paired = float(stats.mean_difference(*gains[0], *gains[1]))
+        if np.sign(paired) != np.sign(row.effect.value):
+            row.notes.append(
+                f"no permutation test: the seed-matched gains' difference ({paired:+.1f}) and the effect of all "
+                f"runs ({row.effect.value:+.1f}) point different ways"
+            )
+            gains[0] = None
     if gains[0] is not None and gains[1] is not None:
         row.perm_p = stats.permutation_p([*gains[0], *gains[1]])
-        matched = sum(map(len, gains[0] + gains[1])) * 2 == row.n_x + row.n_y
         row.notes.append(
             f"permutation p from the seed-matched gains (SPOT − PT of one seed at one query count; "
             f"{sum(map(len, gains[0]))} at the fewest vs {sum(map(len, gains[1]))} at the most queries), "

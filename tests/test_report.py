@@ -154,6 +154,22 @@ def test_claim4_permutation_test_on_the_seed_matched_gains_by_hand():
     assert r.plan.sd == pytest.approx(27.45, abs=0.01) and r.sizes == ([3], [5])
     line = next(x for x in report.format_plan([r]) if x.startswith("| 4 |"))
     assert "| 3 vs 5 seeds, 1 dataset |" in line and line.endswith("seeds (time not logged) |")
+    # twenty unpartnered SPOT runs at 50 queries scoring 200 turn the effect positive while the gains'
+    # difference stays -27.7: the test cannot back that verdict, and the row says so instead
+    lone = pd.concat([frame[frame["run_id"] == "spot500s7"]] * 20, ignore_index=True)
+    lone = lone.assign(
+        run_id=[f"lone{i}" for i in range(20)], seed=range(100, 120), q=50, **{"params.labels.num_queries": "50"}
+    )
+    lone = lone.assign(config_hash="spot50", **{"metrics.eval/score_final": 200.0})
+    r = _row(report.build(pd.concat([frame, lone], ignore_index=True)), "4", "(spot")
+    assert r.effect.value > 0 and np.isnan(r.perm_p) and r.verdict.endswith("no permutation test for this effect)")
+    assert any(n.startswith("no permutation test: the seed-matched gains' difference (-27.7)") for n in r.notes)
+    # two SPOT runs of one seed at 500 queries (two configs in the cell): no pairs there, no test, and a note
+    twin = frame[frame["run_id"] == "spot5000"].assign(run_id="twin", config_hash="spot500b")
+    r = _row(report.build(pd.concat([frame, twin], ignore_index=True)), "4", "(spot")
+    assert np.isnan(r.perm_p) and "no permutation test: h at 500 queries has no seed-matched SPOT and PT runs" in (
+        " ".join(r.notes)
+    )
 
 
 def test_bad_results_files_are_clear_errors(tmp_path):
