@@ -259,9 +259,8 @@ class Row:
     notes: list[str] = field(default_factory=list)
     high_mode: float = HIGH_MODE  # the score that counts an evaluation as in the high mode (format_high)
     high: tuple[Mode, Mode] | None = None  # per arm, from exported curves (last-score rows only)
-    perm_p: float = float(
-        "nan"
-    )  # the effect's stratified permutation p-value (nan: no test, e.g. claim 4 without seed-matched gains)
+    # the effect's stratified permutation p-value (nan: no test, e.g. claim 4 without seed-matched gains)
+    perm_p: float = float("nan")
     # seed-matched reading (seed_matched): per dataset, the seeds both arms ran and x − y at each
     paired: stats.Estimate | None = None
     paired_p: float = float("nan")  # its two-sided sign-flip p-value (stats.sign_flip_p)
