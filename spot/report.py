@@ -954,13 +954,15 @@ def _plan_n(row: Row) -> str:
     """The planning section's n: the runs of each arm, or what else the row's plan counts (claim 4: seeds)."""
     if row.plan_unit == "runs":
         return _n(row)
-    k = len(row.sizes[0])
-    return f"{sum(row.sizes[0])} vs {sum(row.sizes[1])} {row.plan_unit}, {k} dataset{'s' if k != 1 else ''}"
+    return f"{sum(row.sizes[0])} vs {sum(row.sizes[1])} {row.plan_unit}, {_datasets(len(row.sizes[0]))}"
+
+
+def _datasets(k: int) -> str:
+    return f"{k} dataset{'s' if k != 1 else ''}"
 
 
 def _n(row: Row) -> str:
-    k = len(row.datasets)
-    return f"{row.n_x} vs {row.n_y} runs, {k} dataset{'s' if k != 1 else ''}" if row.effect else "–"
+    return f"{row.n_x} vs {row.n_y} runs, {_datasets(len(row.datasets))}" if row.effect else "–"
 
 
 def format_high(rows: Sequence[Row]) -> list[str]:

@@ -669,7 +669,7 @@ def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
 
 
 def test_a_verdict_without_a_permutation_test_says_it_is_the_cis_alone():
-    # claim 4's difference in differences has no permutation test (perm_p nan): its CI decides, and says so
+    # claim 4 without seed-matched gains has no permutation test (perm_p nan): its CI decides, and says so
     row = report.Row("4P", "text", "(spot few − most) − (pt few − most)", "exp", "last", min_n=3)
     row.effect = stats.Estimate(-27.7, -53.3, -2.6, 16)
     assert row.verdict == "not supported (the CI alone: no permutation test for this effect)"
