@@ -349,8 +349,10 @@ class IQLConfig:
         "gaussian",
         "actor distribution: gaussian = N(tanh(MLP(s)), sigma) without squash correction (IQL reference); "
         "tanh_gaussian = tanh-squashed N(MLP(s), sigma), log-prob with the tanh correction, action tanh(mean) "
-        "(WiseRL HPL)",
-        choices=("gaussian", "tanh_gaussian"),
+        "(WiseRL HPL); deterministic = the action tanh(MLP(s)) regressed on the data's by the AWR-weighted squared "
+        "error, -log pi read as sum_i (mean_i - a_i)^2 (CORL's and Uni-RLHF's IQL on hopper-medium-replay; the "
+        "log-std vector stays in the parameters, unused)",
+        choices=("gaussian", "tanh_gaussian", "deterministic"),
     )
     actor_dropout: float = F(
         0.0,

@@ -63,7 +63,10 @@ with lab_paper_queries' 50-query PT and SPOT runs. Row ``OP`` (a reference, not 
 with ``relabel.normalize=minmax`` (the true reward scaled, plus a per-step offset) against Oracle
 (lab_paper_oracle_minmax, lab_variant_rows): the survival-bonus reading tested on the true reward.
 Row ``OD`` (also a reference) is Oracle at ``iql.discount=0.995`` against Oracle at IQL's 0.99
-(lab_oracle_discount, lab_variant_rows): does a longer horizon keep Oracle from falling?
+(lab_oracle_discount, lab_variant_rows): does a longer horizon keep Oracle from falling? Row ``OC``
+(a reference) is Oracle with CORL's IQL settings for hopper-medium-replay (``iql.actor_dist=deterministic``,
+``iql.tau=0.001``; lab_oracle_corl) against Oracle; its runs are on the size-``paper-fast`` file, so
+the row has runs only with ``--use O=lab_hopper_pf+lab_oracle_corl``.
 :func:`dose_response` sets the term each arm adds to the reward per step against its score (a
 description of the runs, not a claim).
 """
@@ -96,7 +99,8 @@ RUN_TIME = "metrics.time/total_s"  # a run's wall time (one core at budget lab):
 # `spot` variant's SPOT runs are lab_table1's (the same config). P holds the runs of rows 1P, CP, 2P,
 # 3P, 4P and 5P (claims 1 to 5 and the controls under variant paper). O holds row OP: Oracle on its
 # default reward against Oracle with relabel.normalize=minmax (the true reward plus a per-step offset),
-# and row OD: Oracle at discount 0.995 against Oracle at its default 0.99 (a longer horizon).
+# and row OD: Oracle at discount 0.995 against Oracle at its default 0.99 (a longer horizon); row OC
+# (CORL's IQL settings) has its runs on another file, lab_hopper_pf's (``--use O=...``).
 EXPERIMENTS = {
     "1": ("lab_table1+lab_table1_fr", "table1"),
     "2": ("lab_table2", "table2_topk"),
@@ -165,10 +169,18 @@ _RANDOM_SUBGOALS = _param("subgoal.source", "random")
 # Oracle with min-max-normalised rewards: on locomotion, the true reward scaled plus a per-step offset
 # (docs/reproduction.md). Oracle at another discount than IQL's 0.99 (row OD). Oracle proper is every
 # other Oracle run (runs without a key: its default)
+# Oracle with CORL's IQL settings for hopper-medium-replay (a deterministic actor, target rate 0.001)
+# is row OC's; runs with either setting stay out of every other Oracle arm.
 _MINMAX = _param("relabel.normalize", "minmax")
-_ORACLE_MINMAX = _both(_method("oracle"), _MINMAX)
-_ORACLE_LONG = _both(_both(_method("oracle"), _equal_to("iql.discount", 0.995)), _not(_MINMAX))
-_ORACLE = _both(_method("oracle"), _not(_either(_MINMAX, _other_than("iql.discount", 0.99))))
+_CORL_ACTOR = _param("iql.actor_dist", "deterministic")
+_OTHER_IQL = _either(_CORL_ACTOR, _other_than("iql.tau", 0.005))
+_ORACLE_MINMAX = _both(_both(_method("oracle"), _MINMAX), _not(_OTHER_IQL))
+_ORACLE_LONG = _both(_both(_method("oracle"), _equal_to("iql.discount", 0.995)), _not(_either(_MINMAX, _OTHER_IQL)))
+_ORACLE_CORL = _both(
+    _both(_method("oracle"), _both(_CORL_ACTOR, _equal_to("iql.tau", 0.001))),
+    _not(_either(_MINMAX, _other_than("iql.discount", 0.99))),
+)
+_ORACLE = _both(_method("oracle"), _not(_either(_either(_MINMAX, _other_than("iql.discount", 0.99)), _OTHER_IQL)))
 _CONSTANT_BONUS = _param("shaping.kind", "constant")
 _BOTTOM_GROUP = _param("subgoal.group", "bottom")
 _MSE_CVAE = _param("cvae.loss", "mse")
@@ -738,6 +750,14 @@ CLAIMS: tuple[Claim, ...] = (
         "reference: Oracle at discount 0.995 (a longer horizon) vs Oracle at 0.99 (variant paper)",
         "oracle γ=0.995 vs oracle",
         _versus(_in_variant(_ORACLE_LONG, "paper"), _in_variant(_ORACLE, "paper"), ("oracle γ=0.995", "oracle")),
+    ),
+    (
+        "OC",
+        "O",
+        "reference: Oracle with CORL's IQL for hopper-medium-replay (a deterministic actor, target rate 0.001) "
+        "vs Oracle (variant paper)",
+        "oracle corl vs oracle",
+        _versus(_in_variant(_ORACLE_CORL, "paper"), _in_variant(_ORACLE, "paper"), ("oracle corl", "oracle")),
     ),
 )
 

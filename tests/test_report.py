@@ -660,6 +660,34 @@ def test_oracle_at_a_longer_discount_is_row_od_and_stays_out_of_every_other_orac
     assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
 
 
+def test_oracle_with_corls_iql_is_row_oc_and_stays_out_of_every_other_oracle_arm(runs):
+    # row OC: Oracle with a deterministic actor and iql.tau 0.001 (lab_oracle_corl) against Oracle proper
+    # (lab_variant_rows: one run logging the default tau as a string, two without the key):
+    # mean(40, 30, 17) - mean(20, 22, 24) = 29 - 22 = 7
+    arm = functools.partial(_paper_arm, runs)
+    proper = arm("lab_variant_rows", "or", [20.0, 22.0, 24.0], method="oracle")
+    proper.loc[proper.index[0], "params.iql.tau"] = "0.005"
+    corl = arm("lab_oracle_corl", "oc", [40.0, 30.0, 17.0], method="oracle").assign(
+        **{"params.iql.actor_dist": "deterministic", "params.iql.tau": 0.001}
+    )
+    # an Oracle run with only one of the two settings belongs to neither arm
+    tau_only = arm("lab_oracle_corl", "ot", [90.0, 0.0, 0.0], method="oracle").iloc[:1]
+    tau_only = tau_only.assign(**{"params.iql.tau": "0.001", "params.iql.actor_dist": "gaussian"})
+    frame = pd.concat([runs, proper, corl, tau_only], ignore_index=True)
+    assert _row(report.build(frame), "OC", "oracle corl vs oracle").effect is None  # not in the default set O
+    use = {"O": ("lab_variant_rows+lab_oracle_corl+lab_paper_oracle_minmax",)}
+    r = _row(report.build(frame, use), "OC", "oracle corl vs oracle")
+    assert r.effect.value == pytest.approx(7.0) and (r.n_x, r.n_y) == (3, 3)
+    assert r.means == pytest.approx((29.0, 22.0))
+    # the CORL runs never count as Oracle proper: not in row OP's reference, nor in 1P's (moved to set P)
+    minmax = arm("lab_paper_oracle_minmax", "om", [60.0, 70.0, 80.0], method="oracle")
+    frame = pd.concat([frame, minmax.assign(**{"params.relabel.normalize": "minmax"})], ignore_index=True)
+    assert _row(report.build(frame, use), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
+    moved = frame.assign(experiment=frame["experiment"].replace("lab_oracle_corl", "lab_variant_rows"))
+    moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
+    assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
+
+
 def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
     row = report.Row("CP", "text", "a vs b", "exp", "last", min_n=3, perm_p=0.01)
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12, other_verdicts=(stats.INCONCLUSIVE,))

@@ -9,6 +9,8 @@ One update (value, actor, critics, target) with the losses of the paper:
   no tanh-squash correction (the reference's ``NormalTanhPolicy(state_dependent_std=False,
   tanh_squash_distribution=False)``); ``iql.actor_std=state_dependent``, ``iql.log_std_min`` and
   ``iql.actor_dist=tanh_gaussian`` give HPL's WiseRL actor (a log-std head, [-7, 2], squashed);
+  ``iql.actor_dist=deterministic`` replaces ``-log pi(a|s)`` by ``sum_i (tanh(MLP(s))_i - a_i)^2``
+  (CORL's deterministic IQL actor, its hopper-medium-replay config);
 * critics, eq. (6): ``L_Q = E[sum_i (Q_i(s, a) - r - gamma mask V(s'))^2]``, ``mask = 1 - terminal``;
 * target: ``Qbar <- tau_polyak Q + (1 - tau_polyak) Qbar``.
 
@@ -228,10 +230,12 @@ def tanh_gaussian_log_prob(mu: jax.Array, log_std: jax.Array, act: jax.Array) ->
 
 
 def actor_log_prob(cfg: IQLConfig, mean: jax.Array, log_std: jax.Array, act: jax.Array) -> jax.Array:
-    """The actor's ``log pi(a | s)`` from its outputs: Gaussian, or tanh-squashed Gaussian
-    (``iql.actor_dist``)."""
+    """The actor's ``log pi(a | s)`` from its outputs: Gaussian, tanh-squashed Gaussian, or, for the
+    deterministic actor, minus the squared error of its action (``iql.actor_dist``)."""
     if cfg.actor_dist == "tanh_gaussian":
         return tanh_gaussian_log_prob(mean, log_std, act)
+    if cfg.actor_dist == "deterministic":  # CORL's DeterministicPolicy loss: exp_adv * sum (pi(s) - a)^2
+        return -jnp.sum(jnp.square(mean - act), axis=-1)
     return gaussian_log_prob(mean, log_std, act)
 
 
