@@ -931,7 +931,7 @@ def _add_tables(sub: Any) -> None:
         action="append",
         metavar="CLAIM=EXPERIMENT",
         help="read a claim's runs from this experiment (claims 1-6, C for the controls, F, P for the variant-paper "
-        "rows and the added-term section, O for row OP)",
+        "rows and the added-term section, O for the Oracle rows OP, OD and OC)",
     )
     d.add_argument(
         "--high-mode",
