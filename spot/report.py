@@ -167,20 +167,20 @@ def _either(a: Filter, b: Filter) -> Filter:
 
 _RANDOM_SUBGOALS = _param("subgoal.source", "random")
 # Oracle with min-max-normalised rewards: on locomotion, the true reward scaled plus a per-step offset
-# (docs/reproduction.md). Oracle at another discount than IQL's 0.99 (row OD). Oracle proper is every
-# other Oracle run (runs without a key: its default)
-# Oracle with CORL's IQL settings for hopper-medium-replay (a deterministic actor, target rate 0.001)
-# is row OC's; runs with either setting stay out of every other Oracle arm.
+# (docs/reproduction.md). Oracle at another discount than IQL's 0.99 (row OD). Oracle with CORL's IQL
+# settings for hopper-medium-replay, a deterministic actor and target rate 0.001 (row OC; a run with
+# either setting stays out of every other Oracle arm). Oracle proper is every other Oracle run (runs
+# without a key: its default)
 _MINMAX = _param("relabel.normalize", "minmax")
+_OTHER_HORIZON = _other_than("iql.discount", 0.99)
 _CORL_ACTOR = _param("iql.actor_dist", "deterministic")
 _OTHER_IQL = _either(_CORL_ACTOR, _other_than("iql.tau", 0.005))
 _ORACLE_MINMAX = _both(_both(_method("oracle"), _MINMAX), _not(_OTHER_IQL))
 _ORACLE_LONG = _both(_both(_method("oracle"), _equal_to("iql.discount", 0.995)), _not(_either(_MINMAX, _OTHER_IQL)))
 _ORACLE_CORL = _both(
-    _both(_method("oracle"), _both(_CORL_ACTOR, _equal_to("iql.tau", 0.001))),
-    _not(_either(_MINMAX, _other_than("iql.discount", 0.99))),
+    _both(_method("oracle"), _both(_CORL_ACTOR, _equal_to("iql.tau", 0.001))), _not(_either(_MINMAX, _OTHER_HORIZON))
 )
-_ORACLE = _both(_method("oracle"), _not(_either(_either(_MINMAX, _other_than("iql.discount", 0.99)), _OTHER_IQL)))
+_ORACLE = _both(_method("oracle"), _not(_either(_either(_MINMAX, _OTHER_HORIZON), _OTHER_IQL)))
 _CONSTANT_BONUS = _param("shaping.kind", "constant")
 _BOTTOM_GROUP = _param("subgoal.group", "bottom")
 _MSE_CVAE = _param("cvae.loss", "mse")
