@@ -57,6 +57,24 @@ def _behaviour_data(episodes: int = 200, seed: int = 0) -> iql.Transitions:
     return iql.Transitions(*(jnp.asarray(c) for c in cols))
 
 
+def _awr_weights_by_hand(state: iql.IQLState, batch: iql.Transitions, cfg: IQLConfig) -> np.ndarray:
+    """``min(exp(beta (min_i Qbar_i(s, a) - V(s))), 100)`` from the state's networks, in numpy."""
+    q_bar = np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)).min(axis=0)
+    v = np.asarray(state.value.apply_fn(state.value.params, batch.obs))
+    return np.minimum(np.exp(cfg.temperature * (q_bar - v)), 100.0)
+
+
+def _assert_beats_behaviour_and_bc(state: iql.IQLState, cfg: IQLConfig) -> None:
+    """The learned policy's true return beats uniform-random behaviour and BC by 6."""
+    starts = np.random.default_rng(1).uniform(-1, 1, (100, 2)).astype(np.float32)
+    rng = np.random.default_rng(2)
+    behaviour = _true_return(lambda p: rng.uniform(-1, 1, p.shape), starts)
+    # BC of uniform-random actions converges to the mean action 0, i.e. standing still.
+    bc = _true_return(lambda p: np.zeros_like(p), starts)
+    learned = _true_return(lambda p: np.asarray(iql.act(state.actor.params, p, cfg)), starts)
+    assert learned > max(behaviour, bc) + 6.0, (learned, behaviour, bc)
+
+
 @pytest.fixture(scope="module")
 def data() -> iql.Transitions:
     return _behaviour_data()
@@ -186,9 +204,7 @@ def test_hpl_actor_state_dependent_std_squashed(data):
 
     batch = jax.tree.map(lambda x: x[:16], data)
     _, m = iql.update(state, batch, cfg)
-    q_bar = np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)).min(axis=0)
-    v = np.asarray(state.value.apply_fn(state.value.params, batch.obs))
-    w = np.minimum(np.exp(cfg.temperature * (q_bar - v)), 100.0)
+    w = _awr_weights_by_hand(state, batch, cfg)
     mu, log_std = (np.asarray(x, np.float64) for x in state.actor.apply_fn(state.actor.params, batch.obs))
     a = np.clip(np.asarray(batch.act, np.float64), -1 + 1e-6, 1 - 1e-6)
     u = np.arctanh(a)
@@ -208,9 +224,7 @@ def test_deterministic_actor_loss_by_hand(data):
     state = iql.init_state(jax.random.key(3), 2, 2, cfg)
     batch = jax.tree.map(lambda x: x[:16], data)
     new, m = iql.update(state, batch, cfg)
-    q_bar = np.asarray(state.critic.apply_fn(state.target_critic_params, batch.obs, batch.act)).min(axis=0)
-    v = np.asarray(state.value.apply_fn(state.value.params, batch.obs))
-    w = np.minimum(np.exp(cfg.temperature * (q_bar - v)), 100.0)
+    w = _awr_weights_by_hand(state, batch, cfg)
     pi, _ = (np.asarray(x, np.float64) for x in state.actor.apply_fn(state.actor.params, batch.obs))
     sq = np.sum((pi - np.asarray(batch.act, np.float64)) ** 2, axis=-1)
     np.testing.assert_allclose(m["iql/actor_loss"], np.mean(w * sq), rtol=1e-4)
@@ -228,12 +242,7 @@ def test_deterministic_actor_learns(data):
     for c in range(3):
         state, metrics = chunk(state, cfg.chunk, data, jax.random.key(1))
         loop.check_finite(metrics, (c + 1) * cfg.chunk)
-    starts = np.random.default_rng(1).uniform(-1, 1, (100, 2)).astype(np.float32)
-    rng = np.random.default_rng(2)
-    behaviour = _true_return(lambda p: rng.uniform(-1, 1, p.shape), starts)
-    bc = _true_return(lambda p: np.zeros_like(p), starts)
-    learned = _true_return(lambda p: np.asarray(iql.act(state.actor.params, p, cfg)), starts)
-    assert learned > max(behaviour, bc) + 6.0, (learned, behaviour, bc)
+    _assert_beats_behaviour_and_bc(state, cfg)
 
 
 def test_actor_dropout_in_training_only(data):
@@ -347,10 +356,4 @@ def test_vmapped_seeds_match_separate_runs(data, chunk_fn):
 def test_iql_beats_behaviour_and_bc(trained):
     state, history = trained
     assert history[-1]["iql/critic_loss"] < history[0]["iql/critic_loss"]
-    starts = np.random.default_rng(1).uniform(-1, 1, (100, 2)).astype(np.float32)
-    rng = np.random.default_rng(2)
-    behaviour = _true_return(lambda p: rng.uniform(-1, 1, p.shape), starts)
-    # BC of uniform-random actions converges to the mean action 0, i.e. standing still.
-    bc = _true_return(lambda p: np.zeros_like(p), starts)
-    learned = _true_return(lambda p: np.asarray(iql.act(state.actor.params, p, CFG)), starts)
-    assert learned > max(behaviour, bc) + 6.0, (learned, behaviour, bc)
+    _assert_beats_behaviour_and_bc(state, CFG)
