@@ -820,7 +820,7 @@ def _add_sweep(sub: Any) -> None:
         sub,
         "sweep",
         "run a sweep file (sweeps/*.yaml) with Ray Tune, logged to MLflow",
-        "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/table1.yaml --address auto --max-concurrent 8",
+        "spot sweep sweeps/quickstart.yaml --smoke\nspot sweep sweeps/paper/table1.yaml --address auto --max-concurrent 8",
         description="Run a sweep file with Ray Tune, one MLflow run per (config, seed). Exit code 0 "
         "when every run finished, 1 otherwise. See docs/sweeps.md.",
     )

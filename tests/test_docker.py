@@ -115,7 +115,7 @@ def test_dockerignore_keeps_the_source_and_drops_venv_runs_and_data():
         "README.md",
         "spot/cli.py",
         "spot/paper_tables.csv",
-        "sweeps/table1.yaml",
+        "sweeps/paper/table1.yaml",
         "configs/quickstart.yaml",
         "tests/data/pt-human-labels/Lift_mh/label_human",
         "docker/mlflow/Dockerfile",

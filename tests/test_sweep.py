@@ -133,7 +133,7 @@ def test_expansion_grid_x_zip_x_seeds(tmp_path):
     assert all(t.overrides["budget"] == "tiny" and t.axes["shaping.weight"] == 0.1 for t in smoke.trials())
 
 
-@pytest.mark.parametrize("path", sorted((REPO / "sweeps").glob("*.yaml")), ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", sorted([*sorted((REPO / "sweeps").rglob("*.yaml")), *sorted((REPO / "experiments").rglob("sweeps/*.yaml"))]), ids=lambda p: p.stem)
 def test_repo_sweep_files_resolve(path):
     full, smoke = sweep.load(path), sweep.load(path, smoke=True)
     if path.stem == "table1":

@@ -16,7 +16,7 @@ term measures how ``s'`` relates to it:
   when ``terminals`` are given (``shaping.potential_terminal``). The paper does not define Φ; the
   authors' code uses ``Φ(x) = +||x - ĝ||`` without the terminal mask
   (``shaping.potential_sign=pos``, ``shaping.potential_terminal=false``), so the λ axis of their
-  Table 3 is the negative of the ``neg`` sign's; ``sweeps/table3_shaping.yaml`` uses theirs.
+  Table 3 is the negative of the ``neg`` sign's; ``sweeps/paper/table3_shaping.yaml`` uses theirs.
 
 * ``shaping.state_action`` (the authors' ``state_action`` option, SGPbrl ``critic.py``
   ``update_q``): the CVAE decodes a subgoal state *and* action, ``(ĝ_s, ĝ_a) = G(s, a)``, and the
