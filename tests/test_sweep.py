@@ -133,7 +133,18 @@ def test_expansion_grid_x_zip_x_seeds(tmp_path):
     assert all(t.overrides["budget"] == "tiny" and t.axes["shaping.weight"] == 0.1 for t in smoke.trials())
 
 
-@pytest.mark.parametrize("path", sorted([*sorted((REPO / "sweeps").rglob("*.yaml")), *sorted((REPO / "experiments").rglob("sweeps/*.yaml"))]), ids=lambda p: p.stem)
+# Every sweep file the repository ships: the quickstart and the paper's tables (sweeps/, sweeps/paper/)
+# and the lab's studies (experiments/<study>/sweeps/).
+REPO_SWEEP_FILES = sorted([*(REPO / "sweeps").rglob("*.yaml"), *(REPO / "experiments").glob("*/sweeps/*.yaml")])
+
+
+def test_repo_sweep_files_are_found():
+    names = {p.relative_to(REPO).as_posix() for p in REPO_SWEEP_FILES}
+    assert {"sweeps/quickstart.yaml", "sweeps/paper/table1.yaml"} <= names
+    assert any(n.startswith("experiments/") for n in names)
+
+
+@pytest.mark.parametrize("path", REPO_SWEEP_FILES, ids=lambda p: p.relative_to(REPO).as_posix())
 def test_repo_sweep_files_resolve(path):
     full, smoke = sweep.load(path), sweep.load(path, smoke=True)
     if path.stem == "table1":
