@@ -58,6 +58,7 @@ import numpy as np
 from spot import SpotError
 from spot.data.dataset import Dataset
 from spot.data.formats import ROBOMIMIC_OBS_KEYS
+from spot.data.registry import D4RL_FILE_STEMS
 
 Family = Literal["locomotion", "metaworld", "robosuite"]
 ScoreKind = Literal["d4rl", "success"]
@@ -120,8 +121,13 @@ def valid_names() -> list[str]:
 
 
 def env_spec(dataset_name: str) -> EnvSpec:
-    """Map a dataset name to its evaluation environment; raise :class:`SpotError` if unknown."""
-    name = re.sub(r"-v2$", "", dataset_name.strip())
+    """Map a dataset name to its evaluation environment; raise :class:`SpotError` if unknown.
+
+    D4RL's file stems (``hopper_medium_replay-v2``) name their datasets too
+    (:data:`spot.data.registry.D4RL_FILE_STEMS`).
+    """
+    name = dataset_name.strip()
+    name = re.sub(r"-v2$", "", D4RL_FILE_STEMS.get(name, name))
     env, _, kind = name.partition("-")
     if env in _LOCOMOTION_ENV_IDS and kind in _LOCOMOTION_DATASETS:
         return EnvSpec(name, "locomotion", _LOCOMOTION_ENV_IDS[env], 1000, "d4rl", locomotion_make_kwargs(env))
@@ -131,7 +137,8 @@ def env_spec(dataset_name: str) -> EnvSpec:
         return EnvSpec(name, "robosuite", _ROBOSUITE_ENV_IDS[env], ROBOSUITE_HORIZON, "success")
     raise SpotError(
         f"unknown dataset name '{dataset_name}'; expected one of: {', '.join(valid_names())} "
-        "(locomotion names may end in -v2)"
+        "(locomotion names may end in -v2; a dataset file is named by its real name: D4RL's "
+        "<env>_<kind>-v2.hdf5, robomimic's <task>/<ph|mh>/low_dim.hdf5)"
     )
 
 
@@ -396,28 +403,48 @@ def evaluate(
 
 
 # ---------------------------------------------------------------- datasets against their env
+ACTION_SLACK = 0.05
+"""How far beyond its env's action bounds a dataset action may lie, as a fraction of the bounds'
+width (evaluation clips to the bounds; real data recorded through a tanh or a clip lies inside)."""
+
+
 @functools.lru_cache(maxsize=8)
-def _env_sizes(env_name: str) -> tuple[str, int, int]:
-    """``(env id, observation size, action size)`` of the evaluation env of ``env_name`` (built once)."""
+def _env_sizes(env_name: str) -> tuple[str, int, int, tuple[float, ...], tuple[float, ...]]:
+    """``(env id, observation size, action size, action low, action high)`` of the evaluation env
+    of ``env_name`` (built once)."""
     env = make_env(env_name, 0)
     try:
-        obs, act = env.observation_space.shape, env.action_space.shape
-        return env_spec(env_name).env_id, int(np.prod(obs)), int(np.prod(act))
+        obs, space = env.observation_space.shape, env.action_space
+        low = tuple(np.broadcast_to(space.low, space.shape).reshape(-1).astype(float))
+        high = tuple(np.broadcast_to(space.high, space.shape).reshape(-1).astype(float))
+        return env_spec(env_name).env_id, int(np.prod(obs)), int(np.prod(space.shape)), low, high
     finally:
         env.close()
 
 
 def check_against_env(ds: Dataset, env_name: str, where: str) -> None:
     """Raise :class:`SpotError` unless the dataset's observation and action sizes are those of the
-    env its policy is evaluated in (checked before any training: a mismatch would otherwise fail
-    only at the first evaluation, after the reward model and much of IQL)."""
-    env_id, obs_dim, act_dim = _env_sizes(env_name)
+    env its policy is evaluated in, and its actions lie in that env's action space (up to
+    :data:`ACTION_SLACK` of the bounds' width beyond them). Checked before any training: a size
+    mismatch would otherwise fail only at the first evaluation, after the reward model and much of
+    IQL, and actions far outside the space train a policy on nothing the env accepts."""
+    env_id, obs_dim, act_dim, low, high = _env_sizes(env_name)
     for what, got, want in (("observation", ds.obs_dim, obs_dim), ("action", ds.act_dim, act_dim)):
         if got != want:
             raise SpotError(
                 f"{where}: {what}s have {got} dimensions, but the evaluation env of '{env_name}' ({env_id}) "
                 f"has {want}; expected a dataset recorded in that env"
             )
+    lo, hi = np.asarray(low), np.asarray(high)
+    slack = ACTION_SLACK * np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+    outside = (ds.actions < lo - slack) | (ds.actions > hi + slack)
+    if outside.any():
+        row, col = (int(i) for i in np.argwhere(outside)[0])
+        raise SpotError(
+            f"{where}: 'actions' has the value {float(ds.actions[row, col]):g} in column {col} at row "
+            f"{int(ds.raw_index[row])} ({int(outside.sum())} values outside); expected the action space "
+            f"of {env_id}, [{lo[col]:g}, {hi[col]:g}] (up to {ACTION_SLACK:.0%} of its width beyond)"
+        )
 
 
 def check_fits_env(ds: Dataset, card: dict[str, Any], env_name: str) -> None:

@@ -259,6 +259,11 @@ def human_label_folder(card: Mapping[str, Any]) -> Path | None:
     """
     if card.get("source") != "file" or "recipe" in card:
         return None
+    from spot.data.labels import pt_label_folder
+
+    by_name = pt_label_folder(str(card.get("name") or ""), PT_HUMAN_LABELS)  # a resolved real name (registry)
+    if by_name is not None:
+        return by_name
     path = Path(str(card.get("path") or card.get("name") or ""))
     names = [path.stem.replace("_", "-")]
     if path.stem.startswith("low_dim") and len(path.parts) >= 3:

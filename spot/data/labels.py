@@ -333,6 +333,36 @@ def _find(folder: Path, pattern: str) -> tuple[Path, re.Match]:
     return folder / found[0][0], found[0][1]
 
 
+def pt_label_name(dataset_name: str) -> str | None:
+    """The PT repo's ``human_label/`` folder name for a dataset name, or None where PT has none.
+
+    D4RL's v2 names (``hopper-medium-replay-v2``, or D4RL's file stem ``hopper_medium_replay-v2``)
+    -> ``hopper-medium-replay-v2``; robomimic ``lift-ph`` / ``can-mh`` -> ``Lift_ph`` / ``Can_mh``.
+    A locomotion name without ``-v2`` names spot's locally built dataset, which PT's indices do not
+    point into: None. Which datasets PT labelled is up to the folder's presence
+    (:func:`pt_label_folder`).
+    """
+    from spot.data.registry import D4RL_FILE_STEMS, ROBOMIMIC_ENV_NAMES, ROBOMIMIC_KINDS
+
+    name = str(dataset_name).strip()
+    name = D4RL_FILE_STEMS.get(name, name)
+    task, _, kind = name.partition("-")
+    if task in ROBOMIMIC_ENV_NAMES and kind in ROBOMIMIC_KINDS:
+        return f"{task.capitalize()}_{kind}"
+    if name in D4RL_FILE_STEMS.values():
+        return name
+    return None
+
+
+def pt_label_folder(dataset_name: str, root: str | Path) -> Path | None:
+    """The PT human label folder of ``dataset_name`` under ``root`` (one that holds
+    ``label_human``), or None (see :func:`pt_label_name`)."""
+    name = pt_label_name(dataset_name)
+    if name is None or not (Path(root) / name / "label_human").is_file():
+        return None
+    return Path(root) / name
+
+
 def read_pt_labels(folder: str | Path, num_queries: int | None = None) -> Preferences:
     """Read a PT human label folder (``indices_num{N}[_q{L}]``, ``indices_2_num{N}[_q{L}]``,
     ``label_human``).

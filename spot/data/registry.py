@@ -71,10 +71,43 @@ for _name, _desc in _ROBO.items():
 SIZES = ("tiny", "small", "paper", "paper-fast")  # paper-fast: locomotion only
 
 
+# The real files' names, as their publishers name them and `spot data fetch` writes them
+# (spot/data/sources.json, docs/datasets.md): D4RL's ``<env>_<kind>-v2.hdf5``, the kind's hyphens
+# written as underscores (gym_mujoco_v2 on D4RL's server: ``hopper_medium_replay-v2.hdf5``), and
+# robomimic's ``<task>/<ph|mh>/low_dim.hdf5`` (v0.1; robosuite 1.5 files: ``low_dim_v15.hdf5``).
+D4RL_FILE_STEMS: dict[str, str] = {
+    f"{env}_{kind.replace('-', '_')}-v2": f"{env}-{kind}-v2"
+    for env in ("hopper", "walker2d", "halfcheetah")
+    for kind in ("random", "medium", "expert", "medium-replay", "medium-expert", "full-replay")
+}
+ROBOMIMIC_ENV_NAMES = {"lift": "Lift", "can": "PickPlaceCan"}  # task folder -> env_args["env_name"]
+ROBOMIMIC_KINDS = ("ph", "mh")
+
+
 def canonical(name: str) -> str:
-    """``hopper-medium-replay-v2`` -> ``hopper-medium-replay``."""
+    """``hopper-medium-replay-v2`` (or D4RL's file stem ``hopper_medium_replay-v2``) ->
+    ``hopper-medium-replay``."""
+    name = D4RL_FILE_STEMS.get(name.strip(), name)
     base = name[:-3] if name.endswith(("-v2", "-v3")) else name
     return base
+
+
+def file_dataset_name(path: str | Path) -> str | None:
+    """The dataset a real file is, from its name and folders; None for any other file.
+
+    D4RL ``.../hopper_medium_replay-v2.hdf5`` (or ``hopper-medium-replay-v2.hdf5``) ->
+    ``hopper-medium-replay-v2``; robomimic ``.../lift/ph/low_dim.hdf5`` -> ``lift-ph``.
+    """
+    path = Path(path)
+    if path.stem in D4RL_FILE_STEMS:
+        return D4RL_FILE_STEMS[path.stem]
+    if path.stem in D4RL_FILE_STEMS.values():
+        return path.stem
+    if path.stem.startswith("low_dim"):
+        task, kind = path.parent.parent.name.lower(), path.parent.name.lower()
+        if task in ROBOMIMIC_ENV_NAMES and kind in ROBOMIMIC_KINDS:
+            return f"{task}-{kind}"
+    return None
 
 
 def entry(name: str) -> Entry:
@@ -171,8 +204,9 @@ def _damage(path: Path, card: dict[str, Any], record: bool = True) -> str | None
 
 
 def _write_card(path: Path, card: dict[str, Any]) -> None:
-    """Write the card of ``path`` atomically (a full disk: SpotError, no temporary file left)."""
-    store.write_atomic(card_path(path), json.dumps(card, indent=2, default=str).encode())
+    tmp = card_path(path).with_name(f"{card_path(path).name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(card, indent=2, default=str))
+    os.replace(tmp, card_path(path))
 
 
 def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True, force: bool = False) -> Path:
@@ -197,7 +231,6 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
             f"{', '.join(recipe_sizes)}"
         )
     path = dataset_path(e.name, size, seed)
-    store.writable_dir(path.parent, "$SPOT_DATA_DIR")  # read-only, or a file: one clear error
     with _lock(path), store.dataset_lock(path):  # the shared store (spot.store): built once, on one node
         clean_stale_temp(path.parent)
         store.fetch_dataset(path, card_path(path))  # a build another node uploaded
@@ -311,8 +344,10 @@ def load_raw(
 
         verify_fetched(as_path)  # a file from `spot data fetch`: recheck its size and sha256
         raw = formats.load_dataset_file(as_path)
+        real = file_dataset_name(as_path)
+        _check_robomimic_task(raw, real, as_path)
         card = {
-            "name": as_path.stem,
+            "name": real or as_path.stem,  # D4RL's and robomimic's file names resolve (evaluation env, labels)
             "source": "file",
             "path": str(as_path.resolve()),
             **raw.metadata.get("spot_card", {}),
@@ -322,6 +357,18 @@ def load_raw(
     path = build(name, size, seed, progress=progress)
     raw = formats.read_d4rl_hdf5(path)
     return raw, read_card(path)
+
+
+def _check_robomimic_task(raw: RawDataset, real: str | None, path: Path) -> None:
+    """A robomimic file under ``<task>/<kind>/`` must record that task's env in its ``env_args``."""
+    if real is None or raw.metadata.get("format") != "robomimic":
+        return
+    want = ROBOMIMIC_ENV_NAMES[real.split("-")[0]]
+    if raw.metadata.get("env_name") != want:
+        raise SpotError(
+            f"dataset file '{path}': 'data.attrs[env_args]' names env {raw.metadata.get('env_name')!r}; "
+            f"expected '{want}' for a file under {path.parent.parent.name}/{path.parent.name}/"
+        )
 
 
 def load(

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -47,7 +48,7 @@ from flax import serialization
 from flax.training.train_state import TrainState
 from tqdm.auto import tqdm
 
-from spot import SpotError, store
+from spot import SpotError
 
 Params = Any
 
@@ -671,7 +672,12 @@ class _Run:
     def save(self, path: Path) -> None:
         """Write :meth:`payload` to ``path`` atomically (temporary file, fsync, rename)."""
         tic = time.perf_counter()
-        store.write_atomic(path, serialization.msgpack_serialize(self.payload()), fsync=True)  # full disk: SpotError
+        tmp = path.with_suffix(f".tmp-{os.getpid()}")
+        with open(tmp, "wb") as fh:
+            fh.write(serialization.msgpack_serialize(self.payload()))
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
         self.timing["checkpoint"] += time.perf_counter() - tic
 
     def elapsed(self) -> float:
