@@ -13,16 +13,19 @@ Entries hold data only and reading one never runs code from it. An entry is one 
 with ``allow_pickle=False``): the output's numpy arrays plus a JSON description of the tree around
 them (dicts, lists, tuples, numbers, strings, None, and NamedTuples or dataclasses *defined in
 spot* by qualified name, rebuilt from their fields) and a SHA-256 digest of both. An entry that is
-truncated, fails its digest, holds a pickle or an object array, names a type outside spot or
-has any other wrong structure is reported, deleted and recomputed, never used. Entries of the
-older pickle format (``<key>.pkl``) are never opened.
+truncated, compressed, fails its digest, holds a pickle or an object array, declares an array
+larger than its bytes, nests deeper than :data:`MAX_DEPTH` (counted before parsing, never left to
+a RecursionError), names a type outside spot or one that no longer exists, or fails to rebuild for
+any other reason is reported, deleted and recomputed once, never used. Entries of the older pickle
+format (``<key>.pkl``) are never opened.
 
 Entries are read and written through the store (:mod:`spot.store`): ``<store>/stages/<key>.npz``
 when ``$SPOT_STORE`` names one (a shared folder or ``s3://bucket/prefix``), else the cache dir
-``$SPOT_CACHE_DIR`` (default ``~/.cache/spot/stages``). Writes are atomic (a temporary name renamed
-into place; one PUT on S3). :func:`cached` computes a missing entry under the store's lock on its
-key, so trials that need the same entry at the same time, on one machine or on several, compute it
-once: the others wait for the lock and then read the entry.
+``$SPOT_CACHE_DIR`` (default ``~/.cache/spot/stages``; a file or a read-only folder there is one
+SpotError naming the variable). Writes are atomic (a temporary name renamed into place; one PUT on
+S3; a full disk is one SpotError and leaves no temporary file). :func:`cached` computes a missing
+entry under the store's lock on its key, so trials that need the same entry at the same time, on
+one machine or on several, compute it once: the others wait for the lock and then read the entry.
 """
 
 from __future__ import annotations
@@ -35,9 +38,11 @@ import importlib
 import io
 import json
 import os
+import re
 import sys
 import types
 import warnings
+import zipfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
@@ -45,6 +50,7 @@ from typing import Any
 import numpy as np
 
 FORMAT = 2  # the entry format; part of every key (format 1 was pickles)
+MAX_DEPTH = 64  # nesting of a stored tree (a run's networks and histories: under 10)
 PACKAGE = "spot"
 # Modules whose code a stage's key does not cover: the config only declares fields, and the values
 # a stage reads are in its deps.
@@ -413,7 +419,12 @@ def _resolve_type(ref: Any, package: str) -> type:
     module, qualname = ref.split(":")
     if not (module == package or module.startswith(package + ".")) or "<" in qualname:
         raise EntryError(f"type {ref!r} is not a {package} type")
-    obj: Any = importlib.import_module(module)
+    if not all(p.isidentifier() and p != "__main__" for p in module.split(".") + qualname.split(".")):
+        raise EntryError(f"bad type reference {ref!r}")
+    try:
+        obj: Any = importlib.import_module(module)
+    except Exception as e:  # noqa: BLE001 - a module that is gone (renamed since) or fails to import
+        raise EntryError(f"type {ref!r}: cannot import {module} ({type(e).__name__})") from None
     for part in qualname.split("."):
         obj = getattr(obj, part, None)
     if not isinstance(obj, type):
@@ -422,9 +433,12 @@ def _resolve_type(ref: Any, package: str) -> type:
 
 
 def decode(tree: Any, arrays: Mapping[str, np.ndarray], package: str = PACKAGE) -> Any:
-    """Inverse of :func:`encode`; raises :class:`EntryError` on anything it did not write."""
+    """Inverse of :func:`encode`; raises :class:`EntryError` on anything it did not write (a tree
+    nested deeper than :data:`MAX_DEPTH` included), whatever goes wrong in rebuilding it."""
 
-    def dec(node: Any) -> Any:
+    def dec(node: Any, depth: int = 0) -> Any:
+        if depth > MAX_DEPTH:
+            raise EntryError(f"the tree is nested deeper than {MAX_DEPTH} levels")
         if not isinstance(node, dict) or not isinstance(node.get("t"), str):
             raise EntryError(f"bad node {str(node)[:80]}")
         t = node["t"]
@@ -444,7 +458,7 @@ def decode(tree: Any, arrays: Mapping[str, np.ndarray], package: str = PACKAGE) 
         items = node.get("v")
         if not isinstance(items, list):
             raise EntryError(f"bad {t} node")
-        values = [dec(v) for v in items]
+        values = [dec(v, depth + 1) for v in items]
         if t == "list":
             return values
         if t == "tuple":
@@ -469,10 +483,10 @@ def decode(tree: Any, arrays: Mapping[str, np.ndarray], package: str = PACKAGE) 
 
     try:
         return dec(tree)
-    except (TypeError, ValueError, KeyError) as e:
-        if isinstance(e, EntryError):
-            raise
-        raise EntryError(f"cannot rebuild the stored value ({type(e).__name__}: {e})") from None
+    except EntryError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a stored type's constructor may raise anything
+        raise EntryError(f"cannot rebuild the stored value ({type(e).__name__}: {str(e)[:200]})") from None
 
 
 def _digest(tree_bytes: bytes, arrays: Mapping[str, np.ndarray]) -> str:
@@ -498,29 +512,60 @@ def entry_bytes(value: Any) -> bytes:
 
 
 def write_entry(path: Path, value: Any) -> None:
-    """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename."""
-    data = entry_bytes(value)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    """Write ``value`` to ``path`` (``.npz``) atomically: a temporary file, then a rename (a full
+    disk: SpotError, no temporary file left)."""
+    from spot import store as store_lib
+
+    store_lib.write_atomic(path, entry_bytes(value))
+
+
+def _check_members(data: bytes) -> None:
+    """EntryError unless every member of the entry's zip is stored uncompressed (as :func:`entry_bytes`
+    writes them) and declares an array no larger than the bytes it holds: reading an entry never
+    allocates more than the entry's size."""
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        for info in zf.infolist():
+            if info.compress_type != zipfile.ZIP_STORED or info.file_size > len(data):
+                raise EntryError(f"member {info.filename!r} is compressed or larger than the entry")
+            with zf.open(info) as fh:
+                version = np.lib.format.read_magic(fh)
+                if version not in ((1, 0), (2, 0)):
+                    raise EntryError(f"member {info.filename!r}: .npy format {version}")
+                read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+                shape, _, dtype = read(fh)
+                if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > info.file_size:
+                    raise EntryError(f"member {info.filename!r} declares {dtype}{list(shape)}, more than it holds")
+
+
+def _json_depth(text: bytes, limit: int) -> None:
+    """EntryError if the JSON ``text`` nests deeper than ``limit`` (counted before parsing it: its
+    strings blanked, then the running count of open brackets)."""
+    code = np.frombuffer(re.sub(rb'"(?:[^"\\]|\\.)*"', b'""', text), np.uint8)
+    step = np.isin(code, (ord("["), ord("{"))).astype(np.int64) - np.isin(code, (ord("]"), ord("}")))
+    if step.size and int(np.cumsum(step).max()) > limit:
+        raise EntryError(f"the tree is nested deeper than {MAX_DEPTH} levels")
 
 
 def read_entry_bytes(data: bytes, package: str = PACKAGE) -> Any:
-    """The value an entry's bytes hold; :class:`EntryError` if they cannot be used. Never unpickles."""
+    """The value an entry's bytes hold; :class:`EntryError` if they cannot be used, for any reason
+    (truncated, compressed, oversized, a pickle, a bad digest, tree or type). Never unpickles."""
     try:
+        _check_members(data)
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}
+    except EntryError:
+        raise
     except Exception as e:  # noqa: BLE001 - a truncated zip, a pickle, an object array: all unusable
-        raise EntryError(f"not a readable entry ({type(e).__name__}: {e})") from None
+        raise EntryError(f"not a readable entry ({type(e).__name__}: {str(e)[:200]})") from None
     tree_bytes = arrays.pop("__tree__", np.zeros(0, np.uint8)).tobytes()
     digest = arrays.pop("__digest__", np.zeros(0, np.uint8)).tobytes().decode("ascii", "replace")
     if not tree_bytes or digest != _digest(tree_bytes, arrays):
         raise EntryError("checksum mismatch")
+    _json_depth(tree_bytes, 2 * MAX_DEPTH + 2)  # a node is an object holding a list of nodes
     try:
         tree = json.loads(tree_bytes)
-    except ValueError as e:
-        raise EntryError(f"bad tree description ({e})") from None
+    except (ValueError, RecursionError) as e:
+        raise EntryError(f"bad tree description ({type(e).__name__}: {str(e)[:200]})") from None
     return decode(tree, arrays, package)
 
 

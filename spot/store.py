@@ -16,28 +16,33 @@ Layout under the URI: ``stages/<key>.npz`` (stage-cache entries, :mod:`spot.cach
 ``data/<dataset>.hdf5`` and ``data/<dataset>.card.json`` with a ``<file>.sha256`` record each
 (built datasets); locks in ``.locks/`` (a folder) or leases in ``locks/`` (S3) beside them.
 
-Writes are atomic: on a filesystem to a temporary name and renamed into place; on S3 a single PUT
-(multipart uploads become visible only when complete). Reads are verified: a dataset file against
-the SHA-256 recorded beside it (written after the file, so a file without its record is not yet
-there), a stage entry against the digest it holds itself; an entry that fails is deleted, so it is
-rebuilt. Locks (:meth:`Store.lock`) make the first process that needs an entry compute it while the
-others wait and then read it: a ``flock`` on a filesystem store (on NFS, Linux maps it to POSIX
-locks), and on S3 a lease object created with a conditional PUT (``If-None-Match: *``) that its
-holder renews every ``ttl/4`` seconds and deletes when done; a lease not renewed for ``ttl`` seconds
-(its holder died) is taken over. Locks only save work: entries are content-addressed and written
-atomically, so two processes that both compute one (a lease taken over from a paused holder) write
-the same value.
+Writes are atomic: on a filesystem to a temporary name and renamed into place
+(:func:`write_atomic`: a full disk or any other OS error is one SpotError naming the file, the
+temporary file removed and the old file untouched); on S3 a single PUT (multipart uploads become
+visible only when complete). A folder spot writes to is checked where it is first used
+(:func:`writable_dir`): a file in its place, or a read-only folder, is one SpotError naming the
+variable that named it. Reads are verified: a dataset file against the SHA-256 recorded beside it
+(written after the file, so a file without its record is not yet there), a stage entry against the
+digest it holds itself; an entry that fails is deleted, so it is rebuilt. Locks
+(:meth:`Store.lock`) make the first process that needs an entry compute it while the others wait
+and then read it: a ``flock`` on a filesystem store (on NFS, Linux maps it to POSIX locks), and on
+S3 a lease object created with a conditional PUT (``If-None-Match: *``) that its holder renews
+every ``ttl/4`` seconds and deletes when done; a lease not renewed for ``ttl`` seconds (its holder
+died) is taken over. Locks only save work: entries are content-addressed and written atomically, so
+two processes that both compute one (a lease taken over from a paused holder) write the same value.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
 import secrets
 import socket
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -52,6 +57,82 @@ ENV_OPTIONS = "SPOT_STORE_OPTIONS"
 OPTION_KEYS = ("endpoint_url",)
 SCHEMES = ("file", "s3")
 LEASE_TTL = 60.0
+
+
+# --------------------------------------------------------------------------- writing files and folders
+WRITE_CHUNK = 1 << 20
+_WRITABLE: set[str] = set()  # folders this process found writable (checked once)
+
+
+def write_error(path: Any, err: BaseException) -> SpotError:
+    """The one-line error for a failed write of ``path``: a full disk named as such (an HDF5 error
+    carries the errno in its text only), any other OS error with its reason."""
+    code = getattr(err, "errno", None)
+    text = str(err)
+    if code == errno.ENOSPC or "errno = 28" in text or "No space left on device" in text:
+        return SpotError(f"no space left on device writing {path}")
+    if code == errno.EDQUOT or "Disk quota exceeded" in text:
+        return SpotError(f"disk quota exceeded writing {path}")
+    reason = getattr(err, "strerror", None) or text or type(err).__name__
+    return SpotError(f"cannot write {path} ({reason})")
+
+
+def _write_all(fd: int, data: memoryview) -> None:
+    """``os.write`` until all of ``data`` is written (in :data:`WRITE_CHUNK` pieces)."""
+    while data:
+        n = os.write(fd, data[:WRITE_CHUNK])
+        data = data[n:]
+
+
+def write_atomic(path: str | Path, data: bytes, *, fsync: bool = False, unique: bool = False) -> None:
+    """Write ``data`` to ``path`` atomically: ``<path>.tmp-<pid>`` (``unique``: with a random
+    suffix, for writers of one name in several threads), then a rename; parents made.
+
+    Any OS error (a full disk, a read-only folder, a parent that is a file) removes the temporary
+    file, leaves ``path`` as it was and raises one :class:`SpotError` naming ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}" + (f"-{secrets.token_hex(4)}" if unique else ""))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            _write_all(fd, memoryview(data).cast("B"))
+            if fsync:
+                os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except OSError as e:
+        raise write_error(path, e) from None
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def writable_dir(path: str | Path, what: str) -> Path:
+    """``path``, made if missing; one :class:`SpotError` naming ``what`` (the env var or key that
+    named it) and the path unless it is a folder this process can create files in (checked by
+    creating and removing a probe file; once per folder and process)."""
+    path = Path(path)
+    if str(path) in _WRITABLE:
+        return path
+    if path.exists() and not path.is_dir():
+        raise SpotError(f"{what}: '{path}' is a file, not a folder; expected a folder spot can write to")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".spot-probe-", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as e:
+        reason = e.strerror or type(e).__name__
+        if e.errno in (errno.ENOTDIR, errno.EEXIST):
+            blocker = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+            reason = f"'{blocker}' is a file" if blocker is not None else reason
+        raise SpotError(
+            f"{what}: '{path}' is not a writable folder ({reason}); expected a folder spot can write to"
+        ) from None
+    _WRITABLE.add(str(path))
+    return path
 
 
 # --------------------------------------------------------------------------- naming a store
@@ -169,6 +250,13 @@ class Store:
     def describe(self, name: str) -> str:
         return f"{self.uri.rstrip('/')}/{name}"
 
+    def check_writable(self, what: str) -> Store:
+        """This store, after :func:`writable_dir` of its folder (a local store only: an object
+        store's permissions show on the first write)."""
+        if self.local:
+            writable_dir(self.root, what)
+        return self
+
     # ----------------------------------------------------------------------- bytes and files
     def put_bytes(self, name: str, data: bytes) -> None:
         """Write ``name`` atomically (temporary name + rename; one PUT on an object store)."""
@@ -176,21 +264,19 @@ class Store:
         if not self.local:
             self.fs.pipe_file(full, data)
             return
-        os.makedirs(os.path.dirname(full), exist_ok=True)
-        tmp = f"{full}.tmp-{os.getpid()}-{secrets.token_hex(4)}"
-        try:
-            self.fs.pipe_file(tmp, data)
-            os.replace(tmp, full)
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(tmp)
+        write_atomic(full, data, unique=True)
 
     def get_bytes(self, name: str) -> bytes | None:
-        """The bytes of ``name``, None if it is not there."""
+        """The bytes of ``name``, None if it is not there; SpotError if it cannot be read (a
+        folder, no permission)."""
         try:
             return self.fs.cat_file(self.path(name))
         except FileNotFoundError:
             return None
+        except OSError as e:
+            if not self.local:
+                raise
+            raise SpotError(f"cannot read {self.describe(name)} ({e.strerror or type(e).__name__})") from None
 
     def exists(self, name: str) -> bool:
         return bool(self.fs.exists(self.path(name)))
@@ -205,13 +291,15 @@ class Store:
         full = self.path(name)
         record = {"sha256": _sha256_file(local), "size": local.stat().st_size, **_producer()}
         if self.local:
-            os.makedirs(os.path.dirname(full), exist_ok=True)
             tmp = f"{full}.tmp-{os.getpid()}-{secrets.token_hex(4)}"
             try:
+                os.makedirs(os.path.dirname(full), exist_ok=True)
                 self.fs.put_file(str(local), tmp)
                 os.replace(tmp, full)
+            except OSError as e:
+                raise write_error(self.describe(name), e) from None
             finally:
-                with contextlib.suppress(FileNotFoundError):
+                with contextlib.suppress(OSError):
                     os.unlink(tmp)
         else:
             self.fs.put_file(str(local), full)
@@ -235,13 +323,15 @@ class Store:
         rec = self.record(name)
         if rec is None:
             return False
-        local.parent.mkdir(parents=True, exist_ok=True)
         tmp = local.with_name(f"{local.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
         try:
             try:
+                local.parent.mkdir(parents=True, exist_ok=True)
                 self.fs.get_file(self.path(name), str(tmp))
             except FileNotFoundError:
                 return False
+            except OSError as e:
+                raise write_error(local, e) from None
             got = _sha256_file(tmp)
             if got != rec["sha256"]:
                 print(
@@ -256,7 +346,7 @@ class Store:
             os.replace(tmp, local)
             return True
         finally:
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):
                 tmp.unlink()
 
     # ----------------------------------------------------------------------- locks
@@ -267,9 +357,16 @@ class Store:
             import filelock
 
             path = Path(self.path(f".locks/{name}.lock"))
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with filelock.FileLock(str(path)):
+            try:
+                path.parent.mkdir(parents=True, exist_ok=True)
+                held = filelock.FileLock(str(path))
+                held.acquire()
+            except OSError as e:
+                raise SpotError(f"cannot lock {path} ({e.strerror or type(e).__name__})") from None
+            try:
                 yield
+            finally:
+                held.release()
             return
         lease = _Lease(self, f"locks/{name}.lease", ttl, poll)
         lease.acquire()
@@ -347,13 +444,15 @@ def shared() -> Store | None:
 def stages(default_root: Path) -> Store:
     """Where stage-cache entries go: ``<store>/stages``, or ``default_root`` ($SPOT_CACHE_DIR)."""
     st = shared()
-    return st.sub("stages") if st is not None else Store(str(default_root))
+    if st is not None:
+        return st.sub("stages").check_writable(f"${ENV_URI} ({st.uri})")
+    return Store(str(writable_dir(default_root, "$SPOT_CACHE_DIR")))
 
 
 def datasets() -> Store | None:
     """Where built datasets are shared: ``<store>/data``; None for the default."""
     st = shared()
-    return st.sub("data") if st is not None else None
+    return st.sub("data").check_writable(f"${ENV_URI} ({st.uri})") if st is not None else None
 
 
 @contextlib.contextmanager

@@ -426,8 +426,10 @@ def _d4rl_infos(f: h5py.File, n: int, path: Path) -> dict[str, np.ndarray]:
 def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | None = None) -> None:
     """Write ``raw`` in the D4RL layout, readable by :func:`read_d4rl_hdf5`.
 
-    The file is written to ``<path>.tmp-<pid>`` and moved into place with ``os.replace``, so
-    ``path`` is either the old file or the complete new one, never a partial write.
+    The file is made in memory (HDF5's core driver: a full disk never fails inside HDF5, whose
+    file would stay open and crash the process at exit), then written to ``<path>.tmp-<pid>`` and
+    moved into place (:func:`spot.store.write_atomic`), so ``path`` is either the old file or the
+    complete new one, never a partial write; a full disk is one SpotError, no temporary file left.
 
     Args:
       raw: the dataset; its ``infos`` go to ``infos/<key>``, its ``metadata`` (less any
@@ -435,28 +437,26 @@ def write_d4rl_hdf5(raw: RawDataset, path: str | Path, card: dict[str, Any] | No
       path: destination file; parent folders are created.
       card: dataset card, stored as the JSON attribute ``spot_card``.
     """
+    from spot import store
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     attrs = {}
     if card is not None:
         attrs["spot_card"] = json.dumps(card, default=str)
     meta = {k: v for k, v in raw.metadata.items() if k != "spot_card"}
     if meta:
         attrs["spot_metadata"] = json.dumps(meta, default=str)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as f:
-            for key in RAW_KEYS + ("next_observations",):
-                arr = getattr(raw, key)
-                if arr is not None:
-                    f.create_dataset(key, data=arr, compression="gzip", compression_opts=1)
-            for key, arr in raw.infos.items():
-                f.create_dataset(f"infos/{key}", data=arr, compression="gzip", compression_opts=1)
-            f.attrs.update(attrs)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with h5py.File(f"{path.name}.in-memory", "w", driver="core", backing_store=False) as f:
+        for key in RAW_KEYS + ("next_observations",):
+            arr = getattr(raw, key)
+            if arr is not None:
+                f.create_dataset(key, data=arr, compression="gzip", compression_opts=1)
+        for key, arr in raw.infos.items():
+            f.create_dataset(f"infos/{key}", data=arr, compression="gzip", compression_opts=1)
+        f.attrs.update(attrs)
+        f.flush()
+        image = f.id.get_file_image()
+    store.write_atomic(path, image)
 
 
 # --------------------------------------------------------------------------- robomimic

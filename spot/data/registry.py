@@ -204,9 +204,8 @@ def _damage(path: Path, card: dict[str, Any], record: bool = True) -> str | None
 
 
 def _write_card(path: Path, card: dict[str, Any]) -> None:
-    tmp = card_path(path).with_name(f"{card_path(path).name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(card, indent=2, default=str))
-    os.replace(tmp, card_path(path))
+    """Write the card of ``path`` atomically (a full disk: SpotError, no temporary file left)."""
+    store.write_atomic(card_path(path), json.dumps(card, indent=2, default=str).encode())
 
 
 def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True, force: bool = False) -> Path:
@@ -231,6 +230,7 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
             f"{', '.join(recipe_sizes)}"
         )
     path = dataset_path(e.name, size, seed)
+    store.writable_dir(path.parent, "$SPOT_DATA_DIR")  # read-only, or a file: one clear error
     with _lock(path), store.dataset_lock(path):  # the shared store (spot.store): built once, on one node
         clean_stale_temp(path.parent)
         store.fetch_dataset(path, card_path(path))  # a build another node uploaded

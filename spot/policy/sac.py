@@ -28,7 +28,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import resource
 import time
 from collections.abc import Callable, Sequence
@@ -48,7 +47,7 @@ from flax import serialization
 from flax.training.train_state import TrainState
 from tqdm.auto import tqdm
 
-from spot import SpotError
+from spot import SpotError, store
 
 Params = Any
 
@@ -672,12 +671,7 @@ class _Run:
     def save(self, path: Path) -> None:
         """Write :meth:`payload` to ``path`` atomically (temporary file, fsync, rename)."""
         tic = time.perf_counter()
-        tmp = path.with_suffix(f".tmp-{os.getpid()}")
-        with open(tmp, "wb") as fh:
-            fh.write(serialization.msgpack_serialize(self.payload()))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        store.write_atomic(path, serialization.msgpack_serialize(self.payload()), fsync=True)  # full disk: SpotError
         self.timing["checkpoint"] += time.perf_counter() - tic
 
     def elapsed(self) -> float:

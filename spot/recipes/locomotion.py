@@ -59,7 +59,7 @@ from flax import serialization
 from tqdm.auto import tqdm
 
 import spot
-from spot import SpotError, envs
+from spot import SpotError, envs, store
 from spot.data.dataset import RawDataset, raw_from_episodes
 from spot.policy import sac
 
@@ -240,12 +240,7 @@ def _save(result: sac.SACResult, path: Path) -> None:
         "timing": result.timing,
         "resumed_from": np.asarray(result.resumed_from, np.int64),
     }
-    tmp = path.with_suffix(f".tmp-{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(serialization.msgpack_serialize(payload))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    store.write_atomic(path, serialization.msgpack_serialize(payload), fsync=True)  # full disk: SpotError
     _write_checksum(path)
 
 
@@ -259,10 +254,7 @@ def _write_checksum(path: Path) -> str:
     from spot.data.fetch import sha256_file
 
     digest = sha256_file(path)
-    side = checksum_path(path)
-    tmp = side.with_name(f"{side.name}.tmp-{os.getpid()}")
-    tmp.write_text(f"{digest}  {path.name}\n")
-    os.replace(tmp, side)
+    store.write_atomic(checksum_path(path), f"{digest}  {path.name}\n".encode())
     return digest
 
 

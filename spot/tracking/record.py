@@ -605,8 +605,9 @@ def run_temp_dir() -> Path:
     removes it when it ends, :func:`remove_run_temp`; a killed run's is removed by the next run)."""
     import tempfile
 
-    root = run_temp_root()
-    root.mkdir(parents=True, exist_ok=True)
+    from spot import store
+
+    root = store.writable_dir(run_temp_root(), "$SPOT_CACHE_DIR")  # a file or read-only: one clear error
     clean_run_temp(root)
     folder = Path(tempfile.mkdtemp(prefix=f"{RUN_TEMP_PREFIX}{os.getpid()}-", dir=root))
     (folder / ".host").write_text(platform.node())
