@@ -164,7 +164,7 @@ def test_each_table_reads_the_experiment_its_sweep_file_writes():
 
     assert set(tables.SWEEP_EXPERIMENTS) == set(tables.TABLES)
     for number, name in tables.SWEEP_EXPERIMENTS.items():
-        data = yaml.safe_load((REPO / "sweeps" / f"{name}.yaml").read_text())
+        data = yaml.safe_load((REPO / "sweeps" / "paper" / f"{name}.yaml").read_text())
         assert data["name"] == name and data["table"] == (1 if number == 8 else number)
 
 
