@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import math
 import typing
 from dataclasses import dataclass, field
@@ -36,6 +37,11 @@ def F(
     if isinstance(default, (list, dict)):
         raise TypeError("use tuples for sequence defaults (configs are frozen)")
     return field(default=default, metadata=meta)
+
+
+MAX_LAYERS = 64
+"""Most hidden layers a ``*.hidden`` tuple (and ``pt.n_layer``, ``hpl.n_layer``) may have: each
+layer is traced and compiled on its own, so a tuple of thousands compiles for hours."""
 
 
 # --------------------------------------------------------------------------- stages
@@ -110,7 +116,7 @@ class LabelsConfig:
 @dataclass(frozen=True)
 class PTConfig:
     embd_dim: int = F(256, "transformer embedding size", range=(8, None))
-    n_layer: int = F(1, "causal transformer layers", range=(1, None))
+    n_layer: int = F(1, "causal transformer layers", range=(1, MAX_LAYERS))
     n_head: int = F(4, "attention heads", range=(1, None))
     dropout: float = F(0.1, "dropout on embeddings, attention and residuals", range=(0.0, 0.9))
     pref_attn_dim: int = F(256, "query/key size of the preference attention layer", range=(1, None))
@@ -410,7 +416,7 @@ class HPLConfig:
     latent_groups: int = F(8, "discrete latent: number of one-hot categorical groups", range=(1, None))
     latent_classes: int = F(16, "discrete latent: classes per group (z_dim = groups x classes)", range=(2, None))
     embd_dim: int = F(256, "hindsight encoder (non-causal GPT) embedding size", range=(8, None))
-    n_layer: int = F(3, "hindsight encoder layers", range=(1, None))
+    n_layer: int = F(3, "hindsight encoder layers", range=(1, MAX_LAYERS))
     n_head: int = F(4, "hindsight encoder heads", range=(1, None))
     dropout: float = F(0.1, "hindsight encoder dropout", range=(0.0, 0.9))
     decoder_hidden: tuple[int, ...] = F((512, 512), "decoder MLP hidden sizes")
@@ -850,8 +856,15 @@ def field_info(key: str) -> tuple[Any, dict]:
         f = _fields(ExperimentConfig)[parts[0]]
     else:
         f = _fields(_STAGES[parts[0]])[parts[1]]
-    hints = typing.get_type_hints(_STAGES[parts[0]] if len(parts) > 1 else ExperimentConfig)
-    return hints[parts[-1]], dict(f.metadata)
+    return _hints(_STAGES[parts[0]] if len(parts) > 1 else ExperimentConfig)[parts[-1]], dict(f.metadata)
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    """``typing.get_type_hints(cls)``, once per class: it evaluates every annotation string anew,
+    ~95 % of a :func:`resolve` (13 ms of 14) before it was cached, which bounds how many trials a
+    sweep can check."""
+    return typing.get_type_hints(cls)
 
 
 def to_flat(cfg: ExperimentConfig) -> dict[str, Any]:
@@ -919,58 +932,101 @@ def _to_int(value: Any) -> int:
     return int(value)
 
 
+MAX_STR = 4096
+"""Longest string value (paths, names): PATH_MAX on Linux."""
+FLOAT32_MAX = 3.4028234663852886e38
+"""Largest float32: JAX computes in float32, where a larger config value is already inf."""
+_SHOWN = 60
+
+
+def shown(value: Any) -> str:
+    """``repr(value)`` for an error line, cut to about 60 characters (a value may be megabytes)."""
+    text = repr(value)
+    return text if len(text) <= _SHOWN else f"{text[: _SHOWN - 15]}... ({len(text)} characters)"
+
+
+def _coerce_tuple(key: str, tp: Any, value: Any) -> tuple:
+    inner = typing.get_args(tp)[0]
+    if isinstance(value, str):
+        text = value.strip().strip("()[]")
+        value = [v for v in (p.strip() for p in text.split(",")) if v]
+    if not isinstance(value, (list, tuple)):
+        raise ValueError
+    if len(value) > MAX_LAYERS:
+        raise SpotError(f"config key '{key}': {len(value)} layer sizes; expected at most {MAX_LAYERS}")
+    out = tuple(_to_int(v) if inner is int else inner(v) for v in value)
+    if inner is int and (not out or min(out) < 1 or max(out) > MAX_INT):
+        raise SpotError(
+            f"config key '{key}': value {shown(value)}: expected one or more layer sizes, each 1 <= size <= {MAX_INT}"
+        )
+    return out
+
+
+def _coerce_bool(value: Any) -> bool:
+    if isinstance(value, str):
+        if value.lower() in ("true", "1", "yes", "on"):
+            return True
+        if value.lower() in ("false", "0", "no", "off"):
+            return False
+        raise ValueError
+    if isinstance(value, (bool, int)) and value in (0, 1):
+        return bool(value)
+    raise ValueError
+
+
+def _coerce_float(key: str, value: Any) -> float:
+    if isinstance(value, bool):
+        raise ValueError
+    out = float(value)
+    if not math.isfinite(out):
+        raise SpotError(f"config key '{key}': value {shown(value)} is not a finite number")
+    if abs(out) > FLOAT32_MAX:
+        raise SpotError(
+            f"config key '{key}': value {shown(value)} is beyond float32 (|value| <= {FLOAT32_MAX:.4g}); "
+            "JAX computes in float32, where it is inf"
+        )
+    return out
+
+
+def _coerce_str(key: str, value: Any) -> str:
+    if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+        raise ValueError
+    out = str(value)
+    if len(out) > MAX_STR:
+        raise SpotError(f"config key '{key}': a string of {len(out)} characters; expected at most {MAX_STR}")
+    bad = next((c for c in out if ord(c) < 32 or ord(c) == 127), None)
+    if bad is not None:
+        raise SpotError(
+            f"config key '{key}': value {shown(out)} holds the control character {bad!r}; expected printable text"
+        )
+    return out
+
+
 def _coerce(key: str, value: Any) -> Any:
     """Convert ``value`` to the field's type (strings from the CLI or MLflow included) and validate."""
     tp, meta = field_info(key)
     origin = typing.get_origin(tp)
     try:
         if origin is tuple:
-            inner = typing.get_args(tp)[0]
-            if isinstance(value, str):
-                text = value.strip().strip("()[]")
-                value = [v for v in (p.strip() for p in text.split(",")) if v]
-            if not isinstance(value, (list, tuple)):
-                raise ValueError
-            out = tuple(_to_int(v) if inner is int else inner(v) for v in value)
-            if inner is int and (not out or min(out) < 1 or max(out) > MAX_INT):
-                raise SpotError(
-                    f"config key '{key}': value {value!r}: expected one or more layer sizes, "
-                    f"each 1 <= size <= {MAX_INT}"
-                )
+            out = _coerce_tuple(key, tp, value)
         elif tp is bool:
-            if isinstance(value, str):
-                if value.lower() in ("true", "1", "yes", "on"):
-                    out = True
-                elif value.lower() in ("false", "0", "no", "off"):
-                    out = False
-                else:
-                    raise ValueError
-            elif isinstance(value, (bool, int)) and value in (0, 1):
-                out = bool(value)
-            else:
-                raise ValueError
+            out = _coerce_bool(value)
         elif tp is int:
             out = _to_int(value)
         elif tp is float:
-            if isinstance(value, bool):
-                raise ValueError
-            out = float(value)
-            if not math.isfinite(out):
-                raise SpotError(f"config key '{key}': value {value!r} is not a finite number")
+            out = _coerce_float(key, value)
         elif tp is str:
-            if not isinstance(value, (str, int, float)) or isinstance(value, bool):
-                raise ValueError
-            out = str(value)
+            out = _coerce_str(key, value)
         else:  # pragma: no cover - every field has one of the types above
             raise TypeError(f"unsupported field type {tp}")
     except (ValueError, TypeError, OverflowError):
         expected = f"a tuple of {_type_name(typing.get_args(tp)[0])}" if origin is tuple else _type_name(tp)
-        raise SpotError(f"config key '{key}': value {value!r} is not {expected}") from None
+        raise SpotError(f"config key '{key}': value {shown(value)} is not {expected}") from None
     choices = _REGISTERED_CHOICES[key]() if key in _REGISTERED_CHOICES else meta.get("choices")
     if choices and out not in choices:
-        raise SpotError(f"config key '{key}': value {out!r} is not one of {', '.join(map(repr, choices))}")
+        raise SpotError(f"config key '{key}': value {shown(out)} is not one of {', '.join(map(repr, choices))}")
     if tp is int and abs(out) > MAX_INT:
-        raise SpotError(f"config key '{key}': value {value!r} is too large; expected at most {MAX_INT}")
+        raise SpotError(f"config key '{key}': value {shown(value)} is too large; expected at most {MAX_INT}")
     rng = meta.get("range")
     if rng is not None:
         lo, hi = rng
@@ -1004,9 +1060,20 @@ MAX_YAML_BYTES = 1 << 20
 """Largest YAML file (run config, sweep file) spot reads."""
 
 
+MAX_YAML_DEPTH = 16
+"""Deepest nesting of mappings and lists in a YAML file or override value (a sweep file's
+``smoke: {grid: {iql: {hidden: [[64, 64]]}}}`` is 6 deep, its root mapping included). PyYAML
+composes nodes recursively, so a 10,000-deep ``[[[...]]]`` (20 KB) would end in a RecursionError."""
+
+
+class TooDeep(yaml.composer.ComposerError):
+    """A YAML document nested deeper than :data:`MAX_YAML_DEPTH`."""
+
+
 class StrictLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that refuses aliases (``*name``: an alias bomb expands a few lines into
-    billions of keys) and duplicate mapping keys (PyYAML silently keeps the last one)."""
+    billions of keys), duplicate mapping keys (PyYAML silently keeps the last one) and nesting
+    deeper than :data:`MAX_YAML_DEPTH`."""
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
@@ -1017,7 +1084,21 @@ class StrictLoader(yaml.SafeLoader):
                 f"alias '*{event.anchor}' found: spot's YAML files take no aliases; write the value out",
                 event.start_mark,
             )
-        return super().compose_node(parent, index)
+        if not self.check_event(yaml.MappingStartEvent, yaml.SequenceStartEvent):
+            return super().compose_node(parent, index)  # a scalar: no deeper
+        depth = getattr(self, "_depth", 0)
+        if depth >= MAX_YAML_DEPTH:
+            raise TooDeep(
+                None,
+                None,
+                f"nested deeper than {MAX_YAML_DEPTH} levels; expected at most {MAX_YAML_DEPTH}",
+                self.peek_event().start_mark,
+            )
+        self._depth = depth + 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth = depth
 
     def construct_mapping(self, node: Any, deep: bool = False) -> Any:
         if isinstance(node, yaml.MappingNode):
@@ -1043,7 +1124,11 @@ def read_yaml(path: str | Path, where: str) -> Any:
     if size > MAX_YAML_BYTES:
         raise SpotError(f"{where}: {size} bytes; expected a YAML file of at most {MAX_YAML_BYTES} bytes")
     try:
-        text = path.read_bytes().decode("utf-8")
+        with path.open("rb") as fh:
+            raw = fh.read(MAX_YAML_BYTES + 1)  # bounded: the file may grow after the stat
+        if len(raw) > MAX_YAML_BYTES:
+            raise SpotError(f"{where}: grew past {MAX_YAML_BYTES} bytes while read; expected a YAML file at most that")
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
         raise SpotError(f"{where}: not UTF-8 text (byte {e.start}); save it as UTF-8") from None
     except OSError as e:
@@ -1052,6 +1137,8 @@ def read_yaml(path: str | Path, where: str) -> Any:
         return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as e:
         raise SpotError(f"{where}: not valid YAML: {yaml_problem(e)}") from None
+    except ValueError as e:  # PyYAML's int(): an integer of more than 4300 digits
+        raise SpotError(f"{where}: not valid YAML: {str(e).split(';')[0]}") from None
 
 
 def yaml_problem(error: yaml.YAMLError) -> str:
@@ -1079,7 +1166,9 @@ def parse_overrides(items: list[str] | tuple[str, ...]) -> dict[str, Any]:
         key, text = item.split("=", 1)
         try:
             value = yaml.load(text, Loader=StrictLoader) if text.strip() else ""  # noqa: S506
-        except yaml.YAMLError:
+        except TooDeep as e:
+            raise SpotError(f"override '{key.strip()}': value {yaml_problem(e)}") from None
+        except (yaml.YAMLError, ValueError):  # ValueError: an integer of more than 4300 digits
             value = text
         flat[key.strip()] = value if value is not None else ""
     return _check_keys(flat, "override")
@@ -1142,7 +1231,146 @@ def check(cfg: ExperimentConfig) -> ExperimentConfig:
         f"labels.segment_length={cfg.labels.segment_length} exceeds hpl.seq_len={cfg.hpl.seq_len}: "
         f"HPL's hindsight encoder sees at most hpl.seq_len steps",
     )
+    _check_shapes(cfg)
+    check_memory(cfg)
     return cfg
+
+
+def _check_shapes(cfg: ExperimentConfig) -> None:
+    """Model shapes that cannot work: attention heads that do not divide the width, a held-out
+    split that leaves no training query."""
+    kind = cfg.reward.kind
+    for stage, used in (("pt", kind == "pt"), ("hpl", kind == "hpl")):
+        width, heads = getattr(cfg, stage).embd_dim, getattr(cfg, stage).n_head
+        _rule(
+            not used or width % heads == 0,
+            f"{stage}.embd_dim={width} is not divisible by {stage}.n_head={heads}; expected a width that splits "
+            f"into equal heads (a multiple of {stage}.n_head)",
+        )
+    lc, q = cfg.labels, cfg.labels.num_queries
+    n_eval = max(round(lc.eval_fraction * q), 1) if lc.eval_fraction > 0 else 0
+    _rule(
+        kind == "none" or lc.source != "script" or lc.eval_split != "holdout" or n_eval < q,
+        f"labels.eval_fraction={lc.eval_fraction} of labels.num_queries={q} holds out {n_eval} queries and leaves "
+        f"none for training; expected more queries or labels.eval_fraction=0",
+    )
+
+
+# --------------------------------------------------------------------------- memory before allocating
+def _mlp(hidden: tuple[int, ...], d_in: int = 1, d_out: int = 1) -> int:
+    """Parameters of an MLP ``d_in -> hidden -> d_out`` (weights and biases)."""
+    sizes = (d_in, *hidden, d_out)
+    return sum((a + 1) * b for a, b in zip(sizes[:-1], sizes[1:], strict=False))
+
+
+def _micro_batch(batch_size: int, micro: int = 64) -> int:
+    """Pairs per gradient-accumulation micro-batch of the MR/PT trainer (the rule of
+    :func:`spot.reward.train.micro_batches`, which this layer cannot import): the activations a
+    step keeps are one micro-batch's."""
+    n = max(1, batch_size // micro)
+    while batch_size % n:
+        n -= 1
+    return batch_size // n
+
+
+def _transformer(width: int, layers: int, positions: int) -> int:
+    """Parameters of a GPT-2 stack of ``layers`` blocks (attention 4 D^2, MLP 8 D^2) and a
+    position/timestep table, weights only."""
+    return layers * 12 * width * width + positions * width
+
+
+def memory_needs(cfg: ExperimentConfig) -> dict[str, tuple[int, str]]:
+    """A lower bound of the bytes each training stage of ``cfg`` allocates for its main arrays,
+    with the keys that size them: ``{stage: (bytes, "key=value, ...")}``.
+
+    Counted: float32 parameters with Adam's two moments (x3), and the largest activations a
+    gradient step keeps (attention weights ``batch x heads x tokens^2``, hidden layers ``batch x
+    width``). Input and output sizes count as 1 and the dataset is not counted, so every stage
+    needs at least this much; the stages run one after another, so a run needs at least the
+    largest."""
+    kind, iql, out = cfg.reward.kind, cfg.iql, {}
+    act = 2 if cfg.pt.dtype == "bfloat16" else 4
+    nets = 4 * _mlp(iql.hidden)  # actor, two critics, value (+ two target critics, not counted)
+    rows = iql.batch_size + (2 * cfg.ipl.feedback_batch * cfg.ipl.subsample if kind == "ipl" else 0)
+    out["policy"] = (
+        12 * nets + 4 * 4 * rows * sum(iql.hidden),
+        f"iql.hidden={iql.hidden}, iql.batch_size={iql.batch_size}",
+    )
+    tokens, pairs = 2 * cfg.labels.segment_length, 2 * _micro_batch(cfg.reward.batch_size)
+    if kind == "pt":
+        pt = cfg.pt
+        params = _transformer(pt.embd_dim, pt.n_layer, pt.max_timestep + 1) + pt.embd_dim * (2 * pt.pref_attn_dim + 1)
+        # per block at least the queries of the last (the state tokens): heads x T x 2T weights, T x 4D MLP
+        attn = pt.n_layer * pairs * (pt.n_head * tokens * tokens // 2 + tokens // 2 * 4 * pt.embd_dim) * act
+        out["reward"] = (
+            12 * params + attn,
+            f"pt.embd_dim={pt.embd_dim}, pt.n_layer={pt.n_layer}, pt.n_head={pt.n_head}, pt.max_timestep="
+            f"{pt.max_timestep}, reward.batch_size={cfg.reward.batch_size}, labels.segment_length="
+            f"{cfg.labels.segment_length}",
+        )
+        window = 2 * cfg.relabel.window  # tokens; sliding computes one query in the last block
+        queries = window // 2 if cfg.relabel.mode == "chunked" else 1
+        out["relabel"] = (
+            4 * params + cfg.relabel.batch_size * pt.n_head * queries * window * act,
+            f"relabel.batch_size={cfg.relabel.batch_size}, relabel.window={cfg.relabel.window}, pt.n_head={pt.n_head}",
+        )
+    if kind == "mr":
+        out["reward"] = (
+            12 * _mlp(cfg.mr.hidden) + 4 * pairs * cfg.labels.segment_length * sum(cfg.mr.hidden),
+            f"mr.hidden={cfg.mr.hidden}, reward.batch_size={cfg.reward.batch_size}, "
+            f"labels.segment_length={cfg.labels.segment_length}",
+        )
+    if kind == "pt" and (cfg.shaping.kind != "none" or cfg.subgoal.diagnostics):
+        cv = cfg.cvae
+        out["cvae"] = (
+            12 * 3 * _mlp(cv.hidden) + 4 * 3 * cv.batch_size * sum(cv.hidden),
+            f"cvae.hidden={cv.hidden}, cvae.batch_size={cv.batch_size}",
+        )
+    if kind == "hpl":
+        out["reward"] = _hpl_needs(cfg.hpl)
+    return out
+
+
+def _hpl_needs(h: HPLConfig) -> tuple[int, str]:
+    z = h.latent_groups * h.latent_classes
+    params = (
+        _transformer(h.embd_dim, h.n_layer, h.seq_len)
+        + _mlp(h.decoder_hidden, h.decoder_embd)
+        + _mlp(h.prior_hidden, 1, z)
+        + _mlp(h.reward_hidden, z + 1)
+    )
+    acts = h.n_layer * h.vae_batch * (h.n_head * h.seq_len * h.seq_len + h.seq_len * 4 * h.embd_dim)
+    acts += h.prior_samples * h.extra_batch * sum(h.reward_hidden)
+    return (
+        12 * params + 4 * acts,
+        f"hpl.embd_dim={h.embd_dim}, hpl.n_layer={h.n_layer}, hpl.seq_len={h.seq_len}, hpl.vae_batch={h.vae_batch}, "
+        f"hpl.prior_samples={h.prior_samples}, hpl.extra_batch={h.extra_batch}",
+    )
+
+
+@functools.cache
+def memory_bytes() -> int:
+    """This machine's physical memory (not what is free now: a check that depended on other
+    processes' use would refuse a sweep's later trials while its earlier ones run)."""
+    import psutil
+
+    return int(psutil.virtual_memory().total)
+
+
+def _gib(n: float) -> str:
+    return f"{n / 2**30:,.1f} GiB"
+
+
+def check_memory(cfg: ExperimentConfig, available: int | None = None) -> None:
+    """Refuse a config whose largest stage (:func:`memory_needs`, a lower bound) needs more than
+    ``available`` bytes (default :func:`memory_bytes`), naming the stage and the keys that size it."""
+    available = memory_bytes() if available is None else available
+    stage, (need, keys) = max(memory_needs(cfg).items(), key=lambda item: item[1][0])
+    _rule(
+        need <= available,
+        f"the {stage} stage needs at least {_gib(need)} for its parameters and activations ({keys}), more than "
+        f"this machine's {_gib(available)} of memory; expected smaller sizes",
+    )
 
 
 def resolve(*layers: dict[str, Any]) -> ExperimentConfig:

@@ -26,6 +26,7 @@ process traces and compiles nothing (``chunk._cache_size()`` stays 1).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -160,6 +161,60 @@ def check_finite(metrics: Mapping[str, Any], step: int, names: Sequence[str] | N
             if bad.size:
                 raise NonFiniteError(step, name, float(bad.ravel()[0]))
     return host
+
+
+# The config keys that scale each learner's losses, most likely culprit first: a loss that overflows
+# to NaN/inf names them with their values (:func:`name_keys`). Keyed by the loss name's prefix.
+NONFINITE_KEYS: dict[str, tuple[str, ...]] = {
+    "iql/": ("iql.lr", "iql.temperature", "iql.discount", "relabel.scale", "shaping.weight"),
+    "ipl/": ("iql.lr", "iql.temperature", "iql.discount", "ipl.chi2_coeff"),
+    "cvae/": ("cvae.lr", "cvae.beta"),
+    "hpl/": ("hpl.lr", "hpl.kl_coef", "hpl.reg_coef"),
+    "reward/pt": ("pt.lr", "pt.peak_factor", "pt.b2"),  # reward/ losses of reward.kind=pt
+    "reward/mr": ("mr.lr",),
+}
+
+
+def suspect_keys(loss_name: str, cfg: Any) -> list[tuple[str, Any, Any]]:
+    """``[(dotted key, value, default)]`` of the config keys that scale ``loss_name``
+    (:data:`NONFINITE_KEYS`), read from ``cfg`` (a :class:`spot.config.ExperimentConfig`; this layer
+    only reads attributes), the values furthest from their defaults first (by orders of magnitude;
+    a key whose default is 0 and value is not counts as furthest)."""
+    prefix = loss_name.split("/", 1)[0] + "/"
+    if prefix == "reward/":
+        prefix += str(getattr(getattr(cfg, "reward", None), "kind", ""))
+    out = []
+    for key in NONFINITE_KEYS.get(prefix, ()):
+        stage, sub = key.split(".")
+        section = getattr(cfg, stage, None)
+        value = getattr(section, sub, None)
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            defaults = (
+                {f.name: f.default for f in dataclasses.fields(section)} if dataclasses.is_dataclass(section) else {}
+            )
+            out.append((key, value, defaults.get(sub, value)))
+    return sorted(out, key=lambda kvd: -_distance(kvd[1], kvd[2]))
+
+
+def _distance(value: float, default: Any) -> float:
+    """Orders of magnitude between a value and its default."""
+    if not isinstance(default, (int, float)) or value == default:
+        return 0.0
+    if value == 0 or default == 0:
+        return math.inf
+    return abs(math.log10(abs(value) / abs(default)))
+
+
+def name_keys(error: NonFiniteError, cfg: Any) -> NonFiniteError:
+    """Add to ``error``'s message the config keys that scale its loss and their values, the values
+    furthest from their defaults first (once), so that a run failed by an overflow says which
+    settings to look at; returns ``error``."""
+    if getattr(error, "suspects", None) is None:
+        error.suspects = suspect_keys(error.loss_name, cfg)
+        if error.suspects:
+            keys = ", ".join(f"{k}={v!r}" + (f" (default {d!r})" if v != d else "") for k, v, d in error.suspects)
+            error.args = (f"{error.args[0] if error.args else error}; the config keys that scale this loss: {keys}",)
+    return error
 
 
 def _chunk_row(metrics: dict[str, np.ndarray], done: int, n: int, losses: Mapping[str, str] | None) -> dict[str, Any]:

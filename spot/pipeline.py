@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from spot import stages
+from spot import NonFiniteError, loop, stages
 from spot.config import ExperimentConfig
 from spot.stages import Context
 from spot.tracking import Tracker, record
@@ -50,6 +50,9 @@ def run(
             labelled, shaped = before_policy(ctx, kind)
             policy = ctx.stage("iql", kind.policy, shaped, labelled)
             return stages.finish(ctx, policy, t_start)
+        except NonFiniteError as e:  # name the keys that scale the loss, in the message and failure_reason
+            loop.name_keys(e, cfg)
+            raise
         finally:
             record.remove_run_temp(ctx.artifacts)  # its files were logged to the run
 

@@ -66,8 +66,8 @@ def _write(tmp_path: Path, text: str, name: str = "s.yaml") -> Path:
             r"trial shaping.weight=2.0: config key 'shaping.weight': value 2.0 is out of range",
         ),
         (
-            "zip: {data.name: [hopper-medium-replay, hoper-medium], labels.num_queries: [1, 2]}\n",
-            r"trial data.name=hoper-medium labels.num_queries=2: unknown dataset 'hoper-medium'",
+            "zip: {data.name: [hopper-medium-replay, hoper-medium], labels.num_queries: [10, 20]}\n",
+            r"trial data.name=hoper-medium labels.num_queries=20: unknown dataset 'hoper-medium'",
         ),
         ("zip: {method: [pt, pt], labels.num_queries: [5, 5]}\n", r"trial method=pt labels.num_queries=5 occurs twice"),
     ],

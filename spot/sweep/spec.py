@@ -10,11 +10,14 @@ are flattened and their keys checked by the config's own :func:`spot.config.flat
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import hashlib
 import itertools
 import json
+import math
 import re
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,6 +44,14 @@ SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
 RESERVED_KEYS = ("seed", "tracking.uri", "tracking.experiment", "tracking.record")
+MAX_RUNS = 10_000
+"""Most (config, seed) runs a sweep file may expand to: each config is resolved and checked before
+anything starts (about 1 ms each), and each run is an MLflow run; a larger grid is refused with its
+size before it is expanded. Split a larger study into several sweep files."""
+PROGRESS_FROM = 500
+"""Configs from which checking them shows a progress bar (on a terminal's standard error)."""
+MAX_NAME = 200
+"""Longest sweep name (the MLflow experiment's)."""
 
 
 # --------------------------------------------------------------------------- keys and tags
@@ -220,8 +231,9 @@ def _resources(value: Any, where: str) -> dict[str, float]:
     _check_known(value, RESOURCE_KEYS, where, "resources.")
     out = {"cpu": 1.0, "gpu": 0.0}
     for key, v in value.items():
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or v < 0:
-            raise _err(where, f"resources.{key}", f"expected a non-negative number, got {v!r}")
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or v < 0:
+            # NaN passes every comparison: Ray then waits for resources no node has, for ever
+            raise _err(where, f"resources.{key}", f"expected a finite non-negative number, got {config_lib.shown(v)}")
         out[key] = float(v)
     if out["cpu"] <= 0:
         raise _err(where, "resources.cpu", "must be > 0")
@@ -271,7 +283,9 @@ def _fields(data: dict[str, Any], where: str) -> dict[str, Any]:
     """The full (non-smoke) sweep: the :class:`Sweep` fields but path and smoke."""
     name = data.get("name")
     if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", name):
-        raise _err(where, "name", f"expected letters, digits, '_', '.', '-', got {name!r}")
+        raise _err(where, "name", f"expected letters, digits, '_', '.', '-', got {config_lib.shown(name)}")
+    if len(name) > MAX_NAME:
+        raise _err(where, "name", f"{len(name)} characters; expected at most {MAX_NAME}")
     seed_mode = data.get("seed_mode", "trials")
     if seed_mode not in SEED_MODES:
         raise _err(where, "seed_mode", f"expected one of {', '.join(SEED_MODES)}, got {seed_mode!r}")
@@ -342,7 +356,26 @@ def _check_axes(fields: dict[str, Any], where: str) -> None:
             raise _err(where, f"base.{key}", "is also an axis; give it in one place")
 
 
-def _check_trial(trial: Trial, where: str) -> None:
+def _check_size(fields: dict[str, Any], where: str) -> None:
+    """Refuse, before expanding it, a sweep of more than :data:`MAX_RUNS` (config, seed) runs,
+    naming its size and the longest axis."""
+    axes = {f"grid.{k}": len(v) for k, v in fields["grid"].items()}
+    n_zip = len(next(iter(fields["zip"].values()))) if fields["zip"] else 1
+    runs = math.prod(axes.values()) * n_zip * len(fields["seeds"])
+    if runs <= MAX_RUNS:
+        return
+    axes.update({"zip": n_zip, "seeds": len(fields["seeds"])})
+    longest = max(axes, key=axes.__getitem__)
+    factors = " x ".join(f"{n:,} ({k})" for k, n in axes.items())
+    raise _err(
+        where,
+        longest,
+        f"the sweep expands to {runs:,} runs = {factors}; expected at most {MAX_RUNS:,} "
+        "(spot.sweep.spec.MAX_RUNS): split it into several sweep files",
+    )
+
+
+def _check_trial(trial: Trial, where: str) -> config_lib.ExperimentConfig:
     """Resolve the trial's config (and check its dataset name) or raise naming the trial."""
     from spot.data import registry
 
@@ -359,24 +392,57 @@ def _check_trial(trial: Trial, where: str) -> None:
             multiseed.check([cfg])
     except SpotError as e:
         raise SpotError(f"{where}: trial {trial.label}: {e}") from None
+    return cfg
 
 
-def _check_trials(sweep: Sweep, where: str) -> None:
+def _identity(cfg: config_lib.ExperimentConfig) -> config_lib.ExperimentConfig:
+    """What makes two resolved configs the same run: the config, with a registry dataset under its
+    canonical name (``hopper-medium-replay-v2`` is ``hopper-medium-replay``)."""
+    from spot.data import registry
+
+    name = cfg.data.name
+    if cfg.data.source != "file" and not Path(name).exists():
+        name = registry.canonical(name)
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, name=name))
+
+
+def _check_trials(sweep: Sweep, where: str, progress: bool | None = None) -> None:
+    """Resolve every config; refuse one that repeats another, as written or once resolved (``1e3``
+    and ``1000``, ``[64, 64]`` and ``"64, 64"``, a ``-v2`` dataset name). ``progress``: a bar on
+    standard error (None: for :data:`PROGRESS_FROM` configs or more, on a terminal)."""
+    from tqdm.auto import tqdm
+
+    configs = sweep.configs()
     seen: set[str] = set()
-    for axes in sweep.configs():
-        trial = Trial(axes, {**sweep.base, **axes}, sweep.seeds, sweep.seed_mode == "vmap")
-        key = config_key(trial.overrides)
-        if key in seen:
-            raise SpotError(f"{where}: trial {trial.label} occurs twice (repeated zip row)")
-        seen.add(key)
-        _check_trial(trial, where)
+    resolved: dict[config_lib.ExperimentConfig, str] = {}
+    disable = (None if len(configs) >= PROGRESS_FROM else True) if progress is None else not progress
+    bar = tqdm(
+        configs, desc=f"checking {sweep.path.name}", unit="config", file=sys.stderr, leave=False, disable=disable
+    )
+    with bar:
+        for axes in bar:
+            trial = Trial(axes, {**sweep.base, **axes}, sweep.seeds, sweep.seed_mode == "vmap")
+            key = config_key(trial.overrides)
+            if key in seen:
+                raise SpotError(f"{where}: trial {trial.label} occurs twice (repeated zip row)")
+            seen.add(key)
+            same = _identity(_check_trial(trial, where))
+            written = " ".join(f"{k}={config_lib.shown(v)}" for k, v in axes.items()) or "(base)"
+            if same in resolved:
+                raise SpotError(
+                    f"{where}: trials {resolved[same]} and {written} resolve to the same config; expected "
+                    "grid points and zip rows that differ once resolved (1e3 is 1000, '64, 64' is [64, 64])"
+                )
+            resolved[same] = written
 
 
-def load(path: str | Path, *, smoke: bool = False) -> Sweep:
+def load(path: str | Path, *, smoke: bool = False, progress: bool | None = None) -> Sweep:
     """Read and validate a sweep file; with ``smoke`` apply its ``smoke:`` block.
 
-    Raises SpotError naming the file and key for format errors, and the trial's axis values for a
-    config that does not resolve.
+    Raises SpotError naming the file and key for format errors, a sweep of more than
+    :data:`MAX_RUNS` runs (before expanding it), the trial's axis values for a config that does not
+    resolve, and both trials' for two that resolve to the same config. ``progress``: see
+    :func:`_check_trials`.
     """
     path = Path(path)
     where = f"sweep file '{path}'"
@@ -388,6 +454,7 @@ def load(path: str | Path, *, smoke: bool = False) -> Sweep:
     if not smoke:
         fields = full
     _check_axes(fields, where)
+    _check_size(fields, where)
     sweep = Sweep(path=path, smoke=smoke, **fields)
-    _check_trials(sweep, where)
+    _check_trials(sweep, where, progress)
     return sweep
