@@ -273,7 +273,7 @@ def sac_step_parts(env: str, cfg: Any, capacity: int, chunks: int, acts: int) ->
     import jax.numpy as jnp
 
     from spot import envs, loop
-    from spot.policy import sac
+    from spot.recipes import sac
     from spot.recipes.locomotion import ENV_IDS
 
     gym_env = sac.make_env(ENV_IDS[env], cfg, **dict(envs.locomotion_make_kwargs(env)))

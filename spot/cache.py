@@ -49,6 +49,8 @@ from typing import Any
 
 import numpy as np
 
+from spot import runtime
+
 FORMAT = 2  # the entry format; part of every key (format 1 was pickles)
 MAX_DEPTH = 64  # nesting of a stored tree (a run's networks and histories: under 10)
 PACKAGE = "spot"
@@ -62,7 +64,8 @@ class EntryError(ValueError):
 
 
 def cache_dir() -> Path:
-    return Path(os.environ.get("SPOT_CACHE_DIR", Path.home() / ".cache" / "spot" / "stages")).expanduser()
+    """The stage cache's folder (defined in :mod:`spot.runtime`, which sets JAX's cache beneath it)."""
+    return runtime.cache_dir()
 
 
 # --------------------------------------------------------------------------- code versions
@@ -352,8 +355,6 @@ def key(stage: str, deps: Mapping[str, Any], code: str) -> str:
     Under ``SPOT_FAST_COMPILE`` (:mod:`spot.runtime`: XLA's optimisations off, which rounds
     differently) the key also says so: a smoke run's entries never stand in for a normal run's.
     """
-    from spot import runtime
-
     fields = {"stage": stage, "format": FORMAT, "code": code, "deps": _canonical(deps)}
     if runtime.fast_compile():
         fields["xla"] = "fast_compile"  # only then: every other key stays what it was

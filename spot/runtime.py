@@ -65,13 +65,16 @@ _CACHE_VARS = {
 }
 
 
+def cache_dir() -> Path:
+    """The stage cache's folder: ``$SPOT_CACHE_DIR``, default ``~/.cache/spot/stages`` (:mod:`spot.cache`)."""
+    return Path(os.environ.get("SPOT_CACHE_DIR", Path.home() / ".cache" / "spot" / "stages")).expanduser()
+
+
 def jax_cache_dir() -> Path:
     """``$SPOT_CACHE_DIR/jax/jax-<version>`` (``SPOT_CACHE_DIR`` defaults to ``~/.cache/spot/stages``)."""
     from importlib.metadata import version
 
-    from spot import cache
-
-    return cache.cache_dir() / "jax" / f"jax-{version('jax')}"
+    return cache_dir() / "jax" / f"jax-{version('jax')}"
 
 
 def compilation_cache_settings() -> dict[str, str]:

@@ -391,7 +391,7 @@ def test_a_full_disk_writing_a_dataset_and_its_card(tmp_path, full_disk):
 
 
 def test_a_full_disk_writing_the_sac_cache(tmp_path, full_disk):
-    from spot.policy import sac
+    from spot.recipes import sac
     from spot.recipes import locomotion
 
     path = tmp_path / "sac" / "Hopper-v5__tiny__seed0__abc.msgpack"

@@ -786,7 +786,7 @@ def test_stale_temp_files_of_dead_processes_are_removed(data_dir, monkeypatch):
 def _sac_result(steps: int = 3):
     import numpy as np
 
-    from spot.policy import sac
+    from spot.recipes import sac
 
     cfg = sac.SACConfig()
     snaps = [sac.Snapshot(i, float(i), 0.5, {"w": np.full((2, 2), i, np.float32)}) for i in range(steps)]
@@ -798,7 +798,7 @@ def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_dama
     """The SAC cache file keeps its name and format; a .sha256 sidecar is written beside it. A file
     without one (cached before checksums) loads and gets one; a damaged file is moved aside and the
     run trained again (sac.train_sac stubbed: no simulator)."""
-    from spot.policy import sac
+    from spot.recipes import sac
     from spot.recipes import locomotion
 
     trained = []

@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 from spot import SpotError
-from spot.policy import sac
+from spot.recipes import sac
 from spot.recipes import locomotion
 
 RAW_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError
-from spot.policy import sac
+from spot.recipes import sac
 from spot.recipes import locomotion
 
 CFG = locomotion.SIZES["tiny"].sac_config("hopper")  # 3000 steps, eval every 500

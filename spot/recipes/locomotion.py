@@ -3,7 +3,7 @@ for Hopper-v5 and Walker2d-v5 (1000-step episodes).
 
 D4RL's recipe, which this module follows:
 
-1. Train SAC online (:mod:`spot.policy.sac`), saving the actor at every evaluation. At size
+1. Train SAC online (:mod:`spot.recipes.sac`), saving the actor at every evaluation. At size
    ``paper`` it trains until the deterministic evaluation return (mean of 10 episodes) reaches
    D4RL's expert level (:data:`PAPER_STOP`: Hopper 3000, Walker2d 4000; D4RL's expert references
    are 3234.3 and 4592.3), with a step cap. One training per ``(env, size, seed)`` serves all
@@ -61,13 +61,13 @@ from tqdm.auto import tqdm
 import spot
 from spot import SpotError, envs, store
 from spot.data.dataset import RawDataset, raw_from_episodes
-from spot.policy import sac
+from spot.recipes import sac
 
 RECIPE = "d4rl-sac-locomotion"
 RECIPE_VERSION = 2  # bump when a change here alters the SAC cache or the datasets
 ENV_IDS = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5"}
 KINDS = ("medium", "medium-replay", "expert", "medium-expert", "full-replay")
-_ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; SAC's evaluations use tags 1 and 4 (spot.policy.sac)
+_ROLLOUT_TAGS = {"medium": 2, "expert": 3}  # seed streams; SAC's evaluations use tags 1 and 4 (spot.recipes.sac)
 COMPOSITES: dict[str, tuple[str, ...]] = {"medium-expert": ("medium", "expert")}
 """Kinds whose rows are exactly other kinds' rows of the same size and seed, in order: the
 registry joins the built parts (:func:`join`) instead of rolling them out again."""
@@ -77,7 +77,7 @@ registry joins the built parts (:func:`join`) instead of rolling them out again.
 class StopRule:
     """When SAC stops: once ``evals`` evaluations in a row have a mean return of the ``policy``
     (``"deterministic"``: mean actions; ``"stochastic"``: sampled, as the rollouts) that reaches
-    ``target``, or at ``cap`` steps (:class:`spot.policy.sac.SACConfig`)."""
+    ``target``, or at ``cap`` steps (:class:`spot.recipes.sac.SACConfig`)."""
 
     target: float
     cap: int
