@@ -20,6 +20,11 @@ worker, in its own session (a Ctrl-C in the terminal reaches the sweep driver, w
 needs the server to mark runs), and with ``PR_SET_PDEATHSIG`` so that it also stops when the driver
 is killed with ``kill -9``. :meth:`MlflowServer.stop` sends SIGTERM (forwarded by ``mlflow server``
 to its uvicorn child) and waits.
+
+A server that dies on its own while a sweep runs (``kill -9``, out of memory) is reported by
+:meth:`MlflowServer.died` (the sweep driver polls it while Tune runs, :mod:`spot.sweep.launch`), which
+also ends what is left of the server's process group (``mlflow server`` runs uvicorn as a child,
+which would otherwise keep the port and the store).
 """
 
 from __future__ import annotations
@@ -67,6 +72,14 @@ def is_local_store(uri: str) -> bool:
     return uri.startswith(("sqlite:", "file:")) or "://" not in uri
 
 
+def _kill_group(pgid: int) -> None:
+    """SIGKILL what is left of a process group (the server leads its own session); nothing if none."""
+    try:
+        os.killpg(pgid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     try:
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
@@ -107,6 +120,7 @@ class MlflowServer:
         self._proc: subprocess.Popen[bytes] | None = None
         self.nonce = ""
         self._log_start = 0
+        self._death = ""
 
     @property
     def uri(self) -> str:
@@ -248,10 +262,37 @@ class MlflowServer:
         except (urllib.error.URLError, OSError):
             return False
 
+    @property
+    def pid(self) -> int | None:
+        """The ``mlflow server`` process's id (None before :meth:`start` and after :meth:`stop`)."""
+        proc = self._proc
+        return proc.pid if proc is not None else None
+
+    def died(self) -> str:
+        """``""`` while the server runs (or after :meth:`stop`); once it ended on its own, a sentence
+        saying so (``the MLflow server at URI (pid N) died (killed by SIGKILL)``; the same sentence
+        at every later call). What was left of its process group is killed."""
+        proc = self._proc
+        if self._death or proc is None or proc.poll() is None:
+            return self._death
+        code = proc.returncode
+        try:
+            how = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit code {code}"
+        except ValueError:
+            how = f"exit code {code}"
+        self._death = f"the MLflow server at {self.uri} (pid {proc.pid}) died ({how})"
+        _kill_group(proc.pid)
+        return self._death
+
     def stop(self, timeout: float = 30.0) -> None:
-        """SIGTERM the server and wait for it (SIGKILL after ``timeout``)."""
+        """SIGTERM the server and wait for it (SIGKILL after ``timeout``); a server that died on its
+        own has what is left of its process group killed."""
         proc, self._proc = self._proc, None
-        if proc is None or proc.poll() is not None:
+        if proc is None:
+            return
+        if proc.poll() is not None:
+            if not self._death:  # (died() has killed the group already)
+                _kill_group(proc.pid)  # its uvicorn child outlives a kill -9 of `mlflow server`
             return
         proc.terminate()
         try:

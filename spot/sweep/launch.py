@@ -5,6 +5,12 @@ through a loopback ``mlflow server`` (:mod:`spot.mlflow_server`) unless given a 
 starts Ray, creates the experiment and the parent run, runs one Tune experiment over
 :func:`spot.sweep.trial._trainable`, closes the runs it left RUNNING, and logs and prints the
 summary. ``--resume`` restores the Ray experiment recorded in ``<storage>/<experiment>.json``.
+
+Hangs and deadlines (issue 43): while Tune runs, a thread polls the MLflow server the launch started
+(:func:`_watching_server`); if it dies, the launch stops its trials as Ctrl-C does, closes the runs
+through the SQLite store itself and ends with one error naming the server. A SIGTERM's cleanup runs
+in steps, each with its own deadline and message (:func:`_sigterm_cleanup`), and closes the runs
+through the store directly when the server is gone or does not answer.
 """
 
 from __future__ import annotations
@@ -68,8 +74,11 @@ class _Store:
     get_uri: Callable[[], str]
     how_to_open: str
     wait_ready: Callable[[], None]
-    stop: Callable[[], None] = lambda: None
+    stop: Callable[..., None] = lambda timeout=30.0: None  # (the served store's: SIGKILL after timeout s)
     link_base: str = ""  # where the UI answers, for the link to the sweep's runs table
+    backend: str = ""  # the SQLite store spot serves ("" for a server given by URI)
+    died: Callable[[], str] = lambda: ""  # "" while spot's server runs; else what happened to it
+    log_path: str = ""  # the served store's server log
 
     @property
     def uri(self) -> str:
@@ -180,6 +189,9 @@ def _tracking_store(
             server.wait_ready,
             server.stop,
             link_base=tracking.ui.DEFAULT_URL,
+            backend=backend,
+            died=server.died,
+            log_path=str(server.log_path),
         )
     finally:
         server.stop()
@@ -218,7 +230,9 @@ def _init_ray(address: str | None) -> bool:
         "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
     }  # no "View run" lines in the progress view
     from spot import store as store_lib
+    from spot.tracking import limits
 
+    env_vars.update(limits.http_deadlines())  # every trial's MLflow requests have deadlines, on every node
     shared = {k: os.environ[k] for k in (store_lib.ENV_URI, store_lib.ENV_OPTIONS) if k in os.environ}
     env_vars.update(shared)  # every node reads and writes the same store
     if not (address and shared):  # with a shared store, each node of a cluster keeps its own local dirs
@@ -386,9 +400,13 @@ def _analysis_trials(exp_dir: Path) -> list[Any]:
         quiet.setLevel(level)
 
 
+_CUT_OFF = "TrackingUnreachable"  # the class name in a trial's error text (spot.tracking.limits)
+
+
 def _errored_trials(exp_dir: Path) -> tuple[int, int]:
-    """``(died, raised)``: errored trials whose process died (Ray's actor/worker/node death errors),
-    and errored trials whose own code raised."""
+    """``(died, raised)``: errored trials cut off (their process died: Ray's actor/worker/node death
+    errors; or their tracking server did not answer, :class:`spot.tracking.TrackingUnreachable`, so
+    their runs could not even be recorded), and errored trials whose own code raised."""
     from ray import exceptions
 
     kinds = tuple(
@@ -402,7 +420,7 @@ def _errored_trials(exp_dir: Path) -> tuple[int, int]:
             continue
         error = trial.get_pickled_error() or trial.get_error()
         text = str(error)
-        if isinstance(error, kinds) or "ActorDiedError" in text or "The actor died" in text:
+        if isinstance(error, kinds) or any(k in text for k in ("ActorDiedError", "The actor died", _CUT_OFF)):
             died += 1
         else:
             raised += 1
@@ -431,11 +449,13 @@ def _fit(
     retry_errored: bool,
     max_concurrent: int | None,
     run_fn: RunFn | None,
+    died: Callable[[], str] = lambda: "",
 ) -> tuple[dict[str, str], bool]:
-    """Run (or restore) the Tune experiment.
+    """Run (or restore) the Tune experiment; ``died`` tells whether the launch's MLflow server died
+    (:func:`_watching_server` stops Tune then).
 
     Returns ``{run_key: error}`` for each seed of errored trials, and whether the launch was
-    interrupted (Ctrl-C: Tune stops and returns with trials left unfinished).
+    interrupted (Ctrl-C, or the server's death: Tune stops and returns with trials left unfinished).
     """
     from ray import tune
 
@@ -453,12 +473,13 @@ def _fit(
 
     from spot import phases
 
-    with phases.CpuMeter() as cpu:  # the sweep's CPU utilisation, printed at the end
+    with phases.CpuMeter() as cpu, _watching_server(died):  # the sweep's CPU utilisation, printed at the end
         _tuner(
             sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent
         ).fit()
     with contextlib.suppress(Exception):  # a measurement: never the reason a launch fails
-        log_fit_cpu(MlflowClient(ctx.tracking_uri), ctx.parent_run_id, cpu)
+        if not died():
+            log_fit_cpu(MlflowClient(ctx.tracking_uri), ctx.parent_run_id, cpu)
     return _trial_errors(exp_dir)
 
 
@@ -612,6 +633,7 @@ class Interrupted(Exception):  # noqa: N818 - a stop, not an error
 
 
 SIGTERM_GRACE_S = 60.0  # the longest a SIGTERM's cleanup may take before the process exits anyway
+_CLEANUP = {"step": ""}  # the step of a signal's cleanup now running (:func:`_cleanup_step`), for the watchdog
 
 
 def _say(message: str) -> None:
@@ -644,11 +666,13 @@ def _on_sigterm(stop: Callable[[], None], grace_s: float = SIGTERM_GRACE_S) -> I
     def watchdog() -> None:
         armed.wait()
         if not over.wait(grace_s):  # set at once when the block ended without a signal
-            _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s; exiting")
+            step = f" (in step '{_CLEANUP['step']}')" if _CLEANUP["step"] else ""
+            _say(f"SIGTERM: cleanup still running after {grace_s:.0f} s{step}; exiting")
             os._exit(128 + signal.SIGTERM)
 
     def handler(signum: int, frame: Any) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        _CLEANUP["step"] = ""
         armed.set()
         try:
             stop()
@@ -705,6 +729,154 @@ def _kill_local_ray() -> None:
             node.kill_all_processes(check_alive=False, allow_graceful=True)
 
 
+# --------------------------------------------------------------------------- the server's death, bounded cleanup
+SERVER_POLL_S = 1.0  # how often the launch checks, while Tune runs, that its MLflow server still runs
+CLEANUP_REQUEST_S = 5  # the deadline of each MLflow request of a signal's cleanup (no retries then)
+CLEANUP_STEPS_S = {
+    "stopping the trials": 10.0,
+    "closing the runs": 25.0,
+    "stopping Ray": 10.0,
+    "stopping the MLflow server": 10.0,
+}  # each step's deadline; together below SIGTERM_GRACE_S, so the watchdog is the last resort only
+DIRECT_CLOSE_S = 10.0  # of "closing the runs": kept for closing them through the SQLite store itself
+
+
+@contextlib.contextmanager
+def _watching_server(died: Callable[[], str], poll_s: float = SERVER_POLL_S) -> Iterator[None]:
+    """While the block (Tune's ``fit``) runs, a thread checks every ``poll_s`` seconds that the
+    launch's MLflow server still runs (``died()``: "" while it does).
+
+    Once it died: one line saying so, and Tune is stopped as by Ctrl-C, with SIGUSR1, on which Tune's
+    own handler (installed by ``fit``) saves the experiment, stops the trials and returns with them
+    unfinished, so ``--resume`` runs them again. The signal is sent only while a handler is installed
+    (SIGUSR1's default action ends the process), and again every 30 s until the block ends.
+    """
+    done = threading.Event()
+
+    def watch() -> None:
+        told, sent = False, -1e9
+        while not done.wait(poll_s):
+            death = died()
+            if not death:
+                continue
+            if not told:
+                _say(f"{death}; stopping the trials, then closing their runs through the store")
+                told = True
+            if callable(signal.getsignal(signal.SIGUSR1)) and time.monotonic() - sent > 30:
+                os.kill(os.getpid(), signal.SIGUSR1)
+                sent = time.monotonic()
+
+    watcher = threading.Thread(target=watch, name="mlflow-server-watch", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        done.set()
+        watcher.join(poll_s + 5)
+
+
+def _server_died_error(store: _Store, ctx: SweepContext | None, resume_command: str) -> SpotError:
+    """The launch's one error when its MLflow server died (its runs are closed by then)."""
+    log = f" (the server's log: {store.log_path})" if store.log_path else ""
+    if ctx is None:
+        return SpotError(f"{store.died()} before the sweep's runs were opened{log}; start the launch again")
+    return SpotError(
+        f"{store.died()} while the sweep ran{log}: its trials were stopped, and the runs they left RUNNING "
+        f"and the parent run {ctx.parent_run_id} are marked KILLED in {store.backend}; to continue: {resume_command}"
+    )
+
+
+@contextlib.contextmanager
+def _server_death(store: _Store, ctx: SweepContext, resume_command: str) -> Iterator[None]:
+    """An error in the block, while the launch's MLflow server has died, becomes
+    :func:`_server_died_error`, the runs closed through the store first."""
+    try:
+        yield
+    except Exception:
+        if not store.died():
+            raise
+        _close_runs(store, ctx, store.died())
+        raise _server_died_error(store, ctx, resume_command) from None
+
+
+def _close_in(uri: str, ctx: SweepContext, reason: str, deadline: float | None) -> None:
+    """Mark the launch's RUNNING runs and its parent run (if RUNNING) KILLED in the store at ``uri``."""
+    from mlflow.tracking import MlflowClient
+
+    from spot import tracking
+    from spot.tracking import limits
+
+    mine = MlflowClient(uri)  # not the main thread's client: a signal may interrupt it
+    tags = {"sweep_id": ctx.sweep_id}
+    tracking.close_orphans(mine, ctx.experiment_id, tags, reason, keep=(ctx.parent_run_id,), deadline=deadline)
+    if deadline is not None and time.monotonic() > deadline:
+        raise TimeoutError("the deadline passed before the parent run was closed")
+    with limits.waiting_on(uri, f"closing the parent run {ctx.parent_run_id}"):
+        if mine.get_run(ctx.parent_run_id).info.status == "RUNNING":
+            mine.set_tag(ctx.parent_run_id, "failure_reason", limits.cap_reason(reason))
+            mine.set_terminated(ctx.parent_run_id, "KILLED")
+
+
+def _close_runs(store: _Store, ctx: SweepContext, reason: str, deadline: float | None = None) -> str:
+    """Close the launch's runs (:func:`_close_in`) through the server; through the SQLite store it
+    serves when the server died, or did not answer (by ``deadline`` less :data:`DIRECT_CLOSE_S`).
+
+    Returns ``""``, or where the runs were closed when that was not through the server.
+    """
+    if store.backend and store.died():
+        _close_in(store.backend, ctx, reason, None)
+        return f" in {store.backend} (the server is gone)"
+    if not store.backend:  # a server given by URI: nothing else to go through
+        _close_in(store.uri, ctx, reason, deadline)
+        return ""
+    try:
+        _close_in(store.uri, ctx, reason, None if deadline is None else deadline - DIRECT_CLOSE_S)
+        return ""
+    except Exception as e:  # noqa: BLE001 - any failure through the server: the store itself next
+        _say(f"note: closing the runs through {store.uri} failed ({type(e).__name__}: {e}); using {store.backend}")
+        _close_in(store.backend, ctx, reason, None)
+        return f" in {store.backend} (the server did not answer)"
+
+
+def _cleanup_step(name: str, fn: Callable[[float], Any]) -> None:
+    """One step of a signal's cleanup: says what it does and its deadline (:data:`CLEANUP_STEPS_S`),
+    runs ``fn(deadline)`` (a ``time.monotonic()`` value it keeps to), says how it failed or that it
+    overran; never raises."""
+    budget = CLEANUP_STEPS_S[name]
+    start = time.monotonic()
+    _CLEANUP["step"] = name
+    _say(f"SIGTERM: {name} (deadline {budget:.0f} s)")
+    try:
+        fn(start + budget)
+    except Exception as e:  # noqa: BLE001 - reported; the next step runs
+        _say(f"SIGTERM: {name} failed after {time.monotonic() - start:.1f} s: {type(e).__name__}: {e}")
+        return
+    spent = time.monotonic() - start
+    if spent > budget:
+        _say(f"SIGTERM: {name} took {spent:.1f} s, past its deadline of {budget:.0f} s")
+
+
+def _left(deadline: float) -> float:
+    return max(0.5, deadline - time.monotonic())
+
+
+def _sigterm_cleanup(store: _Store, close: Callable[[str, float], None], started_ray: bool) -> None:
+    """A SIGTERM's cleanup, in steps with their own deadlines (:func:`_cleanup_step`): stop the
+    trials, close the runs (``close(reason, deadline)``; MLflow requests get :data:`CLEANUP_REQUEST_S`
+    and no retries, and the runs go through the SQLite store itself if the server is gone or does not
+    answer), stop Ray, stop the MLflow server."""
+    from spot.tracking import limits
+
+    os.environ.update({k: "0" if "RETRIES" in k else str(CLEANUP_REQUEST_S) for k in limits.HTTP_DEADLINES})
+    _say("SIGTERM: stopping the trials, closing the runs, stopping Ray")
+    if started_ray:
+        _cleanup_step("stopping the trials", lambda until: _kill_trial_workers(_left(until)))
+    _cleanup_step("closing the runs", lambda until: close("launch stopped by SIGTERM", until))
+    if started_ray:
+        _cleanup_step("stopping Ray", lambda until: _kill_local_ray())
+    _cleanup_step("stopping the MLflow server", lambda until: store.stop(_left(until)))
+
+
 # --------------------------------------------------------------------------- the launch
 def _open_launch(
     sweep: Sweep, store: _Store, state: dict[str, Any], state_file: Path, *, resume: bool, resume_command: str
@@ -744,18 +916,15 @@ def _open_launch(
     return client, ctx
 
 
-def _close_launch(uri: str, ctx: SweepContext, reason: str, resume_command: str) -> None:
-    """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``."""
-    from mlflow.tracking import MlflowClient
-
-    from spot import tracking
-
-    mine = MlflowClient(uri)  # not the main thread's client: a signal may interrupt it
-    tracking.close_orphans(mine, ctx.experiment_id, {"sweep_id": ctx.sweep_id}, reason, keep=(ctx.parent_run_id,))
-    mine.set_tag(ctx.parent_run_id, "failure_reason", reason)
-    mine.set_terminated(ctx.parent_run_id, "KILLED")
+def _close_launch(
+    store: _Store, ctx: SweepContext, reason: str, resume_command: str, deadline: float | None = None
+) -> None:
+    """Mark the runs the launch left RUNNING, and the parent run, KILLED with ``reason``: through the
+    server, or through the SQLite store itself when spot's server is gone or does not answer
+    (:func:`_close_runs`; ``deadline``: a ``time.monotonic()`` value)."""
+    where = _close_runs(store, ctx, reason, deadline)
     _say(
-        f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED; "
+        f"{reason}: the runs it left RUNNING and its parent run {ctx.parent_run_id} are marked KILLED{where}; "
         f"to continue: {resume_command}"
     )
 
@@ -785,25 +954,14 @@ def _run_launch(
     started_ray = _init_ray(address)  # a SIGTERM while Ray starts takes Ray's own handler (exit)
     client = ctx = None
 
-    def close(reason: str) -> None:
+    def close(reason: str, deadline: float | None = None) -> None:
         if ctx is not None:
-            _close_launch(store.uri, ctx, reason, resume_command)
+            _close_launch(store, ctx, reason, resume_command, deadline)
 
-    def on_sigterm() -> None:
-        # The trials first (a SIGTERM to the driver alone leaves them running), then the runs, while
-        # the MLflow server is up (it is in its own session: a SIGTERM to the group leaves it), then Ray.
-        _say("SIGTERM: stopping the trials, closing the runs, stopping Ray")
-        try:
-            if started_ray:
-                _kill_trial_workers()
-            close("launch stopped by SIGTERM")
-        finally:
-            if started_ray:
-                _kill_local_ray()
-            store.stop()
-
+    # The trials first (a SIGTERM to the driver alone leaves them running), then the runs, while the
+    # MLflow server is up (it is in its own session: a SIGTERM to the group leaves it), then Ray.
     reason = "launch crashed"
-    with _on_sigterm(on_sigterm):
+    with _on_sigterm(lambda: _sigterm_cleanup(store, close, started_ray)):
         try:
             if run_fn is None:  # after Ray's processes are started: forking them once JAX runs here warns
                 prebuild_datasets(sweep)
@@ -816,10 +974,16 @@ def _run_launch(
                 retry_errored=retry_errored,
                 max_concurrent=max_concurrent,
                 run_fn=run_fn,
+                died=store.died,
             )
-            reason = ""
+            reason = store.died()  # "" unless the server died: Tune stopped the trials (_watching_server)
         except KeyboardInterrupt:
             reason = "launch stopped by SIGINT"
+            raise
+        except Exception:
+            if store.died():  # whatever failed, the server's death is the cause to report
+                reason = store.died()
+                raise _server_died_error(store, ctx, resume_command) from None
             raise
         finally:
             if started_ray:
@@ -828,6 +992,8 @@ def _run_launch(
                 ray.shutdown()  # every trial process is gone after this: RUNNING runs are orphans
             if reason:
                 close(reason)
+        if store.died():
+            raise _server_died_error(store, ctx, resume_command)
         tracking.close_orphans(
             client,
             ctx.experiment_id,
@@ -1053,16 +1219,10 @@ def _launch(
             resume_command=command,
         )
 
-        def on_sigterm() -> None:  # Ray is down already: end the parent run and the server
-            from mlflow.tracking import MlflowClient
+        def close(reason: str, deadline: float | None = None) -> None:  # Ray is down: the parent run, if open
+            _close_runs(store, ctx, reason, deadline)
 
-            mine = MlflowClient(store.uri)
-            if mine.get_run(ctx.parent_run_id).info.status == "RUNNING":
-                mine.set_tag(ctx.parent_run_id, "failure_reason", "launch stopped by SIGTERM")
-                mine.set_terminated(ctx.parent_run_id, "KILLED")
-            store.stop()
-
-        with _on_sigterm(on_sigterm):
+        with _on_sigterm(lambda: _sigterm_cleanup(store, close, started_ray=False)), _server_death(store, ctx, command):
             rows = summarize(sweep, client, ctx.experiment_id, ctx.sweep_id, errors)
             table = format_summary(rows, sweep.axis_keys)
             timing = breakdown_text(client, ctx.parent_run_id, rows, sweep.axis_keys)

@@ -19,6 +19,11 @@ tracking, other) and the breakdown is logged to every run the trial ran as ``tim
 ``time/trial_cpus`` (the CPUs it had) and the tags ``trial_device`` (``jax.devices()``) and
 ``trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
 ``spot bench sweep`` each trial's row (:func:`spot.sweep.summary.format_breakdown`).
+
+A trial whose tracking server stops answering (its MLflow requests have deadlines,
+:mod:`spot.tracking.limits`) ends with :class:`spot.tracking.TrackingUnreachable`, one line naming
+the server and the request, instead of a FAILED run it could not record; ``--resume`` runs such a
+trial again (it was cut off, not failed).
 """
 
 from __future__ import annotations
@@ -160,7 +165,6 @@ def _run_seed(
     run_fn: RunFn,
 ) -> dict[str, Any]:
     """Run one seed with ``run_fn``; a failure is recorded as a FAILED run and raised."""
-    from spot import tracking
 
     cfg = config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name})
 
@@ -170,7 +174,7 @@ def _run_seed(
     try:
         out = run_fn(cfg, progress=False, parent_run_id=ctx.parent_run_id, extra_tags=tags, on_eval=on_eval)
     except Exception as e:
-        tracking.record_failure(client, ctx.experiment_id, cfg, tags, e, parent_run_id=ctx.parent_run_id)
+        _record_failure(client, ctx, cfg, tags, e, seed)
         raise
     return {
         "seed": seed,
@@ -180,6 +184,23 @@ def _run_seed(
         "score_best": out["eval/score_best"],
         "run_time_s": out.get("time/total_s"),
     }
+
+
+def _record_failure(
+    client: Any, ctx: SweepContext, cfg: config_lib.ExperimentConfig, tags: dict[str, str], error: Exception, seed: int
+) -> None:
+    """Record the failed attempt as a FAILED run (:func:`spot.tracking.record_failure`), unless the
+    failure is that the tracking server did not answer: then there is nothing to record it in, and
+    the trial ends with :class:`spot.tracking.TrackingUnreachable` (also if the server stops
+    answering while the failure is recorded)."""
+    from spot import tracking
+    from spot.tracking import limits
+
+    lost = limits.unreachable(error, ctx.tracking_uri, f"running seed {seed}")
+    if lost is not None:
+        raise lost from None
+    with limits.waiting_on(ctx.tracking_uri, f"recording the failure of seed {seed}"):
+        tracking.record_failure(client, ctx.experiment_id, cfg, tags, error, parent_run_id=ctx.parent_run_id)
 
 
 def _seed_tags(overrides: dict[str, Any], key: str, ctx: SweepContext, trial_id: str) -> dict[str, str]:
@@ -207,7 +228,6 @@ def _run_vmapped(
 ) -> list[dict[str, Any]]:
     """Run the ``pending`` seeds (seed -> tags) together with ``run_fn`` (:func:`spot.multiseed.run`);
     a failure is recorded as a FAILED run for each seed and raised."""
-    from spot import tracking
 
     seeds = list(pending)
     cfgs = [config_lib.resolve(overrides, {"seed": s, "tracking.experiment": ctx.experiment_name}) for s in seeds]
@@ -225,7 +245,7 @@ def _run_vmapped(
         )
     except Exception as e:
         for cfg, seed in zip(cfgs, seeds, strict=True):
-            tracking.record_failure(client, ctx.experiment_id, cfg, pending[seed], e, parent_run_id=ctx.parent_run_id)
+            _record_failure(client, ctx, cfg, pending[seed], e, seed)
         raise
     return [
         {
@@ -385,15 +405,18 @@ def _log_breakdown(
     from mlflow.entities import Metric, RunTag
     from mlflow.tracking import MlflowClient
 
+    from spot.tracking import limits
+
     client = MlflowClient(ctx.tracking_uri)
     now = int(time.time() * 1000)
     for final in finals:
         if not final.get("skipped"):
-            client.log_batch(
-                final["run_id"],
-                metrics=[Metric(k, float(v), now, 0) for k, v in values.items()],
-                tags=[RunTag(k, v) for k, v in tags.items()],
-            )
+            with limits.waiting_on(ctx.tracking_uri, "logging the trial's time breakdown"):
+                client.log_batch(
+                    final["run_id"],
+                    metrics=[Metric(k, float(v), now, 0) for k, v in values.items()],
+                    tags=[RunTag(k, v) for k, v in tags.items()],
+                )
 
 
 def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None = None) -> None:

@@ -11,11 +11,15 @@
 * :mod:`spot.tracking.ui`: the lean ``mlflow ui`` command and links that open the runs table.
 * :mod:`spot.tracking.recorded`: runs recorded as files where no MLflow store is at hand
   (``tracking.record``), imported into one later (``spot results import``).
+* :mod:`spot.tracking.limits`: deadlines of MLflow's HTTP requests (set for spot's processes when
+  this package is imported, unless the environment sets them), one-line errors for a request that
+  got no answer, and the cap on ``failure_reason``.
 
 With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under
 ``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.mlflow_server`).
 """
 
+from spot.tracking.limits import TrackingUnreachable, failure_reason, set_http_deadlines, waiting_on
 from spot.tracking.models import MODELS_DIR, load_artifact_text, load_model, run_config, save_model
 from spot.tracking.queries import (
     artifact_uri,
@@ -63,7 +67,13 @@ from spot.tracking.store import (
 )
 from spot.tracking.ui import run_url, runs_url, sweep_url, ui_command, where_logged
 
+set_http_deadlines()  # before any MLflow request of this process (MLflow reads them at each request)
+
 __all__ = [
+    "TrackingUnreachable",
+    "failure_reason",
+    "set_http_deadlines",
+    "waiting_on",
     "COMMAND_ENV",
     "MODELS_DIR",
     "active_params",

@@ -8,6 +8,7 @@ contain, and a value holding both is refused.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from urllib.parse import urlparse
 
 from spot import SpotError
 from spot import config as config_lib
+from spot.tracking.limits import cap_reason, failure_reason, waiting_on
 from spot.tracking.record import create_run, log_params, lookup_tags, mlflow_tags, run_tags
 from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
 
@@ -47,18 +49,28 @@ def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str =
     for start in range(0, len(ids), SEARCH_EXPERIMENTS):
         token = None
         while True:
-            page = client.search_runs(
-                ids[start : start + SEARCH_EXPERIMENTS], filter_string=filter_string, max_results=PAGE, page_token=token
-            )
+            with waiting_on(_uri(client), "searching runs"):
+                page = client.search_runs(
+                    ids[start : start + SEARCH_EXPERIMENTS],
+                    filter_string=filter_string,
+                    max_results=PAGE,
+                    page_token=token,
+                )
             yield from page
             token = page.token
             if not token:
                 break
 
 
+def _uri(client: Any) -> str:
+    """The tracking URI of an MLflow client (for error messages), "" if it has none."""
+    return str(getattr(client, "tracking_uri", "") or "")
+
+
 def first_run(client: Any, experiment_id: str, tags: Mapping[str, Any], status: str | None = None) -> Any | None:
     """One run of the experiment with all ``tags`` (and ``status``), or None."""
-    found = client.search_runs([experiment_id], tag_filter(tags, status), max_results=1)
+    with waiting_on(_uri(client), "looking up a run"):
+        found = client.search_runs([experiment_id], tag_filter(tags, status), max_results=1)
     return found[0] if found else None
 
 
@@ -80,32 +92,46 @@ def record_failure(
 
     The pipeline's run already ends FAILED when the run failed after it started; this covers a
     failure before that (config, dataset), with the config params, the run tags and the
-    ``failure_reason`` tag.
+    ``failure_reason`` tag (capped, :func:`spot.tracking.limits.failure_reason`).
     """
     if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
         return None
     all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
     all_tags.update(mlflow_tags(cfg, all_tags))
-    all_tags["failure_reason"] = f"{type(error).__name__}: {error}"[:4000]
+    all_tags["failure_reason"] = failure_reason(error)
     if parent_run_id:
         all_tags["mlflow.parentRunId"] = parent_run_id
-    run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
-    log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
-    client.set_terminated(run.info.run_id, "FAILED")
+    with waiting_on(_uri(client), "recording a failed run"):
+        run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
+        log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
+        client.set_terminated(run.info.run_id, "FAILED")
     return run.info.run_id
 
 
 def close_orphans(
-    client: Any, experiment_id: str, tags: Mapping[str, Any], reason: str, keep: Sequence[str] = ()
+    client: Any,
+    experiment_id: str,
+    tags: Mapping[str, Any],
+    reason: str,
+    keep: Sequence[str] = (),
+    deadline: float | None = None,
 ) -> int:
     """Mark the runs with ``tags`` still RUNNING (their process is gone), but ``keep``, as KILLED
-    with ``failure_reason``; return how many."""
+    with ``failure_reason`` (capped); return how many.
+
+    With ``deadline`` (a ``time.monotonic()`` value), :class:`TimeoutError` once it has passed
+    before all are closed (each request is bounded by MLflow's own deadlines,
+    :mod:`spot.tracking.limits`); the runs closed so far stay closed.
+    """
     orphans = [
         r for r in search_runs(client, [experiment_id], tag_filter(tags, "RUNNING")) if r.info.run_id not in keep
     ]
-    for r in orphans:
-        client.set_tag(r.info.run_id, "failure_reason", reason)
-        client.set_terminated(r.info.run_id, "KILLED")
+    for i, r in enumerate(orphans):
+        if deadline is not None and time.monotonic() > deadline:
+            raise TimeoutError(f"closed {i} of {len(orphans)} runs left RUNNING before the deadline")
+        with waiting_on(_uri(client), f"closing run {r.info.run_id}"):
+            client.set_tag(r.info.run_id, "failure_reason", cap_reason(reason))
+            client.set_terminated(r.info.run_id, "KILLED")
     return len(orphans)
 
 

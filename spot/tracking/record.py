@@ -34,6 +34,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
 from spot import phases, runtime
+from spot.tracking.limits import failure_reason
 from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.store import experiment_id, resolve_uri
@@ -663,7 +664,7 @@ def start_run(
     except BaseException as e:
         if monitor is not None:
             monitor.stop()
-        tracker.set_tags({"failure_reason": f"{type(e).__name__}: {e}"[:4000]})
+        tracker.set_tags({"failure_reason": failure_reason(e)})
         status = "KILLED" if isinstance(e, KeyboardInterrupt) else "FAILED"
         client.set_terminated(run.info.run_id, status)
         raise

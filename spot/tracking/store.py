@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError
+from spot.tracking.limits import waiting_on
 
 RUN_STORE = Path("mlruns") / "mlflow.db"
 """``spot run``'s default store, relative to the working folder."""
@@ -144,25 +145,29 @@ def experiment_id(name: str, uri: str) -> str:
     check_server(uri)  # an http(s) server that does not answer: a clear error, not minutes of retries
     prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time
     client = MlflowClient(uri)
-    exp = client.get_experiment_by_name(name)
+    # a server that answers /health and then stalls: a clear error once the deadlines pass (limits)
+    with waiting_on(uri, f"looking up experiment {name!r}"):
+        exp = client.get_experiment_by_name(name)
     if exp is not None:
         return exp.experiment_id
     db = sqlite_path(uri)
     location = (db.parent / "artifacts").resolve().as_uri() if db is not None else None
-    try:
-        return client.create_experiment(name, artifact_location=location)
-    except Exception:  # noqa: BLE001 - created concurrently by another process
-        exp = client.get_experiment_by_name(name)
-        if exp is None:
-            raise
-        return exp.experiment_id
+    with waiting_on(uri, f"creating experiment {name!r}"):
+        try:
+            return client.create_experiment(name, artifact_location=location)
+        except Exception:  # noqa: BLE001 - created concurrently by another process
+            exp = client.get_experiment_by_name(name)
+            if exp is None:
+                raise
+            return exp.experiment_id
 
 
 def all_experiments(client: Any) -> dict[str, str]:
     """``{experiment id: name}`` of every experiment in the store (all pages)."""
     out, token = {}, None
     while True:
-        page = client.search_experiments(max_results=PAGE, page_token=token)
+        with waiting_on(getattr(client, "tracking_uri", ""), "listing the experiments"):
+            page = client.search_experiments(max_results=PAGE, page_token=token)
         out.update({e.experiment_id: e.name for e in page})
         token = page.token
         if not token:
@@ -178,7 +183,8 @@ def experiments(client: Any, names: Sequence[str] | None = None) -> dict[str, st
         return all_experiments(client)
     out = {}
     for name in names:
-        exp = client.get_experiment_by_name(name)
+        with waiting_on(getattr(client, "tracking_uri", ""), f"looking up experiment {name!r}"):
+            exp = client.get_experiment_by_name(name)
         if exp is None:
             known = sorted(all_experiments(client).values())
             raise SpotError(f"no MLflow experiment named {name!r}; known: {', '.join(known) or 'none'}")
