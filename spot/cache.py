@@ -37,7 +37,6 @@ import hashlib
 import importlib
 import io
 import json
-import os
 import re
 import sys
 import types

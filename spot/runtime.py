@@ -70,6 +70,11 @@ def cache_dir() -> Path:
     return Path(os.environ.get("SPOT_CACHE_DIR", Path.home() / ".cache" / "spot" / "stages")).expanduser()
 
 
+def data_dir() -> Path:
+    """Built and fetched datasets: ``$SPOT_DATA_DIR``, default ``~/.cache/spot/data`` (:mod:`spot.data`)."""
+    return Path(os.environ.get("SPOT_DATA_DIR", Path.home() / ".cache" / "spot" / "data")).expanduser()
+
+
 def jax_cache_dir() -> Path:
     """``$SPOT_CACHE_DIR/jax/jax-<version>`` (``SPOT_CACHE_DIR`` defaults to ``~/.cache/spot/stages``)."""
     from importlib.metadata import version

@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urljoin, urlsplit
 
-from spot import SpotError
+from spot import SpotError, runtime
 
 REGISTRY_ENV = "SPOT_FETCH_REGISTRY"  # another registry file (same format): private mirrors, tests
 LOCK_ENV = "SPOT_DATA_LOCK"
@@ -240,9 +240,7 @@ def resolve(name: str, sources: dict[str, Source]) -> Source:
 
 
 def default_dest() -> Path:
-    from spot.data.registry import data_dir
-
-    return data_dir() / "real"
+    return runtime.data_dir() / "real"
 
 
 def default_lock() -> Path:

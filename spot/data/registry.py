@@ -123,7 +123,7 @@ def entry(name: str) -> Entry:
 
 
 def data_dir() -> Path:
-    return Path(os.environ.get("SPOT_DATA_DIR", Path.home() / ".cache" / "spot" / "data")).expanduser()
+    return runtime.data_dir()
 
 
 def dataset_path(name: str, size: str, seed: int) -> Path:
