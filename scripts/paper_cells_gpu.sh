@@ -4,10 +4,11 @@
 # models and CVAEs vmapped per method (SPOT reuses PT's reward models), then IQL vmapped over all
 # runs. One process on purpose: two spot processes shared one H200 badly (Oracle's 3-seed IQL ran
 # ~720 updates/s beside PT's training; `spot bench iql --seeds 3` alone: ~16,000, in IQL's other
-# update order; docs/reproduction.md, "Paper budget on one GPU"). The run stops cleanly at
-# LIMIT_S (its records end KILLED with their curves so far). Afterwards, where MLflow is:
+# update order; experiments/gpu-paper-budget/NOTES.md, "Paper budget on one GPU"). The run stops
+# cleanly at LIMIT_S (its records end KILLED with their curves so far). Afterwards, where MLflow is:
 #   spot results import RECORDS --tracking-uri URI
-#   spot results export --experiment gpu_paper_hopper_fr_pf --tracking-uri URI --out results/gpu_paper_hopper_fr_pf.csv
+#   spot results export --experiment gpu_paper_hopper_fr_pf --tracking-uri URI \
+#       --out experiments/gpu-paper-budget/results/gpu_paper_hopper_fr_pf.csv
 # Environment: RECORDS (default ./records), SEEDS (0,1,2), METHODS (oracle,mr,pt,spot), LIMIT_S
 # (seconds; default none), SPOT (the spot command; default python3 -m spot.cli), and the usual
 # SPOT_DATA_DIR and SPOT_CACHE_DIR. Extra arguments are overrides for every run (eval.every=100000).

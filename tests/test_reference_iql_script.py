@@ -1,5 +1,5 @@
 """scripts/reference_iql/run.py: the data it hands the reference IQL (the reference itself is not
-installed here; docs/reproduction.md has the cross-check it ran)."""
+installed here; experiments/oracle-iql/NOTES.md has the cross-check it ran)."""
 
 import importlib.util
 from pathlib import Path
