@@ -35,7 +35,8 @@
 import os
 from pathlib import Path
 
-from spot import SpotError, figures, runtime, tables, tracking
+from spot import SpotError, figures, runtime, tracking
+from spot.results import load, tables
 
 runtime.configure()  # XLA flags and headless MuJoCo, before jax or mujoco start
 
@@ -83,7 +84,7 @@ elif smoke:
     experiments = [tables.SWEEP_EXPERIMENTS[1] + "-smoke"]
 else:
     experiments = tables.default_experiments(1, URI)
-runs = tables.load_runs(URI, experiments, sweep_id or None)
+runs = load.load_runs(URI, experiments, sweep_id or None)
 print(f"{len(runs)} runs from {', '.join(experiments) if experiments else 'every experiment'}")
 
 # %% [markdown]

@@ -17,7 +17,7 @@
 #
 # Rebuilds Tables 1, 2, 3, 4, 7 and 8 of the SPOT paper from the runs of the sweeps in `sweeps/`,
 # with the paper's numbers and the difference (ours − paper) beside ours. Everything is computed
-# by `spot.tables` (the same code as `spot tables`); this notebook only chooses the runs, shows
+# by `spot.results` (the same code as `spot tables`); this notebook only chooses the runs, shows
 # the tables inline and writes them to `out_dir/table<N>.{md,tex,csv}`. See docs/tables.md.
 #
 # * Notebook: `jupytext --to notebook analysis/tables.py` and open it in Jupyter, or execute it
@@ -39,7 +39,8 @@ from pathlib import Path
 import pandas as pd
 from matplotlib.figure import Figure
 
-from spot import SpotError, runtime, tables, tracking
+from spot import SpotError, runtime, tracking
+from spot.results import load, select, table_format, tables
 
 runtime.configure()  # XLA flags and headless MuJoCo, before jax or mujoco start
 
@@ -111,7 +112,7 @@ for number in tables.TABLES:
         names = experiments_for(number)
         key = tuple(names) if names else None
         if key not in loaded:
-            loaded[key] = tables.load_runs(URI, names, sweep_id or None)
+            loaded[key] = load.load_runs(URI, names, sweep_id or None)
         runs[number] = loaded[key]
     except SpotError as e:
         print(f"table {number}: {e}")
@@ -143,7 +144,7 @@ else:
 # They never enter a cell; each table's notes count them too.
 
 # %%
-failed = [tables.failed_runs(r).assign(table=number) for number, r in runs.items()]
+failed = [select.not_finished(r).assign(table=number) for number, r in runs.items()]
 failed = [f for f in failed if len(f)]
 if failed:
     show(pd.concat(failed).set_index("table"), "runs that did not finish")
@@ -164,11 +165,11 @@ for number, r in runs.items():
         print(f"table {number}: {e}")
         continue
     for fmt, ext in (("md", "md"), ("latex", "tex"), ("csv", "csv")):
-        (OUT / f"table{number}.{ext}").write_text(tables.format_table(built[number], fmt))
+        (OUT / f"table{number}.{ext}").write_text(table_format.format_table(built[number], fmt))
     if INLINE:
-        display(Markdown(tables.format_table(built[number], "md")))
+        display(Markdown(table_format.format_table(built[number], "md")))
     else:
-        print(tables.format_table(built[number], "md"))
+        print(table_format.format_table(built[number], "md"))
 
 # %% [markdown]
 # ## The numbers behind each table

@@ -383,61 +383,55 @@ def _sweep_status(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- tables, figures
 def _tables(args: argparse.Namespace) -> None:
-    from spot import tables
+    from spot.results import load, table_format, tables
 
     if args.out:
-        tables.check_out(args.out)  # before reading any run
-    if args.results:
-        from spot import results
-
-        runs = results.read(args.results)
-        if args.experiment:
-            runs = runs[runs["experiment"].isin(args.experiment)]
+        table_format.check_out(args.out)  # before reading any run
+    results, experiments = _table_runs(args)
+    if results:
+        runs = load.load(results, experiments=experiments)
     else:
-        experiments = args.experiment or tables.default_experiments(args.table, args.tracking_uri)
+        experiments = experiments or tables.default_experiments(args.table, args.tracking_uri)
         from spot.tracking.processes import close_dead_runs_in
 
         close_dead_runs_in(args.tracking_uri, experiments)  # runs of dead processes are not "running"
-        runs = tables.load_runs(args.tracking_uri, experiments, args.sweep_id)
+        runs = load.load(None, args.tracking_uri, experiments, args.sweep_id)
     table = tables.build_table(runs, args.table, args.metric, ddof=args.ddof, allow_mixed=args.allow_mixed)
-    text = tables.format_table(table, args.format)
+    text = table_format.format_table(table, args.format)
     if args.table == 1 and args.format == "md":
-        text += _aggregate_text(runs, args.metric)
+        text += table_format.across_datasets(runs, args.metric)
     if args.out:
-        tables.write_out(args.out, text)
+        table_format.write_out(args.out, text)
         print(f"wrote {args.out}")
     else:
         print(text, end="")
 
 
-def _aggregate_text(runs: Any, metric: str) -> str:
-    """Table 1's methods across datasets: IQM and P(SPOT > method), each with its 95 % CI."""
-    from spot import report, results
+def _table_runs(args: argparse.Namespace) -> tuple[list[Any] | None, list[str] | None]:
+    """``(results files or None for MLflow, experiments or None)`` of ``spot tables``: ``--results``,
+    or a study folder's claims file (its ``tables`` entry for the table, else its ``results``)."""
+    from spot.results import claims
 
-    frame = runs if "config_hash" in runs else results.to_frame(runs)
-    try:
-        agg = report.aggregate(frame, f"metrics.{metric}")
-    except SpotError:
-        return ""
-    lines = [
-        "",
-        "**Across datasets** (the datasets every method has; 95% stratified-bootstrap CIs)",
-        "",
-        "| method | datasets | runs | IQM [CI] | P(SPOT > method) [CI] |",
-        "|---|---|---|---|---|",
-    ]
-    for _, r in agg.iterrows():
-        lines.append(f"| {r['method']} | {r['datasets']} | {r['runs']} | {r['iqm']} | {r['P(spot > method)']} |")
-    return "\n".join(lines) + "\n"
+    if not args.study:
+        return args.results, args.experiment
+    if args.results:
+        raise SpotError(f"spot tables: give a study folder ({args.study}) or --results, not both")
+    study = claims.load(claims.study_file(args.study))
+    source = study.tables.get(args.table, {})
+    results = list(source.get("results") or study.results)
+    if not results:
+        raise SpotError(f"study folder {args.study}: its claims file names no results (for table {args.table} or all)")
+    return results, args.experiment or list(source.get("experiments", ())) or None
 
 
 def _results_export(args: argparse.Namespace) -> None:
-    from spot import results, tables, tracking
+    from spot import tracking
+    from spot.results import export, load
 
-    runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
+    runs = load.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
     if runs.empty:
         raise SpotError(f"no runs in experiments {args.experiment} of {args.tracking_uri or 'the default store'}")
-    path = results.export(results.add_curves(runs, tracking.reader(args.tracking_uri)), args.out)
+    path = export.export(export.add_curves(runs, tracking.reader(args.tracking_uri)), args.out)
     print(f"wrote {path} ({len(runs)} runs)")
 
 
@@ -452,35 +446,39 @@ def _results_import(args: argparse.Namespace) -> None:
 
 
 def _report(args: argparse.Namespace) -> None:
-    from spot import report, results, tables
+    from spot.results import claims, export, load, report, table_format
 
-    if args.results:
-        runs = results.read(args.results)
-    else:
-        runs = results.to_frame(tables.load_runs(args.tracking_uri, None, args.sweep_id))
+    if args.out:
+        table_format.check_out(args.out)  # before reading any run
+    if args.study and args.claims:
+        raise SpotError(f"spot report: give a study folder ({args.study}) or --claims FILE, not both")
     use = {}
     for item in args.use or []:
-        claim, sep, name = item.partition("=")
-        if not sep or claim not in report.EXPERIMENTS:
-            raise SpotError(f"--use {item!r}: expected CLAIM=EXPERIMENT with CLAIM one of {sorted(report.EXPERIMENTS)}")
-        use[claim] = (name,)
-    doses = report.dose_response(runs, use.get("P", report.EXPERIMENTS["P"]), "paper", args.high_mode)
-    extra = [line for dose in doses for line in report.format_dose(dose)]
-    text = report.format_rows(report.build(runs, use, args.high_mode), extra)
+        key, sep, names = item.partition("=")
+        if not sep or not key or not names:
+            raise SpotError(f"--use {item!r}: expected SET=EXPERIMENT[+EXPERIMENT...], SET a set of the claims file")
+        use[key] = tuple(names.split("+"))
+    claims_file = claims.load(claims.study_file(args.study) if args.study else args.claims, use)
+    results = args.results or list(claims_file.results)
+    if results:
+        runs = load.read(results)
+    else:  # the claims file names no results: the MLflow store
+        runs = export.to_frame(load.load_runs(args.tracking_uri, None, args.sweep_id))
+    text = report.format_report(report.build(runs, claims_file, args.high_mode))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
+        table_format.write_out(args.out, text)
         print(f"wrote {args.out}")
     else:
         print(text, end="")
 
 
 def _figures(args: argparse.Namespace) -> None:
-    from spot import figures, tables
+    from spot import figures
+    from spot.results import load
 
     figures.image_format(args.out)  # an unknown extension fails before any work
     if args.figure == "fig2":
-        runs = tables.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
+        runs = load.load_runs(args.tracking_uri, args.experiment, args.sweep_id)
         bins = figures.extrapolation_bins(runs, args.tracking_uri, dataset=args.dataset, source=args.source)
         print(figures.summarize_extrapolation(bins, ddof=args.ddof).to_string(index=False))
         print(f"wrote {figures.plot_fig2(bins, args.out, ddof=args.ddof)}")
@@ -867,13 +865,20 @@ def _add_sweep(sub: Any) -> None:
 
 def _add_tables(sub: Any) -> None:
     """The tables, results, report commands."""
-    from spot import tables
+    from spot.results import table_format, tables
 
     d = _parser(
         sub,
         "tables",
-        "a paper table from the MLflow runs, the paper's numbers beside ours",
-        "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex",
+        "a paper table from the runs (MLflow, results CSVs or a study folder), the paper's numbers beside ours",
+        "spot tables --table 1\nspot tables --table 3 --experiment table3_shaping --format latex --out t3.tex\n"
+        "spot tables --table 1 experiments/lab-hopper-medium-replay",
+    )
+    d.add_argument(
+        "study",
+        nargs="?",
+        metavar="STUDY_DIR",
+        help="a study folder: the runs its claims.yaml names for this table (its 'tables' entry, else its 'results')",
     )
     d.add_argument("--table", type=int, required=True, choices=tables.TABLES, help="paper table")
     d.add_argument(
@@ -884,7 +889,7 @@ def _add_tables(sub: Any) -> None:
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
-    d.add_argument("--format", default="md", choices=tables.FORMATS, help="output format")
+    d.add_argument("--format", default="md", choices=table_format.FORMATS, help="output format")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
     d.add_argument("--allow-mixed", action="store_true", help="average cells whose runs differ in more than the seed")
     d.add_argument("--out", help="write the table to this file instead of printing it")
@@ -898,12 +903,12 @@ def _add_tables(sub: Any) -> None:
         res,
         "export",
         "one row per run: identity, config hash, data digest, params, metrics, evaluation curve",
-        "spot results export --experiment table1 --out results/table1.csv",
+        "spot results export --experiment table1 --out experiments/my-study/results/table1.csv",
     )
     d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument("--tracking-uri", help=_URI_HELP)
-    d.add_argument("--out", required=True, help="the CSV to write, e.g. results/lab_table1.csv")
+    d.add_argument("--out", required=True, help="the CSV to write, e.g. experiments/<study>/results/<experiment>.csv")
     d.set_defaults(fn=_results_export)
 
     d = _parser(
@@ -916,22 +921,33 @@ def _add_tables(sub: Any) -> None:
     d.add_argument("--experiment", help="the MLflow experiment for every record (default: each record's own)")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.set_defaults(fn=_results_import)
+    _add_report(sub)
 
+
+def _add_report(sub: Any) -> None:
+    """The report command."""
     d = _parser(
         sub,
         "report",
-        "the paper's claims: effect, 95%% CI, n and verdict per claim",
-        "spot report --results results/ --out report.md",
+        "claims answered from runs: effect, 95%% CI, n and verdict per claim (the paper's, or a claims file's)",
+        "spot report experiments/lab-hopper-full-replay --out report.md\nspot report --claims my_claims.yaml",
     )
-    d.add_argument("--results", nargs="+", help="results CSVs (files or folders); default: read MLflow")
+    d.add_argument(
+        "study", nargs="?", metavar="STUDY_DIR", help="a study folder: its claims.yaml and the runs it names"
+    )
+    d.add_argument(
+        "--claims",
+        metavar="FILE",
+        help="a claims file (docs/tables.md; its results relative to it); default: the paper's claims over MLflow",
+    )
+    d.add_argument("--results", nargs="+", help="results CSVs (files or folders) instead of the claims file's")
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
     d.add_argument(
         "--use",
         action="append",
-        metavar="CLAIM=EXPERIMENT",
-        help="read a claim's runs from this experiment (claims 1-6, C for the controls, F, P for the variant-paper "
-        "rows and the added-term section, O for the Oracle rows OP, OD and OC)",
+        metavar="SET=EXPERIMENT",
+        help="read a set of the claims file from these experiments instead ('a+b': two together)",
     )
     d.add_argument(
         "--high-mode",

@@ -44,7 +44,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from spot import SpotError, tables, tracking
+from spot import SpotError, tracking
+from spot.results import table_format, tables
 
 FIG2_ARTIFACT = "extrapolation_error.json"
 FIG4_ARTIFACT = "subgoal_projection.png"
@@ -52,7 +53,7 @@ GROUPS = ("in_distribution", "ood")
 GROUP_METRICS = {"in_distribution": "diag/extrap_bin_in", "ood": "diag/extrap_bin_ood"}
 GROUP_LABELS = {"in_distribution": "in-distribution", "ood": "OOD"}
 FIG2_METHODS = ("pt", "spot")
-_LABELS = tables.METHOD_LABELS
+_LABELS = table_format.METHOD_LABELS
 
 
 # --------------------------------------------------------------------------- Fig. 2
@@ -103,7 +104,7 @@ def extrapolation_bins(
     """Per-run binned extrapolation error of the finished ``methods`` runs of one dataset and source.
 
     Args:
-      runs: a :func:`spot.tables.load_runs` frame.
+      runs: a :func:`spot.results.load.load_runs` frame.
       tracking_uri: where the runs' artifacts and metric histories are read.
       dataset: the paper's dataset name (``paper_dataset`` column); needed if the runs span several.
       source: ``recipe`` or ``file``; needed if the runs span several (they are never mixed).

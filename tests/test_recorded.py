@@ -6,7 +6,8 @@ from pathlib import Path
 import pytest
 from mlflow.tracking import MlflowClient
 
-from spot import SpotError, config, results, tables
+from spot import SpotError, config
+from spot.results import load
 from spot.tracking import recorded
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=100", "iql.chunk=50", "eval.every=50", "eval.episodes=1"]
@@ -68,7 +69,7 @@ def test_a_record_holds_the_run_and_imports_once(tmp_path):
     assert [(m.step, m.value) for m in history] == [(0, 1.5), (50, 2.5), (100, 3.5)]
     again = recorded.import_records(tmp_path / "rec", uri, "imported")
     assert [d["action"] for d in again] == ["already imported"] and again[0]["run_id"] == run.info.run_id
-    runs = tables.load_runs(uri, ["imported"])
+    runs = load.load_runs(uri, ["imported"])
     assert len(runs) == 1 and runs["method"].tolist() == ["oracle"]
 
 
@@ -136,7 +137,7 @@ def test_spot_run_record_then_import_matches_a_logged_run(tmp_path, spot_dirs, t
     for name in ("direct", "recorded"):
         path = tmp_path / f"{name}.csv"
         assert cli.main(["results", "export", "--experiment", name, "--tracking-uri", uri, "--out", str(path)]) == 0
-        frames[name] = results.read(path).sort_values("seed").reset_index(drop=True)
+        frames[name] = load.read(path).sort_values("seed").reset_index(drop=True)
     a, b = frames["direct"], frames["recorded"]
     assert b["status"].tolist() == ["FINISHED", "FINISHED"] and b["seed"].tolist() == [0, 1]
     for col in ("config_hash", "data_digest", "method", "dataset", "metrics.eval/score_final", "curve.eval/score"):
@@ -156,11 +157,11 @@ def test_an_interrupted_import_leaves_no_run_and_resumes(tmp_path, monkeypatch):
     monkeypatch.setattr(MlflowClient, "log_artifacts", broken)
     with pytest.raises(KeyboardInterrupt):
         recorded.import_records(tmp_path / "rec", uri, "imported")
-    assert tables.load_runs(uri, ["imported"]).empty  # the half-written run was deleted
+    assert load.load_runs(uri, ["imported"]).empty  # the half-written run was deleted
     monkeypatch.undo()
     done = recorded.import_records(tmp_path / "rec", uri, "imported")
     assert [d["action"] for d in done] == ["imported"]
-    runs = tables.load_runs(uri, ["imported"])
+    runs = load.load_runs(uri, ["imported"])
     assert runs["run_id"].tolist() == [done[0]["run_id"]] and runs["tags.record_id"].tolist() == [folder.name]
 
 

@@ -1,6 +1,13 @@
-"""Results files, tables and claim verdicts rebuilt from a committed fixture, without MLflow."""
+"""Results files, tables and claim verdicts rebuilt from a committed fixture, without MLflow.
+
+The claims are the lab's claims file (experiments/lab-hopper-medium-replay/claims.yaml, which
+extends the package's paper_claims.yaml): the fixture's runs carry the lab's experiment names."""
 
 import functools
+import itertools
+import re
+import shlex
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -8,14 +15,40 @@ import pandas as pd
 import pytest
 from conftest import run_cli
 
-from spot import SpotError, report, results, stats, tables
+from spot import SpotError
+from spot.results import claims, compare, load, report, stats, table_format, tables
+from spot.results.dose import format_dose
 
+ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = Path(__file__).parent / "data" / "results_fixture.csv"
+LAB = ROOT / "experiments" / "lab-hopper-medium-replay" / "claims.yaml"
+SET_P = (
+    "lab_fidelity+lab_variant_rows+lab_paper+lab_paper_random+lab_paper_ablations+lab_paper_shaping"
+    "+lab_paper_queries+lab_walker+lab_walker_controls"
+)
+
+
+@functools.cache
+def _claims(use: tuple = ()) -> claims.ClaimsFile:
+    return claims.load(LAB, dict(use))
+
+
+def build(frame, use=None, high=compare.HIGH_MODE):
+    """The lab claims file's rows on ``frame`` (``use``: sets replaced, {key: (experiment, ...)})."""
+    return report.build(frame, _claims(tuple(sorted((use or {}).items()))), high).rows
+
+
+def doses(frame):
+    return report.build(frame, _claims()).doses
+
+
+def text_of(rows):
+    return report.format_report(report.Report(list(rows)))
 
 
 @pytest.fixture(scope="module")
 def runs():
-    return results.read(FIXTURE)
+    return load.read(FIXTURE)
 
 
 def test_fixture_rebuilds_table1(runs):
@@ -30,7 +63,7 @@ def _row(rows, claim, comparison, stat="last"):
 
 
 def test_claim1_effect_and_ci_against_an_independent_bootstrap(runs):
-    rows = report.build(runs)
+    rows = build(runs)
     r = _row(rows, "1", "spot vs pt")
     # hopper: mean(61, 64, 66) - mean(50, 52, 57) = 63.667 - 53 = 10.667
     # walker: mean(65, 69, 64) - mean(58, 61, 60) = 66 - 59.667 = 6.333   -> mean 8.5
@@ -48,14 +81,14 @@ def test_claim1_effect_and_ci_against_an_independent_bootstrap(runs):
 
 
 def test_claim_verdicts_mr_inconclusive_ood_supported_missing_tables_say_no_runs(runs):
-    rows = report.build(runs)
+    rows = build(runs)
     mr = _row(rows, "1", "spot vs mr")
     assert mr.effect.value == pytest.approx(((191 / 3 - 59) + (66 - 197 / 3)) / 2)
     assert mr.verdict == stats.INCONCLUSIVE
     ood = _row(rows, "6", "pt", stat="ood")
     assert ood.effect.value == pytest.approx(0.25) and ood.verdict == stats.SUPPORTED
     assert _row(rows, "2", "group").verdict == "no runs"
-    text = report.format_rows(rows)
+    text = text_of(rows)
     assert "| 1 | SPOT ≥ PT on average (Table 1) | spot vs pt | lab_table1+lab_table1_fr | 8.5 [" in text
 
 
@@ -63,20 +96,20 @@ def test_claim6_under_variant_paper_reads_only_that_variants_runs(runs):
     """Row 6P is claim 6 on set P's variant-paper runs: the fixture relabelled as variant paper gives
     row 6's effect there, and row 6 (default variant) then has no runs."""
     paper = runs.assign(**{"params.variant": "paper"})
-    rows = report.build(paper, {"P": ("lab_table1",)})
+    rows = build(paper, {"P": ("lab_table1",)})
     ood = _row(rows, "6P", "pt", stat="ood")
     assert ood.effect.value == pytest.approx(0.25) and ood.verdict == stats.SUPPORTED
     assert ood.text.endswith("(variant paper)")
     assert _row(rows, "6", "pt", stat="ood").verdict == "no runs"
     # a PT run of another variant never enters 6P's PT arm: one at an OOD error far off moves nothing
-    far_off = {"params.variant": "authors", "run_id": "run900", "config_hash": "0ther", report.OOD_METRIC: 99.0}
+    far_off = {"params.variant": "authors", "run_id": "run900", "config_hash": "0ther", claims.OOD_METRIC: 99.0}
     other = paper[paper["method"] == "pt"].head(1).assign(**far_off)
-    again = _row(report.build(pd.concat([paper, other]), {"P": ("lab_table1",)}), "6P", "pt", stat="ood")
+    again = _row(build(pd.concat([paper, other]), {"P": ("lab_table1",)}), "6P", "pt", stat="ood")
     assert again.effect.value == pytest.approx(0.25) and again.n_x == ood.n_x
 
 
 def test_aggregate_iqm_by_hand(runs):
-    agg = report.aggregate(runs).set_index("method")
+    agg = table_format.aggregate(runs).set_index("method")
     # SPOT pooled: 61 64 64 65 66 69 -> trim one from each end -> mean(64, 64, 65, 66) = 64.75
     assert agg.loc["spot", "iqm"].startswith("64.8 [")
     assert agg.loc["pt", "P(spot > method)"].startswith("1.00")
@@ -106,7 +139,7 @@ def test_claim4_difference_in_differences():
                     }
                 )
     killed = dict(rows[0], run_id="spot30k", seed=5, status="KILLED", **{"metrics.eval/score_final": 0.0})
-    r = _row(report.build(pd.DataFrame(rows + [killed])), "4", "(spot")
+    r = _row(build(pd.DataFrame(rows + [killed])), "4", "(spot")
     # SPOT: 71 - 72 = -1; PT: 51 - 61 = -10; difference +9 (the killed run at 0 is not counted)
     assert r.effect.value == pytest.approx(9.0)
     assert r.means == pytest.approx((-1.0, -10.0))  # each method's change, fewest minus most queries
@@ -140,7 +173,7 @@ def test_claim4_permutation_test_on_the_seed_matched_gains_by_hand():
         **{"params.labels.num_queries": frame["q"].astype(str), "metrics.eval/score_final": frame["v"]},
         **{"metrics.eval/score_best": frame["v"]},
     )
-    r = _row(report.build(frame), "4", "(spot")
+    r = _row(build(frame), "4", "(spot")
     # the gains pooled, ascending: 1.2 6.8 8.4 14.4 26.1 28.9 73.4 74.6. A split's statistic falls with the
     # sum of its three "few" gains; the observed sum is 35.7, and of the C(8, 3) = 56 triples six sum to
     # at most that (1.2 with 6.8+8.4, 6.8+14.4, 6.8+26.1, 8.4+14.4 or 8.4+26.1; and 6.8+8.4+14.4):
@@ -161,12 +194,12 @@ def test_claim4_permutation_test_on_the_seed_matched_gains_by_hand():
         run_id=[f"lone{i}" for i in range(20)], seed=range(100, 120), q=50, **{"params.labels.num_queries": "50"}
     )
     lone = lone.assign(config_hash="spot50", **{"metrics.eval/score_final": 200.0})
-    r = _row(report.build(pd.concat([frame, lone], ignore_index=True)), "4", "(spot")
+    r = _row(build(pd.concat([frame, lone], ignore_index=True)), "4", "(spot")
     assert r.effect.value > 0 and np.isnan(r.perm_p) and r.verdict.endswith("no permutation test for this effect)")
     assert any(n.startswith("no permutation test: the seed-matched gains' difference (-27.7)") for n in r.notes)
     # two SPOT runs of one seed at 500 queries (two configs in the cell): no pairs there, no test, and a note
     twin = frame[frame["run_id"] == "spot5000"].assign(run_id="twin", config_hash="spot500b")
-    r = _row(report.build(pd.concat([frame, twin], ignore_index=True)), "4", "(spot")
+    r = _row(build(pd.concat([frame, twin], ignore_index=True)), "4", "(spot")
     assert np.isnan(r.perm_p) and "no permutation test: h at 500 queries has no seed-matched SPOT and PT runs" in (
         " ".join(r.notes)
     )
@@ -174,14 +207,14 @@ def test_claim4_permutation_test_on_the_seed_matched_gains_by_hand():
 
 def test_bad_results_files_are_clear_errors(tmp_path):
     with pytest.raises(SpotError, match="does not exist"):
-        results.read(tmp_path / "nope.csv")
+        load.read(tmp_path / "nope.csv")
     bad = tmp_path / "bad.csv"
     bad.write_text("a,b\n1,2\n")
     with pytest.raises(SpotError, match=r"bad.csv: missing columns"):
-        results.read(bad)
+        load.read(bad)
     (tmp_path / "empty").mkdir()
     with pytest.raises(SpotError, match="no results CSV"):
-        results.read(tmp_path / "empty")
+        load.read(tmp_path / "empty")
 
 
 def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
@@ -213,16 +246,16 @@ def test_export_from_a_real_mlflow_store_round_trips(tmp_path):
     out = tmp_path / "r.csv"
     p = run_cli("results", "export", "--experiment", "lab_table1", "--tracking-uri", uri, "--out", str(out))
     assert p.returncode == 0, p.stderr
-    df = results.read(out)
+    df = load.read(out)
     assert sorted(df["metrics.eval/score_final"]) == [10.0, 20.0]
     assert "metrics.labels/ties" not in df and df["metrics.iql/awr_clip_frac"].tolist() == [0.25, 0.25]
     assert df["config_hash"].nunique() == 1 and set(df["data_digest"]) == {"d1"}
-    curves = dict(zip(df["seed"], df[results.CURVE_COLUMN], strict=True))
+    curves = dict(zip(df["seed"], df[load.CURVE_COLUMN], strict=True))
     assert curves[0] == "0:1.0000;10000:0.0000;20000:10.5000"  # in step order
-    steps, values = results.parse_curve(curves[1], "x")
+    steps, values = load.parse_curve(curves[1], "x")
     assert steps.tolist() == [0, 10000, 20000] and values.tolist() == [1.0, 60.0, 20.5]
     # seed 1's evaluation at 10k (60) is in the high mode; step 0 is not an evaluation of training
-    assert report.high_mode(df, 50.0) == report.Mode(evals_high=1, evals=4, runs_high=1, runs=2)
+    assert compare.high_mode(df, 50.0) == compare.Mode(evals_high=1, evals=4, runs_high=1, runs=2)
     p = run_cli("tables", "--table", "1", "--results", str(out))
     assert p.returncode == 0 and "15.00 ± 7.07** (2)" in p.stdout, p.stdout + p.stderr
 
@@ -239,12 +272,12 @@ def test_tables_cli_prints_cis_and_the_across_datasets_summary():
 def test_text_table_fits_the_terminal_and_rounds(runs):
     t = tables.build_table(runs, 1)
     for width in (120, 60):
-        text = tables.format_table(t, "text", width=width)
+        text = table_format.format_table(t, "text", width=width)
         body = text.splitlines()[2:]  # the title and legend lines may be longer
         assert all(len(line) <= width for line in body), width
-    text = tables.format_table(t, "text", width=120)
+    text = table_format.format_table(t, "text", width=120)
     assert "63.7±2.5* (85.1)" in text  # SPOT hopper: mean 63.67 rounds up; paper 85.08
-    assert len([ln for ln in tables.format_table(t, "text", width=60).splitlines() if "hopper" in ln]) > 1
+    assert len([ln for ln in table_format.format_table(t, "text", width=60).splitlines() if "hopper" in ln]) > 1
 
 
 def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
@@ -261,7 +294,7 @@ def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
     )
     mixed = runs.assign(**{"params.subgoal.source": "attention"})
     both = pd.concat([mixed, random_sg, constant], ignore_index=True)
-    rows = report.build(both)
+    rows = build(both)
     rnd = _row(rows, "C", "spot vs random")
     # hopper only (the controls ran there): mean(61, 64, 66) - mean(40, 44, 45) = 63.667 - 43 = 20.667
     assert rnd.experiment == "lab_table1+lab_controls" and rnd.datasets == ["hopper-medium-replay"]
@@ -279,16 +312,16 @@ def test_controls_take_spot_from_table1_and_never_count_as_spot(runs):
     assert _row(rows, "C", "constant bonus vs pt").effect.value == pytest.approx(19.0)
     # claim 1 with the controls in the same frame: SPOT's arm is still the six Table 1 runs
     moved = pd.concat([mixed, random_sg.assign(experiment="lab_table1")], ignore_index=True)
-    assert _row(report.build(moved), "1", "spot vs pt").effect.value == pytest.approx(8.5)
+    assert _row(build(moved), "1", "spot vs pt").effect.value == pytest.approx(8.5)
 
 
 def test_a_verdict_needs_three_runs_per_arm_and_dataset(runs):
     # two seeds of each arm still get an effect and an interval, but no verdict
     two = runs[~((runs["method"] == "spot") & (runs["seed"] == 2)) & ~((runs["method"] == "pt") & (runs["seed"] == 2))]
-    r = _row(report.build(two), "1", "spot vs pt")
+    r = _row(build(two), "1", "spot vs pt")
     assert r.min_n == 2 and r.effect is not None and not np.isnan(r.effect.low)
     assert r.verdict == stats.TOO_FEW
-    assert _row(report.build(runs), "1", "spot vs pt").min_n == 3
+    assert _row(build(runs), "1", "spot vs pt").min_n == 3
 
 
 def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
@@ -299,7 +332,7 @@ def test_fidelity_rows_compare_variants_with_table1_as_the_spot_variant(runs):
     paper = paper.assign(run_id=["f1", "f2", "f3"], **{"metrics.eval/score_final": [70.0, 72.0, 77.0]})
     authors = spot.assign(experiment="lab_fidelity", config_hash="authors", **{"params.variant": "authors"})
     authors = authors.assign(run_id=["f4", "f5", "f6"], **{"metrics.eval/score_final": [60.0, 62.0, 65.0]})
-    rows = report.build(pd.concat([runs, paper, authors], ignore_index=True))
+    rows = build(pd.concat([runs, paper, authors], ignore_index=True))
     ap = _row(rows, "F", "variant authors vs paper")
     # mean(60, 62, 65) - mean(70, 72, 77) = 62.333 - 73 = -10.667; every paper seed beats every authors seed
     assert ap.experiment == "lab_fidelity+lab_table1" and ap.effect.value == pytest.approx(187 / 3 - 73)
@@ -339,10 +372,10 @@ def test_paper_variant_rows_take_each_arm_from_its_own_sweep_and_variant(runs):
         ],
         ignore_index=True,
     )
-    rows = report.build(frame)
+    rows = build(frame)
     pt = _row(rows, "1P", "spot vs pt")
     # mean(70, 80, 90) = 80 against mean(20, 25, 30) = 25: 55
-    assert pt.experiment == report.EXPERIMENTS["P"][0] and pt.effect.value == pytest.approx(55.0)
+    assert pt.experiment == "set P" and pt.listed == ("set P", SET_P) and pt.effect.value == pytest.approx(55.0)
     assert pt.n_x == 3 and pt.n_y == 3 and pt.effect.low > 0 and pt.perm_p == pytest.approx(0.1)
     assert _row(rows, "1P", "spot vs mr").effect.value == pytest.approx(80 - 40)
     assert _row(rows, "1P", "spot vs oracle").effect.value == pytest.approx(80 - 22)
@@ -372,10 +405,10 @@ def test_paper_variant_ablation_rows_change_one_key_and_stay_out_of_the_spot_arm
         ],
         ignore_index=True,
     )
-    rows = report.build(frame)
+    rows = build(frame)
     bottom = _row(rows, "2P", "group top vs bottom")
     # mean(70, 80, 90) = 80 against mean(50, 55, 66) = 57: 23
-    assert bottom.experiment == report.EXPERIMENTS["P"][0] and bottom.effect.value == pytest.approx(23.0)
+    assert bottom.experiment == "set P" and bottom.effect.value == pytest.approx(23.0)
     assert bottom.n_x == 3 and bottom.n_y == 3
     mse = _row(rows, "5P", "mse_cos vs mse")
     # 80 - mean(81, 85, 89) = 80 - 85 = -5; the arms overlap, the CI spans 0
@@ -393,22 +426,22 @@ def test_high_mode_counts_each_arms_evaluations_from_the_curves(runs, tmp_path):
     curves = {61.0: "0:1;10000:55;20000:20", 64.0: "10000:20;20000:20", 66.0: "0:2;10000:80;20000:90"}
     hop = (runs["dataset"] == "hopper-medium-replay") & (runs["status"] == "FINISHED")
     frame = runs.copy()
-    frame[results.CURVE_COLUMN] = ""
+    frame[load.CURVE_COLUMN] = ""
     spot = hop & (frame["method"] == "spot")
-    frame.loc[spot, results.CURVE_COLUMN] = frame.loc[spot, "metrics.eval/score_final"].map(curves)
+    frame.loc[spot, load.CURVE_COLUMN] = frame.loc[spot, "metrics.eval/score_final"].map(curves)
     pt = hop & (frame["method"] == "pt")
-    frame.loc[pt, results.CURVE_COLUMN] = "10000:30;20000:49.9"
+    frame.loc[pt, load.CURVE_COLUMN] = "10000:30;20000:49.9"
     frame = frame[frame["dataset"] == "hopper-medium-replay"]
     path = tmp_path / "r.csv"
     frame.to_csv(path, index=False)
-    rows = report.build(results.read(path))
+    rows = build(load.read(path))
     r = _row(rows, "1", "spot vs pt")
-    assert r.high == (report.Mode(3, 6, 2, 3), report.Mode(0, 6, 0, 3))
-    text = report.format_rows(rows)
+    assert r.high == (compare.Mode(3, 6, 2, 3), compare.Mode(0, 6, 0, 3))
+    text = text_of(rows)
     assert "| 1 | spot vs pt | 3 of 6 (2 of 3 runs) | 0 of 6 (0 of 3 runs) |" in text
     # a higher threshold counts fewer; the CLI option reaches it
-    assert _row(report.build(results.read(path), high=85.0), "1", "spot vs pt").high[0] == report.Mode(1, 6, 1, 3)
-    p = run_cli("report", "--results", str(path), "--high-mode", "85")
+    assert _row(build(load.read(path), high=85.0), "1", "spot vs pt").high[0] == compare.Mode(1, 6, 1, 3)
+    p = run_cli("report", "--claims", str(LAB), "--results", str(path), "--high-mode", "85")
     assert p.returncode == 0 and "scoring ≥ 85 (the high mode)" in p.stdout, p.stderr
     # an arm without curves shows no counts (MR's hopper runs have none)
     assert _row(rows, "1", "spot vs mr").high is None
@@ -416,13 +449,13 @@ def test_high_mode_counts_each_arms_evaluations_from_the_curves(runs, tmp_path):
 
 def test_a_malformed_curve_is_a_clear_error_naming_the_file_and_run(runs, tmp_path):
     frame = runs.copy()
-    frame[results.CURVE_COLUMN] = ""
-    frame.loc[0, results.CURVE_COLUMN] = "10000:20;oops"
+    frame[load.CURVE_COLUMN] = ""
+    frame.loc[0, load.CURVE_COLUMN] = "10000:20;oops"
     path = tmp_path / "bad.csv"
     frame.to_csv(path, index=False)
     run_id = frame.loc[0, "run_id"]
     with pytest.raises(SpotError, match=rf"bad.csv, run {run_id}: curve.eval/score item 'oops' is not STEP:VALUE"):
-        results.read(path)
+        load.read(path)
 
 
 def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(runs):
@@ -443,12 +476,15 @@ def test_paper_variant_table3_row_takes_the_runner_up_among_spot_proper_runs(run
         ],
         ignore_index=True,
     )
-    rows = report.build(frame)
+    rows = build(frame)
     r = _row(rows, "3P", "cosine λ=1 vs runner-up")
     # runner-up: neg_distance λ=1 (mean 50) over cosine λ=0.1 (25); effect 80 - 50 = 30
     assert r.comparison == "cosine λ=1 vs runner-up neg_distance λ=1.0"
     assert r.effect.value == pytest.approx(30.0) and r.n_x == 3 and r.n_y == 3
-    assert any(n.startswith("only 2 of Table 3's 8 other (kind, λ) arms have finished runs") for n in r.notes)
+    assert (
+        "only 2 of the design's 8 other arms have finished runs: cosine λ=0.1, neg_distance λ=1.0; "
+        "the verdict is against those alone"
+    ) in r.notes
     pt = _row(rows, "1P", "spot vs pt")
     assert pt.effect.value == pytest.approx(80 - 25) and pt.n_x == 3
     # the default-variant claim 3 reads lab_table3 only
@@ -482,7 +518,7 @@ def test_paper_variant_table4_row_takes_spot_proper_and_pt_under_variant_paper(r
         ],
         ignore_index=True,
     )
-    rows = report.build(frame)
+    rows = build(frame)
     r = _row(rows, "4P", "(spot")
     # SPOT: mean(60, 70, 77) - mean(70, 80, 90) = 69 - 80 = -11; PT: mean(10, 12, 20) - 25 = 14 - 25 = -11
     assert r.effect.value == pytest.approx(0.0)
@@ -494,11 +530,11 @@ def test_paper_variant_table4_row_takes_spot_proper_and_pt_under_variant_paper(r
     assert "runs at fewer queries than their dataset's most left out (12 at 50; claim 4's arms)" in p.notes
     assert not any("fewer queries" in n for n in _row(rows, "1", "spot vs pt").notes)  # one query count
     shaped = frame.assign(**{"metrics.shaping/r_model_mean": 0.5, "metrics.shaping/r_final_mean": 0.5})
-    (dose,) = report.dose_response(shaped, report.EXPERIMENTS["P"])
+    (dose,) = doses(shaped)
     assert {a["label"]: a["runs"] for a in dose.arms} == {"PT": 3, "SPOT, cosine λ=1": 3}
     assert any("12 at 50" in n for n in dose.notes)
     # without the 50-query runs the row says what it needs
-    rows = report.build(frame[frame["experiment"] != "lab_paper_queries"])
+    rows = build(frame[frame["experiment"] != "lab_paper_queries"])
     r = _row(rows, "4P", "(spot")
     assert r.effect is None and any("needs spot and pt runs at two query counts" in n for n in r.notes)
 
@@ -532,7 +568,7 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
         ],
         ignore_index=True,
     )
-    (dose,) = report.dose_response(frame, report.EXPERIMENTS["P"])
+    (dose,) = doses(frame)
     assert dose.dataset == "hopper-medium-replay"
     arms = {a["label"]: a for a in dose.arms}
     assert list(arms) == ["PT", "SPOT, cosine λ=0.1", "SPOT, cosine λ=1"]
@@ -551,7 +587,7 @@ def test_dose_response_table_and_rank_correlation_against_an_independent_bootstr
             boot.append(np.corrcoef(pd.Series(x[i]).rank(), pd.Series(y[i]).rank())[0, 1])
     lo, hi = np.percentile(boot, [2.5, 97.5])
     assert abs(dose.rho.low - lo) < 0.05 and abs(dose.rho.high - hi) < 0.02, (dose.rho, lo, hi)
-    text = "\n".join(report.format_dose(dose))
+    text = "\n".join(format_dose(dose))
     assert "| SPOT, cosine λ=0.1 | 3 | 0.070 | 18.0 ± 2.0 [" in text and "over the 9 runs: 0.95 [" in text
     assert "| SPOT, cosine λ=1 | 3 | 0.650 | 70.0 ± 10.0 [" in text and "| 700 (2 of 3) |" in text
     assert text.count("| – |\n") == 2  # PT's and λ=0.1's runs logged no length
@@ -567,8 +603,8 @@ def test_a_long_experiment_set_is_named_by_its_key_and_listed_once(runs):
         ],
         ignore_index=True,
     )
-    text = report.format_rows(report.build(frame))
-    full = report.EXPERIMENTS["P"][0]
+    text = text_of(build(frame))
+    full = SET_P
     assert "| spot vs pt | set P | 55.0 [" in text and "3 vs 3 runs, 1 dataset |" in text
     assert text.count(full) == 1 and f"- set P: {full}" in text
     # two-experiment sets stay spelled out, with the plural
@@ -594,22 +630,22 @@ def test_dose_response_ranks_each_dataset_on_its_own(runs):
         ],
         ignore_index=True,
     )
-    doses = report.dose_response(frame, report.EXPERIMENTS["P"])
-    assert [d.dataset for d in doses] == [hop, walk]
-    for d in doses:
+    found = doses(frame)
+    assert [d.dataset for d in found] == [hop, walk]
+    for d in found:
         assert d.rho.value == pytest.approx(1.0) and d.rho.n == 6
         assert [a["runs"] for a in d.arms] == [3, 3]
-    assert doses[1].arms[1]["score"]["mean"] == pytest.approx(6.0)
+    assert found[1].arms[1]["score"]["mean"] == pytest.approx(6.0)
 
 
 def test_a_comparison_over_runs_on_different_data_says_so(runs):
-    assert not any("data digests" in n for r in report.build(runs) for n in r.notes)
+    assert not any("data digests" in n for r in build(runs) for n in r.notes)
     mixed = runs.copy()
     pt_hopper = mixed.index[
         (mixed["method"] == "pt") & (mixed["dataset"] == "hopper-medium-replay") & (mixed["status"] == "FINISHED")
     ]
     mixed.loc[pt_hopper[:1], "data_digest"] = "rebuilt-elsewhere-0123"
-    r = _row(report.build(mixed), "1", "spot vs pt")
+    r = _row(build(mixed), "1", "spot vs pt")
     assert (
         "hopper-medium-replay: the runs span 2 data digests (spot: 3 on digest-hoppe; "
         "pt: 2 on digest-hoppe, 1 on rebuilt-else); the arms may not share their data"
@@ -631,12 +667,12 @@ def test_oracle_with_minmax_rewards_is_its_own_reference_row_and_stays_out_of_or
         ],
         ignore_index=True,
     )
-    r = _row(report.build(frame), "OP", "oracle minmax vs oracle")
+    r = _row(build(frame), "OP", "oracle minmax vs oracle")
     assert r.effect.value == pytest.approx(48.0) and r.n_x == 3 and r.n_y == 3 and r.poi.value == 1.0
     # minmax Oracle runs in set P would not count as Oracle in row 1P's reference
     moved = frame.assign(experiment=frame["experiment"].replace("lab_paper_oracle_minmax", "lab_variant_rows"))
     moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
-    ref = _row(report.build(moved), "1P", "spot vs oracle")
+    ref = _row(build(moved), "1P", "spot vs oracle")
     assert ref.means == pytest.approx((51.0, 22.0)) and ref.n_y == 3
 
 
@@ -648,16 +684,16 @@ def test_oracle_at_a_longer_discount_is_row_od_and_stays_out_of_every_other_orac
     proper.loc[proper.index[0], "params.iql.discount"] = "0.99"  # logged as a string; the others never logged it
     long = arm("lab_oracle_discount", "od", [40.0, 50.0, 0.0], method="oracle").iloc[:2]
     frame = pd.concat([runs, proper, long.assign(**{"params.iql.discount": 0.995})], ignore_index=True)
-    r = _row(report.build(frame), "OD", "oracle γ=0.995 vs oracle")
+    r = _row(build(frame), "OD", "oracle γ=0.995 vs oracle")
     assert r.effect.value == pytest.approx(23.0) and (r.n_x, r.n_y) == (2, 3)
     assert r.verdict.startswith("too few")  # 2 seeds < MIN_SEEDS: the effect and CI are shown, no verdict
     # the 0.995 runs never count as Oracle proper: not in row OP's reference, nor in 1P's (moved to set P)
     minmax = arm("lab_paper_oracle_minmax", "om", [60.0, 70.0, 80.0], method="oracle")
     frame = pd.concat([frame, minmax.assign(**{"params.relabel.normalize": "minmax"})], ignore_index=True)
-    assert _row(report.build(frame), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
+    assert _row(build(frame), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
     moved = frame.assign(experiment=frame["experiment"].replace("lab_oracle_discount", "lab_variant_rows"))
     moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
-    assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
+    assert _row(build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
 
 
 def test_oracle_with_corls_iql_is_row_oc_and_stays_out_of_every_other_oracle_arm(runs):
@@ -674,22 +710,22 @@ def test_oracle_with_corls_iql_is_row_oc_and_stays_out_of_every_other_oracle_arm
     tau_only = arm("lab_oracle_corl", "ot", [90.0, 0.0, 0.0], method="oracle").iloc[:1]
     tau_only = tau_only.assign(**{"params.iql.tau": "0.001", "params.iql.actor_dist": "gaussian"})
     frame = pd.concat([runs, proper, corl, tau_only], ignore_index=True)
-    assert _row(report.build(frame), "OC", "oracle corl vs oracle").effect is None  # not in the default set O
-    use = {"O": ("lab_variant_rows+lab_oracle_corl+lab_paper_oracle_minmax",)}
-    r = _row(report.build(frame, use), "OC", "oracle corl vs oracle")
+    assert _row(build(frame), "OC", "oracle corl vs oracle").effect is None  # not in the default set O
+    use = {"O": ("lab_variant_rows", "lab_oracle_corl", "lab_paper_oracle_minmax")}
+    r = _row(build(frame, use), "OC", "oracle corl vs oracle")
     assert r.effect.value == pytest.approx(7.0) and (r.n_x, r.n_y) == (3, 3)
     assert r.means == pytest.approx((29.0, 22.0))
     # the CORL runs never count as Oracle proper: not in row OP's reference, nor in 1P's (moved to set P)
     minmax = arm("lab_paper_oracle_minmax", "om", [60.0, 70.0, 80.0], method="oracle")
     frame = pd.concat([frame, minmax.assign(**{"params.relabel.normalize": "minmax"})], ignore_index=True)
-    assert _row(report.build(frame, use), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
+    assert _row(build(frame, use), "OP", "oracle minmax vs oracle").means == pytest.approx((70.0, 22.0))
     moved = frame.assign(experiment=frame["experiment"].replace("lab_oracle_corl", "lab_variant_rows"))
     moved = pd.concat([moved, arm("lab_fidelity", "sp", [50.0, 51.0, 52.0])], ignore_index=True)
-    assert _row(report.build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
+    assert _row(build(moved), "1P", "spot vs oracle").means == pytest.approx((51.0, 22.0))
 
 
 def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
-    row = report.Row("CP", "text", "a vs b", "exp", "last", min_n=3, perm_p=0.01)
+    row = compare.Row("CP", "text", "a vs b", "exp", "last", min_n=3, perm_p=0.01)
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12, other_verdicts=(stats.INCONCLUSIVE,))
     assert row.verdict == "supported (borderline: inconclusive under another bootstrap seed)"
     row.effect = stats.Estimate(15.9, 0.3, 31.1, 12)
@@ -698,7 +734,7 @@ def test_a_verdict_that_another_bootstrap_seed_changes_is_marked_borderline():
 
 def test_a_verdict_without_a_permutation_test_says_it_is_the_cis_alone():
     # claim 4 without seed-matched gains has no permutation test (perm_p nan): its CI decides, and says so
-    row = report.Row("4P", "text", "(spot few − most) − (pt few − most)", "exp", "last", min_n=3)
+    row = compare.Row("4P", "text", "(spot few − most) − (pt few − most)", "exp", "last", min_n=3)
     row.effect = stats.Estimate(-27.7, -53.3, -2.6, 16)
     assert row.verdict == "not supported (the CI alone: no permutation test for this effect)"
     row.effect = stats.Estimate(-27.7, -53.3, 2.6, 16)
@@ -711,7 +747,7 @@ def test_a_verdict_without_a_permutation_test_says_it_is_the_cis_alone():
 
 
 def test_seed_matched_differences_against_an_independent_bootstrap(runs):
-    r = _row(report.build(runs), "1", "spot vs pt")
+    r = _row(build(runs), "1", "spot vs pt")
     # SPOT − PT at seeds 0, 1, 2: hopper 61−50, 64−52, 66−57 = 11, 12, 9; walker 65−58, 69−61, 64−60 = 7, 8, 4
     seeds, hopper = r.pairs["hopper-medium-replay"]
     assert list(seeds) == [0, 1, 2] and list(hopper) == [11.0, 12.0, 9.0]
@@ -728,7 +764,7 @@ def test_seed_matched_differences_against_an_independent_bootstrap(runs):
     # only all-plus and all-minus reach |mean of means| >= 8.5: p = 2/64
     assert r.paired_p == pytest.approx(2 / 64)
     assert r.paired_verdict == stats.SUPPORTED
-    text = report.format_rows(report.build(runs))
+    text = text_of(build(runs))
     assert "### Seed-matched differences" in text
     assert "hopper-medium-replay: s0 +11.0, s1 +12.0, s2 +9.0; walker2d-medium-replay: s0 +7.0" in text
 
@@ -736,13 +772,13 @@ def test_seed_matched_differences_against_an_independent_bootstrap(runs):
 def test_seed_matched_differences_leave_out_unmatched_seeds_and_need_one_run_per_seed(runs):
     hopper_spot = (runs["method"] == "spot") & (runs["dataset"] == "hopper-medium-replay")
     without_s1 = runs[~(hopper_spot & (runs["seed"] == 1))]
-    r = _row(report.build(without_s1), "1", "spot vs pt")
+    r = _row(build(without_s1), "1", "spot vs pt")
     seeds, diffs = r.pairs["hopper-medium-replay"]
     assert list(seeds) == [0, 2] and list(diffs) == [11.0, 9.0]  # PT's seed 1 has no SPOT run to pair with
     assert r.paired_verdict == stats.TOO_FEW and r.verdict == stats.TOO_FEW
     # a second SPOT config in the arm (another run at seed 0): no single pair per seed, no paired reading
     extra = runs[hopper_spot & (runs["seed"] == 0)].assign(run_id="run999", config_hash="ffffffffffffffff")
-    r = _row(report.build(pd.concat([runs, extra], ignore_index=True)), "1", "spot vs pt")
+    r = _row(build(pd.concat([runs, extra], ignore_index=True)), "1", "spot vs pt")
     assert r.paired is None and r.paired_verdict == "no pairs" and r.effect is not None
 
 
@@ -761,7 +797,7 @@ def test_sign_flip_p_counts_sign_patterns_by_hand():
 def test_a_failing_permutation_test_drops_the_borderline_note():
     # the CI is inconclusive and another bootstrap seed would say supported, but the permutation test
     # fails: no bootstrap seed can make this row pass, so no borderline note
-    row = report.Row("CP", "t", "c", "e", "last", min_n=3, perm_p=0.1)
+    row = compare.Row("CP", "t", "c", "e", "last", min_n=3, perm_p=0.1)
     row.effect = stats.Estimate(15.9, -0.3, 31.1, 6, other_verdicts=(stats.SUPPORTED,))
     assert row.verdict == stats.INCONCLUSIVE
     row.perm_p = 0.01
@@ -771,7 +807,7 @@ def test_a_failing_permutation_test_drops_the_borderline_note():
 def test_planning_section_sizes_the_next_runs_from_the_pooled_sd(runs):
     from scipy import stats as sps
 
-    rows = report.build(runs)
+    rows = build(runs)
     r = _row(rows, "1", "spot vs pt")
     # within-dataset sums of squares: hopper SPOT (61, 64, 66) 38/3, PT (50, 52, 57) 26; walker SPOT
     # (65, 69, 64) 14, PT (58, 61, 60) 14/3; 172/3 over 8 dof
@@ -784,22 +820,197 @@ def test_planning_section_sizes_the_next_runs_from_the_pooled_sd(runs):
     assert sps.nct.sf(crit, 8, nc) + sps.nct.cdf(-crit, 8, nc) == pytest.approx(0.8, abs=1e-3)
     # the observed 8.5 is 3.2 sd: the permutation test's floor on two datasets (3 per arm) is enough
     assert r.plan.runs == 3
-    text = report.format_rows(rows)
+    text = text_of(rows)
     assert "### Runs for a verdict (planning numbers, not findings)" in text
     assert f"| 1 | spot vs pt | last | 6 vs 6 runs, 2 datasets | {sd:.1f} | {r.plan.mde:.1f} | +8.5 | 3 |" in text
 
 
 def test_planning_section_counts_the_missing_runs_and_their_logged_time(runs):
-    rows = report.build(runs)  # the fixture logs no run time
+    rows = build(runs)  # the fixture logs no run time
     mr = _row(rows, "1", "spot vs mr")  # inconclusive: the runs still to do are listed
     need = int(mr.plan.runs)
     assert mr.sizes == ([3, 3], [3, 3]) and need > 3
-    assert report._still_to_do(mr) == f"{2 * (need - 3):,} + {2 * (need - 3):,} (time not logged)"
+    assert report.still_to_do(mr) == f"{2 * (need - 3):,} + {2 * (need - 3):,} (time not logged)"
     timed = runs.copy()
-    timed[report.RUN_TIME] = np.where(timed["method"] == "mr", 1800.0, 900.0)  # MR runs 30 min, SPOT 15
-    mr = _row(report.build(timed), "1", "spot vs mr")
+    timed[compare.RUN_TIME] = np.where(timed["method"] == "mr", 1800.0, 900.0)  # MR runs 30 min, SPOT 15
+    mr = _row(build(timed), "1", "spot vs mr")
     missing = 2 * (need - 3)  # per arm: two datasets short of `need` by 3 runs each
     hours = missing * (900 + 1800) / 3600
-    assert report._still_to_do(mr) == f"{missing:,} + {missing:,} ({hours:,.0f} h)"
+    assert report.still_to_do(mr) == f"{missing:,} + {missing:,} ({hours:,.0f} h)"
     pt = _row(rows, "1", "spot vs pt")  # supported at this n: nothing to do
-    assert report._still_to_do(pt) == "none: a verdict at this n"
+    assert report.still_to_do(pt) == "none: a verdict at this n"
+
+
+# --------------------------------------------------------------------------- the studies' reports, rebuilt
+def _rebuild_commands() -> list[list[str]]:
+    """Every `spot ...` line of every study's rebuild.sh, ``$D`` replaced by the study folder."""
+    out = []
+    for script in sorted((ROOT / "experiments").glob("*/rebuild.sh")):
+        text = script.read_text()
+        folder = re.search(r"^D=(\S+)$", text, flags=re.M).group(1)
+        for line in text.splitlines():
+            if line.startswith("spot "):
+                out.append([arg.replace("$D", folder) for arg in shlex.split(line, comments=True)])
+    return out
+
+
+REBUILDS = _rebuild_commands()
+
+
+def test_every_committed_report_has_its_rebuild_line():
+    committed = {
+        p.relative_to(ROOT).as_posix() for p in (ROOT / "experiments").glob("*/*.md") if p.name not in ("NOTES.md",)
+    }
+    written = {argv[argv.index("--out") + 1] for argv in REBUILDS}
+    assert written == committed and len(written) == 6, written ^ committed
+
+
+@pytest.mark.parametrize("argv", REBUILDS, ids=[argv[argv.index("--out") + 1] for argv in REBUILDS])
+def test_committed_reports_and_tables_rebuild_byte_identical_from_their_study_folders(argv, tmp_path, monkeypatch):
+    """Each rebuild.sh line, with its --out in tmp_path, writes exactly the committed file: the
+    reports from the studies' claims files, lab_table1.md from the study's `tables` entry."""
+    from spot import cli
+
+    committed = ROOT / argv[argv.index("--out") + 1]
+    argv = [tmp_path / committed.name if a == argv[argv.index("--out") + 1] else a for a in argv]
+    monkeypatch.chdir(ROOT)
+    assert cli.main([str(a) for a in argv[1:]]) == 0
+    assert (tmp_path / committed.name).read_bytes() == committed.read_bytes()
+
+
+# --------------------------------------------------------------------------- a new question, no code
+MY_CLAIMS = """\
+# a question the lab never asked: does MR beat PT on hopper-full-replay?
+results: [results]
+sets:
+  FR: [lab_hopper_fr_pf, lab_hopper_fr_pf_seeds34, lab_hopper_fr_pf_queries]
+claims:
+  - id: Q1
+    text: MR ≥ PT on hopper-full-replay (variant paper)
+    comparison: mr vs pt
+    set: FR
+    variant: paper
+    datasets: [hopper-full-replay]
+    x: {method: mr}
+    y: {method: pt}
+    labels: [mr, pt]
+    metrics: [last]
+"""
+
+
+def test_a_new_claims_file_over_committed_runs_prints_its_verdict(tmp_path):
+    study = ROOT / "experiments" / "lab-hopper-full-replay" / "results"
+    (tmp_path / "results").mkdir()
+    for f in study.glob("*.csv"):
+        shutil.copy(f, tmp_path / "results" / f.name)
+    path = tmp_path / "my_claims.yaml"
+    path.write_text(MY_CLAIMS)
+    p = run_cli("report", "--claims", str(path), cwd=ROOT / "tests")  # its results: relative to the file
+    assert p.returncode == 0, p.stderr
+    # the same question by hand: the set's finished runs under variant paper, at the dataset's most queries
+    df = pd.concat([pd.read_csv(f) for f in sorted(study.glob("*.csv"))], ignore_index=True)
+    df = df[df["experiment"].isin(["lab_hopper_fr_pf", "lab_hopper_fr_pf_seeds34", "lab_hopper_fr_pf_queries"])]
+    fewer = int((df["params.labels.num_queries"] < df["params.labels.num_queries"].max()).sum())  # at 50, not 500
+    df = df[(df["status"] == "FINISHED") & (df["params.variant"] == "paper")]
+    df = df[df["params.labels.num_queries"] == df["params.labels.num_queries"].max()]
+    assert not df.duplicated(["config_hash", "seed"]).any()
+    mr = df.loc[df["method"] == "mr", "metrics.eval/score_final"].to_numpy()
+    pt = df.loc[df["method"] == "pt", "metrics.eval/score_final"].to_numpy()
+    assert len(mr) == len(pt) == 5
+    effect = mr.mean() - pt.mean()
+    pooled = np.concatenate([mr, pt])  # the exact permutation test over the C(10, 5) splits
+    diffs = [pooled[list(c)].mean() - np.delete(pooled, list(c)).mean() for c in itertools.combinations(range(10), 5)]
+    perm = min(1.0, 2 * min(np.mean(np.array(diffs) >= effect - 1e-9), np.mean(np.array(diffs) <= effect + 1e-9)))
+    assert perm == pytest.approx(2 / 252)  # every MR run above every PT run
+    head = (
+        "| Q1 | MR ≥ PT on hopper-full-replay (variant paper) | mr vs pt "
+        f"| lab_hopper_fr_pf+lab_hopper_fr_pf_seeds34+lab_hopper_fr_pf_queries | {effect:.1f} ["
+    )
+    row = next(line for line in p.stdout.splitlines() if line.startswith("| Q1 |"))
+    assert row.startswith(head), (row, head)
+    assert row.endswith(f"| {mr.mean():.1f} / {pt.mean():.1f} | 5 vs 5 runs, 1 dataset | {perm:.2g} | supported |")
+    assert f"runs at fewer queries than their dataset's most left out ({fewer} at 50;" in p.stdout and fewer == 6
+    assert "Best evaluation" not in p.stdout  # metrics: [last] only
+
+
+def test_the_default_claims_file_is_the_papers_claims_with_generic_names():
+    paper = claims.load()
+    assert [c.id for c in paper.claims] == ["1", "1", "2", "3", "4", "5", "6", "C", "C", "C"]
+    assert paper.sets["table1"].experiments == ("table1",) and not paper.results
+    text = claims.default_file().read_text()
+    assert "lab_" not in text and paper.claims[6].metrics == ("ood",)
+
+
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("claims: [{id: a}]\nnope: 1\n", "unknown key 'nope'"),
+        ("claims: [{id: a, text: t, comparison: c, set: S, x: {method: a}, y: {method: b}}]\n", "set 'S' is not"),
+        (
+            "sets: {S: [e]}\nclaims: [{id: a, text: t, comparison: c, set: S, x: spot2, y: {method: b}}]\n",
+            r"claims\[0\].x: no filter named 'spot2'",
+        ),
+        (
+            "sets: {S: [e]}\nclaims: [{id: a, text: t, comparison: c, set: S, x: {methods: a}, y: {method: b}}]\n",
+            r"claims\[0\].x: unknown key 'methods'",
+        ),
+        (
+            "sets: {S: [e]}\nclaims: [{id: a, text: t, comparison: c, set: S, test: t-test, x: {method: a}}]\n",
+            "test: 't-test'; expected one of difference, runner-up, queries, dose-response",
+        ),
+        ("sets: {S: [e]}\nclaims: [{id: a, text: t, comparison: c, set: S, x: {method: a}}]\n", "needs an arm 'y'"),
+        (
+            "sets: {S: [e]}\nclaims: [{id: a, text: t, comparison: c, set: S, x: {params: {k: {over: 1}}}, y: b}]\n",
+            r"x.params.k: expected a value or one of \{not, in, other_than\}",
+        ),
+        (
+            "sets: {S: [e]}\nfilters: {f: {none: [f]}}\n"
+            "claims: [{id: a, text: t, comparison: c, set: S, x: f, y: f}]\n",
+            "filter 'f' refers to itself",
+        ),
+        ("extends: me.yaml\n", "extends .*me.yaml, which extends it back"),
+        ("sets: {S: [e]}\n", "no claims"),
+    ],
+)
+def test_a_bad_claims_file_is_one_clear_error_naming_the_file_and_key(tmp_path, body, message):
+    path = tmp_path / "me.yaml"
+    path.write_text(body)
+    with pytest.raises(SpotError, match=message) as err:
+        claims.load(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)
+
+
+def test_filters_select_by_hand():
+    """Each filter condition on a small frame, the runs it keeps counted by hand."""
+    frame = pd.DataFrame(
+        {
+            "method": ["spot", "spot", "spot", "pt", "oracle"],
+            "dataset": ["h", "h", "w", "h", "h"],
+            "params.variant": [np.nan, "paper", "paper", "paper", "spot"],  # NaN: logged before the key
+            "params.shaping.weight": ["1.0", "0.5", np.nan, np.nan, "1"],
+            "params.iql.discount": ["0.99", "0.995", np.nan, "0.99", "0.995"],
+        }
+    )
+
+    def kept(spec, named=None):
+        return list(frame.index[claims.select.compile_filter(spec, named or {}, "test")(frame)])
+
+    assert kept({"variant": "spot"}) == [0, 4]  # runs without the key count as the default variant
+    assert kept({"method": ["spot", "pt"], "dataset": "h"}) == [0, 1, 3]
+    assert kept({"params": {"shaping.weight": 1.0}}) == [0, 4]  # numbers compare as numbers: "1" is 1.0
+    assert kept({"params": {"shaping.weight": "1.0"}}) == [0]  # text compares as text
+    assert kept({"params": {"shaping.weight": {"other_than": 1.0}}}) == [1]  # unlogged = the default
+    assert kept({"params": {"shaping.weight": {"not": 1.0}}}) == [1, 2, 3]
+    assert kept({"params": {"iql.discount": {"in": [0.995, 0.9]}}}) == [1, 4]
+    named = {"long": {"params": {"iql.discount": {"other_than": 0.99}}}}
+    assert kept({"method": "spot", "none": ["long"]}, named) == [0, 2]
+    assert kept({"any": ["long", {"method": "pt"}]}, named) == [1, 3, 4]
+
+
+def test_report_takes_a_study_folder_or_a_claims_file_not_both(tmp_path):
+    p = run_cli("report", "experiments/lab-walker2d", "--claims", "x.yaml", cwd=ROOT)
+    assert p.returncode == 2 and p.stderr.startswith("error: spot report: give a study folder"), p.stderr
+    p = run_cli("report", str(tmp_path))
+    assert p.returncode == 2 and "has no claims.yaml" in p.stderr, p.stderr
+    p = run_cli("report", "experiments/lab-walker2d", "--use", "Q=lab_walker", cwd=ROOT)
+    assert p.returncode == 2 and "has no set 'Q'" in p.stderr, p.stderr

@@ -1,4 +1,4 @@
-"""spot.stats against hand-computed values and an independent stratified bootstrap."""
+"""spot.results.stats against hand-computed values and an independent stratified bootstrap."""
 
 import warnings
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats as scipy_stats
 
-from spot import stats
+from spot.results import stats
 
 
 def test_probability_of_improvement_by_hand():

@@ -160,7 +160,7 @@ def test_repo_sweep_files_resolve(path):
 def test_each_table_reads_the_experiment_its_sweep_file_writes():
     """tables.SWEEP_EXPERIMENTS (which experiment `spot tables --table N` reads by default) names
     the sweep file whose `table:` is N (Table 8 is the stage times of Table 1's runs)."""
-    from spot import tables
+    from spot.results import tables
 
     assert set(tables.SWEEP_EXPERIMENTS) == set(tables.TABLES)
     for number, name in tables.SWEEP_EXPERIMENTS.items():

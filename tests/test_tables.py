@@ -1,4 +1,4 @@
-"""Paper tables and figures from MLflow runs (spot.tables, spot.figures, analysis/ notebooks).
+"""Paper tables and figures from MLflow runs (spot.results.tables, spot.figures, analysis/ notebooks).
 
 The fixture is a tmp SQLite MLflow store with runs written directly (known scores per seed),
 so every expected number below is computed by hand.
@@ -20,7 +20,8 @@ import pandas as pd
 import pytest
 from matplotlib.figure import Figure
 
-from spot import SpotError, tables, tracking
+from spot import SpotError, tracking
+from spot.results import load, paper, select, table_format, tables
 
 ROOT = Path(__file__).resolve().parents[1]
 _CLOCK = [1_700_000_000_000]
@@ -241,19 +242,19 @@ def store(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def t1_runs(store):
-    return tables.load_runs(store, ["t1"])
+    return load.load_runs(store, ["t1"])
 
 
 def test_paper_dataset_names():
-    assert tables.paper_dataset_name("hopper-medium-replay-v2") == "hopper-medium-replay"
-    assert tables.paper_dataset_name("can_mh_low_dim") == "can-mh"
-    assert tables.paper_dataset_name("lift-ph") == "lift-ph"
-    assert tables.paper_dataset_name("my-own-data") == "my-own-data"
+    assert paper.paper_dataset_name("hopper-medium-replay-v2") == "hopper-medium-replay"
+    assert paper.paper_dataset_name("can_mh_low_dim") == "can-mh"
+    assert paper.paper_dataset_name("lift-ph") == "lift-ph"
+    assert paper.paper_dataset_name("my-own-data") == "my-own-data"
 
 
 def test_load_runs_and_failed(t1_runs):
     assert len(t1_runs) == 18
-    failed = tables.failed_runs(t1_runs)
+    failed = select.not_finished(t1_runs)
     assert sorted(failed["status"]) == ["FAILED", "KILLED"]
     assert failed.loc[failed["status"] == "FAILED", "failure_reason"].item() == "boom"
     assert {"params.shaping.weight", "metrics.eval/score_final", "tags.git_commit"} <= set(t1_runs.columns)
@@ -288,7 +289,7 @@ def test_table1_cells(t1_runs):
     notes = " ".join(t.attrs["notes"])
     assert "2 runs not FINISHED (FAILED: 1, KILLED: 1)" in notes
     assert (
-        "same cell and seed: 1" in notes
+        "same config and seed: 1" in notes
         and "runs: 15 from experiment(s) t1" in notes
         and "sample std (ddof=1)" in notes
         and "dataset source file" in notes
@@ -303,17 +304,17 @@ def test_table1_population_std(t1_runs):
 
 def test_formats_parse(t1_runs):
     t = tables.build_table(t1_runs, 1)
-    csv = pd.read_csv(io.StringIO(tables.format_table(t, "csv")))
+    csv = pd.read_csv(io.StringIO(table_format.format_table(t, "csv")))
     line = csv[(csv["dataset"] == "hopper-medium-replay") & (csv["source"] == "recipe")].iloc[0]
     assert line["spot/mean"] == pytest.approx(85.0) and line["spot/paper"] == pytest.approx(85.08)
-    md = tables.format_table(t, "md")
+    md = table_format.format_table(t, "md")
     assert "| dataset | source | Oracle | MR | PT | IPL | HPL | SPOT |" in md
     assert "**85.00 ± 5.00** (3) CI 80.00–90.00 [85.08 ± 1.32, Δ -0.08]" in md  # 80, 85, 90: CI of the mean
-    latex = tables.format_table(t, "latex")
+    latex = table_format.format_table(t, "latex")
     assert "\\begin{tabular}" in latex and "\\end{tabular}" in latex
     assert "\\textbf{85.00 $\\pm$ 5.00} (3)" in latex
     with pytest.raises(SpotError, match="unknown format"):
-        tables.format_table(t, "html")
+        table_format.format_table(t, "html")
 
 
 def test_table8_sums(t1_runs):
@@ -338,7 +339,7 @@ def test_table8_sums(t1_runs):
 
 
 def test_tables_2_3_4_7(store):
-    t2 = tables.build_table(tables.load_runs(store, ["t2"]), 2)
+    t2 = tables.build_table(load.load_runs(store, ["t2"]), 2)
     top = t2.loc[("top-10", "recipe")]
     assert top[("hopper-medium-expert", "mean")] == pytest.approx(99.0)
     assert top[("hopper-medium-expert", "paper")] == pytest.approx(99.37)
@@ -346,7 +347,7 @@ def test_tables_2_3_4_7(store):
     assert not t2.loc[("bottom-10", "recipe"), ("hopper-medium-expert", "best")]
     assert t2.loc[("top-10-20", "recipe"), ("hopper-medium-expert", "n")] == 0  # paper only
 
-    t3 = tables.build_table(tables.load_runs(store, ["t3"]), 3)
+    t3 = tables.build_table(load.load_runs(store, ["t3"]), 3)
     cos = t3.loc[("walker2d-medium-replay", "cosine", "recipe")]
     assert cos[(1.0, "mean")] == pytest.approx(79.0) and cos[(1.0, "paper")] == pytest.approx(77.51)
     assert cos[(0.5, "mean")] == pytest.approx(76.0) and cos[(0.5, "paper")] == pytest.approx(75.30)
@@ -354,12 +355,12 @@ def test_tables_2_3_4_7(store):
     assert t3.loc[("walker2d-medium-replay", "potential", "recipe"), (0.5, "paper")] == pytest.approx(74.45)
     assert ("walker2d-medium-replay", "?", "recipe") in t3.index  # paper values of unknown shaping kind
 
-    t4 = tables.build_table(tables.load_runs(store, ["t4"]), 4)
+    t4 = tables.build_table(load.load_runs(store, ["t4"]), 4)
     assert t4.loc[("hopper-medium-expert", "spot", 50, "recipe"), ("score", "mean")] == pytest.approx(85.0)
     assert t4.loc[("hopper-medium-expert", "spot", 50, "recipe"), ("score", "paper")] == pytest.approx(85.99)
     assert t4.loc[("hopper-medium-expert", "pt", 30, "recipe"), ("score", "n")] == 0
 
-    t7 = tables.build_table(tables.load_runs(store, ["t7"]), 7)
+    t7 = tables.build_table(load.load_runs(store, ["t7"]), 7)
     can = t7.loc[("can-mh", "recipe")]
     assert can[("mse", "mean")] == pytest.approx(39.0) and can[("mse", "paper")] == pytest.approx(39.22)
     assert can[("mse_cos", "paper")] == pytest.approx(59.56) and can[("mse_cos", "best")]
@@ -367,7 +368,7 @@ def test_tables_2_3_4_7(store):
 
 
 def test_mixed_cells_refused(store):
-    runs = tables.load_runs(store, ["mixed"])
+    runs = load.load_runs(store, ["mixed"])
     with pytest.raises(SpotError, match="iql.steps in {200, 20000}"):
         tables.build_table(runs, 1)
     t = tables.build_table(runs, 1, allow_mixed=True)
@@ -379,15 +380,15 @@ def test_default_experiments(store):
     assert tables.default_experiments(1, store) is None  # no sweep experiment: all experiments
     tracking.experiment_id("table4_queries-smoke", store)
     assert tables.default_experiments(4, store) == ["table4_queries-smoke"]
-    tracking.experiment_id("lab_table4", store)  # the lab sweep's runs come before the smoke launch's
-    assert tables.default_experiments(4, store) == ["lab_table4"]
-    tracking.experiment_id("table4_queries", store)  # and the paper-budget sweep's before the lab's
+    tracking.experiment_id("other_table4", store)  # another experiment's runs are never a table's default
+    assert tables.default_experiments(4, store) == ["table4_queries-smoke"]
+    tracking.experiment_id("table4_queries", store)  # the paper-budget sweep's before its smoke launch
     assert tables.default_experiments(4, store) == ["table4_queries"]
 
 
 def test_errors(store, t1_runs):
     with pytest.raises(SpotError, match="no MLflow experiment named 'nope'"):
-        tables.load_runs(store, ["nope"])
+        load.load_runs(store, ["nope"])
     with pytest.raises(SpotError, match="unknown table 5"):
         tables.build_table(t1_runs, 5)
     with pytest.raises(SpotError, match="no run logged the metric"):
@@ -482,7 +483,7 @@ def test_cli_tables(store, capsys, tmp_path):
         == 0
     )
     assert png.exists()
-    runs = tables.load_runs(store, ["t1"])
+    runs = load.load_runs(store, ["t1"])
     with_png = runs.loc[(runs["method"] == "spot") & (runs["metrics.eval/score_final"] == 80.0), "run_id"].item()
     fig4 = tmp_path / "f4.png"
     assert cli.main(["figures", "fig4", "--tracking-uri", store, "--run-id", with_png, "--out", str(fig4)]) == 0
@@ -529,5 +530,5 @@ def test_fig2_reads_served_artifacts(store):
     """Sweep runs have mlflow-artifacts:/ URIs; with no server running they are read from disk."""
     from spot import figures
 
-    bins = figures.extrapolation_bins(tables.load_runs(store, ["served"]), store)
+    bins = figures.extrapolation_bins(load.load_runs(store, ["served"]), store)
     assert set(bins["origin"]) == {"artifact"} and len(bins) == 6

@@ -1,6 +1,6 @@
 """The end of a launch: one row per (config, seed) from MLflow, as a plain-text table, where the
 trials' time went (:func:`format_breakdown`) and the sweep's paper table (ours beside the paper's,
-:mod:`spot.tables`)."""
+:mod:`spot.results.tables`)."""
 
 from __future__ import annotations
 
@@ -103,18 +103,18 @@ def paper_table(sweep: Sweep, uri: str, sweep_id: str, out_dir: Path | None = No
     """The sweep's paper table (ours beside the paper's) from this launch's finished runs, compact
     enough for a 120-column terminal; with ``out_dir`` the full Markdown table (CIs, Δ, notes) is
     written to ``out_dir/<sweep id>-table<N>.md`` and the text says where."""
-    from spot import tables
+    from spot.results import load, table_format, tables
 
-    runs = tables.load_runs(uri, [sweep.experiment], sweep_id=sweep_id)
+    runs = load.load_runs(uri, [sweep.experiment], sweep_id=sweep_id)
     try:
         table = tables.build_table(runs, sweep.table)
     except SpotError as e:  # e.g. a sweep whose runs do not form that table
         return f"(no Table {sweep.table}: {e})"
-    text = tables.format_table(table, "text", width=120)
+    text = table_format.format_table(table, "text", width=120)
     if out_dir is not None:
         path = Path(out_dir) / f"{sweep_id}-table{sweep.table}.md"
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(tables.format_table(table, "md"))
+        path.write_text(table_format.format_table(table, "md"))
         text += f"full table with CIs and notes: {path}\n"
     return text
 

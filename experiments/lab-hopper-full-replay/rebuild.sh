@@ -1,0 +1,6 @@
+#!/usr/bin/env bash
+# Rebuilds this study's committed reports in place from its claims file(s) and results CSVs.
+# Run from the repository root: bash experiments/lab-hopper-full-replay/rebuild.sh
+set -euo pipefail
+D=experiments/lab-hopper-full-replay
+spot report "$D" --out "$D/report_hopper_fr_pf.md"
