@@ -235,13 +235,7 @@ def _claim(spec: Any, named: Mapping[str, Any], sets: Mapping[str, ExperimentSet
     if missing:
         raise SpotError(f"{where}: set {missing[0]!r} is not in the file's sets ({', '.join(sets) or 'none'})")
     variant = _text(spec, "variant", where, "") or None
-    scope: list[Any] = [{"variant": variant}] if variant else []
-    scope += [{"dataset": _strings(spec["datasets"], f"{where}: datasets")}] if "datasets" in spec else []
-    among = (
-        select.compile_filter({"all": [*scope, spec["among"]] if "among" in spec else scope}, named, where)
-        if (scope or "among" in spec)
-        else select.everything
-    )
+    among = _among(spec, variant, named, where)
     needs = () if dose else ("x",) if test == "runner-up" else ("x", "y")
     for key in needs:
         if key not in spec:
@@ -270,6 +264,21 @@ def _claim(spec: Any, named: Mapping[str, Any], sets: Mapping[str, ExperimentSet
         variant=variant,
         **_runner_up(spec, where, test),
     )
+
+
+def _among(spec: Mapping[str, Any], variant: str | None, named: Mapping[str, Any], where: str) -> select.Filter:
+    """The runs a claim looks at: its ``variant``, ``datasets`` and ``among`` together (every run
+    without any of them)."""
+    parts = [select.compile_filter({"variant": variant}, named, f"{where}: variant")] if variant else []
+    if "datasets" in spec:
+        datasets = _strings(spec["datasets"], f"{where}: datasets")
+        parts.append(select.compile_filter({"dataset": datasets}, named, f"{where}: datasets"))
+    if "among" in spec:
+        parts.append(select.compile_filter(spec["among"], named, f"{where}.among"))
+    among = select.everything
+    for part in parts:
+        among = select.both(among, part)
+    return among
 
 
 def _metrics(spec: Mapping[str, Any], where: str, dose: bool) -> tuple[str, ...]:
