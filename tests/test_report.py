@@ -792,6 +792,8 @@ def test_sign_flip_p_counts_sign_patterns_by_hand():
     # one 1 gives 5.0
     assert stats.sign_flip_p([[1.0, 1.0], [10.0]]) == pytest.approx(2 / 8)
     assert np.isnan(stats.sign_flip_p([]))
+    # one difference: +d and -d are equally extreme, p = 2/2 (a one-seed smoke report must not crash)
+    assert stats.sign_flip_p([[4.2]]) == 1.0 and stats.sign_flip_p([[-3.0]]) == 1.0
 
 
 def test_a_failing_permutation_test_drops_the_borderline_note():

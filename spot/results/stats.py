@@ -372,10 +372,13 @@ def sign_flip_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RESAM
     as likely to carry either sign. SciPy's :func:`scipy.stats.permutation_test` on one sample
     (``permutation_type="samples"`` flips signs), exact while the 2^N sign patterns of the N
     differences number at most ``n_resamples``. The smallest p it can give is 2 / 2^N: no pattern
-    of five or fewer differences reaches 0.05. ``nan`` without differences or with a non-finite one."""
+    of five or fewer differences reaches 0.05. ``nan`` without differences or with a non-finite one;
+    1 for a single difference (its two sign patterns are equally extreme; SciPy needs two)."""
     arrays = _arrays(strata)
     if not arrays or min(len(a) for a in arrays) == 0 or not all(np.isfinite(a).all() for a in arrays):
         return float("nan")
+    if sum(len(a) for a in arrays) == 1:
+        return 1.0
     bounds = np.cumsum([len(a) for a in arrays])[:-1]
 
     def statistic(d: np.ndarray, axis: int = -1) -> np.ndarray:
