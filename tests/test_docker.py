@@ -178,7 +178,7 @@ def _request(
 @contextlib.contextmanager
 def _serve(argv: list[str], env: dict[str, str], tmp_path: Path, replace: dict[str, str]):
     """Start ``argv`` (an ``mlflow server ...`` command line) with only the ``replace`` options' values changed."""
-    from spot.mlflow_server import free_port
+    from spot.sweep.mlflow_server import free_port
 
     assert argv[:2] == ["mlflow", "server"], argv
     options = _split_options(argv[2:])

@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 
 from spot import SpotError, config, tracking
-from spot.mlflow_server import free_port, sqlite_uri
+from spot.sweep.mlflow_server import free_port, sqlite_uri
 from spot.tracking import limits
 
 HERE = Path(__file__).resolve().parent
@@ -260,11 +260,11 @@ def _launch_store(db: Path) -> tuple:
 
 
 def test_runs_are_closed_through_the_store_when_the_server_died(tmp_path, capsys):
-    from spot.sweep import launch
+    from spot.sweep import launch, tracking_store
 
     client, ctx, ids, other = _launch_store(tmp_path / "m.db")
     gone = "the MLflow server at http://127.0.0.1:9 (pid 1234) died (killed by SIGKILL)"
-    store = launch._Store(
+    store = tracking_store.Store(
         lambda: "http://127.0.0.1:9", "", lambda: None, backend=sqlite_uri(tmp_path / "m.db"), died=lambda: gone
     )
     launch._close_launch(store, ctx, gone, "spot sweep s.yaml --resume")
@@ -278,12 +278,12 @@ def test_runs_are_closed_through_the_store_when_the_server_died(tmp_path, capsys
 
 
 def test_runs_are_closed_through_the_store_when_the_server_stalls(tmp_path, stalling, short_deadlines, capsys):
-    from spot.sweep import launch
+    from spot.sweep import tracking_store
 
     client, ctx, ids, _ = _launch_store(tmp_path / "m.db")
-    store = launch._Store(lambda: stalling.uri, "", lambda: None, backend=sqlite_uri(tmp_path / "m.db"))
+    store = tracking_store.Store(lambda: stalling.uri, "", lambda: None, backend=sqlite_uri(tmp_path / "m.db"))
     start = time.monotonic()
-    where = launch._close_runs(store, ctx, "launch stopped by SIGTERM", deadline=time.monotonic() + 25)
+    where = tracking_store.close_runs(store, ctx, "launch stopped by SIGTERM", deadline=time.monotonic() + 25)
     assert time.monotonic() - start < 10
     assert where == f" in {sqlite_uri(tmp_path / 'm.db')} (the server did not answer)"
     assert all(client.get_run(i).info.status == "KILLED" for i in ids)
@@ -293,15 +293,15 @@ def test_runs_are_closed_through_the_store_when_the_server_stalls(tmp_path, stal
 _SIGTERM_PROBE = """
 import os, signal, sys, time
 from pathlib import Path
-from spot.mlflow_server import sqlite_uri
-from spot.sweep import launch
+from spot.sweep import launch, signals, tracking_store
+from spot.sweep.mlflow_server import sqlite_uri
 from spot.sweep.trial import SweepContext
 
 uri, db, exp, parent = sys.argv[1:]
-store = launch._Store(lambda: uri, "", lambda: None, backend=sqlite_uri(Path(db)))
+store = tracking_store.Store(lambda: uri, "", lambda: None, backend=sqlite_uri(Path(db)))
 ctx = SweepContext("sw", "sw", "s", exp, parent, uri, ())
 close = lambda reason, deadline: launch._close_launch(store, ctx, reason, "RESUME", deadline)
-with launch._on_sigterm(lambda: launch._sigterm_cleanup(store, close, started_ray=False)):
+with signals.on_sigterm(lambda: signals.sigterm_cleanup(store, close, started_ray=False)):
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(60)
 sys.exit(5)  # never reached: the handler ends the process
@@ -339,13 +339,13 @@ def test_a_sigterm_cleanup_goes_step_by_step_and_closes_runs_past_a_stalled_serv
 
 # --------------------------------------------------------------------------- watching the server
 def test_the_watch_stops_tune_once_when_the_server_dies(capsys):
-    from spot.sweep import launch
+    from spot.sweep import tracking_store
 
     got = []
     previous = signal.signal(signal.SIGUSR1, lambda signum, frame: got.append(signum))  # as Tune's handler
     died = {"text": ""}
     try:
-        with launch._watching_server(lambda: died["text"], poll_s=0.05):
+        with tracking_store.watching_server(lambda: died["text"], poll_s=0.05):
             time.sleep(0.3)
             assert got == []
             died["text"] = "the MLflow server at http://127.0.0.1:9 (pid 7) died (killed by SIGKILL)"
@@ -365,8 +365,8 @@ def test_the_watch_stops_tune_once_when_the_server_dies(capsys):
 def test_the_watch_sends_nothing_while_no_handler_would_take_it():
     # SIGUSR1's default action ends the process: without Tune's handler the watch must not send it.
     code = (
-        "import signal, time\nfrom spot.sweep import launch\nsignal.signal(signal.SIGUSR1, signal.SIG_DFL)\n"
-        "with launch._watching_server(lambda: 'dead', poll_s=0.05):\n    time.sleep(0.5)\nprint('alive')"
+        "import signal, time\nfrom spot.sweep import tracking_store\nsignal.signal(signal.SIGUSR1, signal.SIG_DFL)\n"
+        "with tracking_store.watching_server(lambda: 'dead', poll_s=0.05):\n    time.sleep(0.5)\nprint('alive')"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and out.stdout.strip() == "alive", out.stderr

@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from spot import SpotError
-from spot.mlflow_server import sqlite_uri
+from spot.sweep.mlflow_server import sqlite_uri
 
 HERE = Path(__file__).resolve().parent
 GATED_SWEEP = """
@@ -249,7 +249,7 @@ def test_sigterm_to_the_driver_alone_stops_its_trials_and_closes_the_runs(sigter
 
 _SIGTERM_PROBE = """
 import os, signal, sys, time
-from spot.sweep import launch
+from spot.sweep import signals
 
 mode = sys.argv[1]
 
@@ -269,7 +269,7 @@ class Reentrant:  # as a stream whose write the signal interrupted: flushing it 
 
 if mode == "reentrant":
     sys.stdout = Reentrant()
-with launch._on_sigterm(stop, grace_s=2.0):
+with signals.on_sigterm(stop, grace_s=2.0):
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(30)
 sys.exit(5)  # never reached: the handler ends the process
@@ -434,7 +434,7 @@ def squatter():
 def test_a_squatted_port_gets_no_run_and_the_server_moves(tmp_path, squatter, capsys):
     from mlflow.tracking import MlflowClient
 
-    from spot.mlflow_server import MlflowServer
+    from spot.sweep.mlflow_server import MlflowServer
 
     db = tmp_path / "m.db"
     server = MlflowServer(sqlite_uri(db), tmp_path / "artifacts", port=squatter.port)  # the port was taken
@@ -457,7 +457,8 @@ def test_a_squatted_port_gets_no_run_and_the_server_moves(tmp_path, squatter, ca
 
 
 def test_a_port_squatted_every_time_is_a_clear_error(tmp_path, squatter, monkeypatch):
-    from spot import SpotError, mlflow_server
+    from spot import SpotError
+    from spot.sweep import mlflow_server
 
     monkeypatch.setattr(mlflow_server, "free_port", lambda host="127.0.0.1": squatter.port)
     server = mlflow_server.MlflowServer(sqlite_uri(tmp_path / "m.db"), tmp_path / "artifacts")
@@ -469,7 +470,7 @@ def test_a_port_squatted_every_time_is_a_clear_error(tmp_path, squatter, monkeyp
 
 
 def test_server_telemetry_off_unless_the_user_turns_it_on(tmp_path, monkeypatch):
-    from spot.mlflow_server import MlflowServer
+    from spot.sweep.mlflow_server import MlflowServer
 
     server = MlflowServer("sqlite:///x.db", tmp_path, port=1)
     monkeypatch.delenv("MLFLOW_DISABLE_TELEMETRY", raising=False)
@@ -480,7 +481,7 @@ def test_server_telemetry_off_unless_the_user_turns_it_on(tmp_path, monkeypatch)
 
 def test_an_unreachable_tracking_server_is_a_clear_error_at_once():
     from spot import SpotError
-    from spot.mlflow_server import free_port
+    from spot.sweep.mlflow_server import free_port
     from spot.tracking.store import check_reachable
 
     start = time.monotonic()
@@ -499,8 +500,8 @@ def test_a_second_launch_of_a_running_sweep_refuses(tmp_path):
         [
             sys.executable,
             "-c",
-            "import sys, time; from pathlib import Path; from spot.sweep import launch\n"
-            f"with launch._launch_lock(Path({str(state_file)!r}), 'gated'):\n"
+            "import sys, time; from pathlib import Path; from spot.sweep import launch_record\n"
+            f"with launch_record.launch_lock(Path({str(state_file)!r}), 'gated'):\n"
             "    print('held', flush=True); time.sleep(120)",
         ],
         stdout=subprocess.PIPE,
@@ -620,7 +621,7 @@ def test_a_run_whose_process_was_killed_is_closed_by_the_next_run(tmp_path):
 def test_unreachable_tracking_server_and_ray_address_are_clear_errors(tmp_path, squatter):
     from conftest import run_cli
 
-    from spot.mlflow_server import free_port
+    from spot.sweep.mlflow_server import free_port
 
     (tmp_path / "gated.yaml").write_text(GATED_SWEEP)
     dead = f"http://127.0.0.1:{free_port()}"

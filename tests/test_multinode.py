@@ -111,7 +111,7 @@ def _ray_processes_of(root: Path) -> list[str]:
 
 @pytest.fixture(scope="module")
 def launched(tmp_path_factory):
-    from spot.mlflow_server import free_port
+    from spot.sweep.mlflow_server import free_port
 
     root = tmp_path_factory.mktemp("multinode")
     # Ray's temp dirs: short paths (its unix sockets live there; a socket path is at most 107 bytes)
@@ -194,7 +194,7 @@ def runs(launched):
     which only a server resolves), and the sweep's child runs."""
     from mlflow.tracking import MlflowClient
 
-    from spot.mlflow_server import MlflowServer, sqlite_uri
+    from spot.sweep.mlflow_server import MlflowServer, sqlite_uri
 
     out = launched["out"]
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-4000:]
@@ -266,19 +266,19 @@ def test_the_paper_table_prints(launched, runs):
 )
 def test_tracking_host_is_only_for_the_server_of_a_cluster_sweep(host, address, uri, match, monkeypatch):
     from spot import SpotError
-    from spot.sweep import launch
+    from spot.sweep import uris
 
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     with pytest.raises(SpotError, match=match):
-        launch._check_tracking_host(host, address, uri)
-    launch._check_tracking_host("0.0.0.0", "h:6379", "sqlite:///x.db")  # a SQLite store spot serves: fine
+        uris.check_tracking_host(host, address, uri)
+    uris.check_tracking_host("0.0.0.0", "h:6379", "sqlite:///x.db")  # a SQLite store spot serves: fine
 
 
 def test_a_server_on_all_interfaces_advertises_the_address_on_the_route_to_the_head():
-    from spot.sweep import launch
+    from spot.sweep import uris
 
-    assert launch._advertised_host("0.0.0.0", "127.0.0.1:6379") == "127.0.0.1"
-    assert launch._advertised_host("10.1.2.3", "127.0.0.1:6379") == "10.1.2.3"  # a given address as it is
+    assert uris.advertised_host("0.0.0.0", "127.0.0.1:6379") == "127.0.0.1"
+    assert uris.advertised_host("10.1.2.3", "127.0.0.1:6379") == "10.1.2.3"  # a given address as it is
 
 
 # --------------------------------------------------------------------------- a lambda sweep, one machine

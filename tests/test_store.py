@@ -33,7 +33,7 @@ def moto_server(log: Path):
     so every PUT of a key is counted."""
     import boto3
 
-    from spot.mlflow_server import free_port
+    from spot.sweep.mlflow_server import free_port
 
     port = free_port()
     with open(log, "wb") as out:

@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from spot import SpotError, sweep
-from spot.mlflow_server import MlflowServer, sqlite_uri
+from spot.sweep.mlflow_server import MlflowServer, sqlite_uri
 
 REPO = Path(__file__).resolve().parents[1]
 

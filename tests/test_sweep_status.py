@@ -15,7 +15,7 @@ import pytest
 
 from spot import sweep
 from spot.cli import main
-from spot.mlflow_server import sqlite_uri
+from spot.sweep.mlflow_server import sqlite_uri
 
 SWEEP = """
 name: st

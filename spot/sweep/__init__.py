@@ -4,15 +4,22 @@
   the keys that name a config and a (config, seed) run.
 * :mod:`spot.sweep.trial`: what runs in a trial's process (CPU slots, XLA settings, each seed's
   run, skipping seeds that already finished, recording failures).
-* :mod:`spot.sweep.launch`: the driver (:func:`run_sweep`, ``spot sweep FILE``): store, Ray,
-  parent run, the Tune experiment, resume.
+* :mod:`spot.sweep.launch`: the driver (:func:`run_sweep`, ``spot sweep FILE``): the launch's flow,
+  from the file to the summary, and resume.
+* :mod:`spot.sweep.uris`: which tracking URIs and ``--tracking-host`` values a sweep takes.
+* :mod:`spot.sweep.tracking_store`: the launch's store (a server given by URI, or a SQLite store
+  served by :mod:`spot.sweep.mlflow_server`), the watch on that server, closing the launch's runs.
+* :mod:`spot.sweep.tune`: Ray (local on loopback, or a cluster) and the Tune experiment.
+* :mod:`spot.sweep.launch_record`: the record of the last launch and the lock a running one holds.
+* :mod:`spot.sweep.parent`: the launch's parent run (created, reopened on resume, closed).
+* :mod:`spot.sweep.signals`: SIGINT/SIGTERM: :class:`Interrupted`, a SIGTERM's stepped cleanup.
 * :mod:`spot.sweep.summary`: the per-(config, seed) summary and the sweep's paper table.
 * :mod:`spot.sweep.status`: where the last launch stands (``spot sweep FILE --status``), from MLflow.
 
 MLflow is the record: the driver creates the experiment and a parent run; each (config, seed) is
 a child run tagged with the sweep id, the Ray trial id, a ``trial_key`` (hash of the override dict
 and seed) and one ``axis.<key>`` tag per axis. With no tracking URI the driver serves a SQLite
-store through a loopback ``mlflow server`` (:mod:`spot.mlflow_server`), so no trial writes SQLite
+store through a loopback ``mlflow server`` (:mod:`spot.sweep.mlflow_server`), so no trial writes SQLite
 itself; for a cluster sweep ``--tracking-host`` binds that server where other nodes reach it.
 
 Multi-node: a store named by the file's ``store:`` or ``--store`` (:mod:`spot.store`, passed to
@@ -27,7 +34,8 @@ FINISHED run. A trial that raises is marked FAILED with its ``failure_reason``, 
 and the summary lists it.
 """
 
-from spot.sweep.launch import DEFAULT_STORAGE, Interrupted, prebuild_datasets, run_sweep
+from spot.sweep.launch import DEFAULT_STORAGE, prebuild_datasets, run_sweep
+from spot.sweep.signals import Interrupted
 from spot.sweep.spec import Sweep, Trial, config_key, load, run_key, tag_value
 from spot.sweep.summary import Row, format_summary, paper_table, summarize
 from spot.sweep.trial import SweepContext, configure_process, cpu_slots, run_trial

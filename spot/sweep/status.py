@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError
-from spot.sweep.launch import lock_file, read_record, record_file
+from spot.sweep.launch_record import lock_file, read_record, record_file
 from spot.sweep.spec import Sweep
 from spot.sweep.summary import Row, first_line, summarize, tag_value, text_table
 

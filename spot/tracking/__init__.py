@@ -16,7 +16,7 @@
   got no answer, and the cap on ``failure_reason``.
 
 With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under
-``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.mlflow_server`).
+``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.sweep.mlflow_server`).
 """
 
 from spot.tracking.limits import TrackingUnreachable, failure_reason, set_http_deadlines, waiting_on
@@ -29,7 +29,6 @@ from spot.tracking.queries import (
     first_run,
     local_artifact,
     quote,
-    record_failure,
     search_runs,
     tag_filter,
 )
@@ -48,6 +47,7 @@ from spot.tracking.record import (
     log_params,
     mlflow_tags,
     package_versions,
+    record_failure,
     reproduce_command,
     run_tags,
     start_run,

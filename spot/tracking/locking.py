@@ -5,6 +5,8 @@ two processes doing that at once on a new file race ("duplicate column name", "t
 exists", "expected to match one row"). :func:`prepare_store` opens the store with an exclusive
 ``flock`` on ``<db>.lock`` held, so the second process waits and then finds the schema current.
 Later opens of a current schema need no lock (SQLite's own locking covers the writes).
+:func:`sqlite_path` (the database file of a ``sqlite:///`` URI) lives here, below
+:mod:`spot.tracking.store`, which imports this module and re-exports it.
 """
 
 from __future__ import annotations
@@ -14,9 +16,12 @@ import fcntl
 from collections.abc import Iterator
 from pathlib import Path
 
-from spot.tracking.store import sqlite_path
-
 _prepared: set[str] = set()
+
+
+def sqlite_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///`` URI (relative or absolute); None for other URIs."""
+    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
 
 
 @contextlib.contextmanager

@@ -1,5 +1,5 @@
-"""Queries on a store: filter strings, paging, finished-run lookup, failure records, orphan
-closing and artifact fetching. Sweeps, tables and figures read MLflow through these.
+"""Queries on a store: filter strings, paging, finished-run lookup, orphan closing and artifact
+fetching. Sweeps, tables and figures read MLflow through these.
 
 Filter strings are built with :func:`quote` / :func:`tag_filter`: MLflow takes a value in single
 or double quotes and has no escape inside them, so a value is put in the quote it does not
@@ -15,9 +15,7 @@ from typing import Any
 from urllib.parse import urlparse
 
 from spot import SpotError
-from spot import config as config_lib
-from spot.tracking.limits import cap_reason, failure_reason, waiting_on
-from spot.tracking.record import create_run, log_params, lookup_tags, mlflow_tags, run_tags
+from spot.tracking.limits import cap_reason, waiting_on
 from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
 
 STATUSES = ("RUNNING", "SCHEDULED", "FINISHED", "FAILED", "KILLED")
@@ -49,7 +47,7 @@ def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str =
     for start in range(0, len(ids), SEARCH_EXPERIMENTS):
         token = None
         while True:
-            with waiting_on(_uri(client), "searching runs"):
+            with waiting_on(client_uri(client), "searching runs"):
                 page = client.search_runs(
                     ids[start : start + SEARCH_EXPERIMENTS],
                     filter_string=filter_string,
@@ -62,14 +60,14 @@ def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str =
                 break
 
 
-def _uri(client: Any) -> str:
+def client_uri(client: Any) -> str:
     """The tracking URI of an MLflow client (for error messages), "" if it has none."""
     return str(getattr(client, "tracking_uri", "") or "")
 
 
 def first_run(client: Any, experiment_id: str, tags: Mapping[str, Any], status: str | None = None) -> Any | None:
     """One run of the experiment with all ``tags`` (and ``status``), or None."""
-    with waiting_on(_uri(client), "looking up a run"):
+    with waiting_on(client_uri(client), "looking up a run"):
         found = client.search_runs([experiment_id], tag_filter(tags, status), max_results=1)
     return found[0] if found else None
 
@@ -77,35 +75,6 @@ def first_run(client: Any, experiment_id: str, tags: Mapping[str, Any], status: 
 def finished_run(client: Any, experiment_id: str, tags: Mapping[str, Any]) -> Any | None:
     """A FINISHED run with all ``tags`` (e.g. a sweep's id and trial key), or None."""
     return first_run(client, experiment_id, tags, "FINISHED")
-
-
-def record_failure(
-    client: Any,
-    experiment_id: str,
-    cfg: config_lib.ExperimentConfig,
-    tags: dict[str, str],
-    error: BaseException,
-    *,
-    parent_run_id: str | None = None,
-) -> str | None:
-    """Make sure the attempt ``tags['attempt']`` has a FAILED run; return the run created, if any.
-
-    The pipeline's run already ends FAILED when the run failed after it started; this covers a
-    failure before that (config, dataset), with the config params, the run tags and the
-    ``failure_reason`` tag (capped, :func:`spot.tracking.limits.failure_reason`).
-    """
-    if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
-        return None
-    all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
-    all_tags.update(mlflow_tags(cfg, all_tags))
-    all_tags["failure_reason"] = failure_reason(error)
-    if parent_run_id:
-        all_tags["mlflow.parentRunId"] = parent_run_id
-    with waiting_on(_uri(client), "recording a failed run"):
-        run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
-        log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
-        client.set_terminated(run.info.run_id, "FAILED")
-    return run.info.run_id
 
 
 def close_orphans(
@@ -129,7 +98,7 @@ def close_orphans(
     for i, r in enumerate(orphans):
         if deadline is not None and time.monotonic() > deadline:
             raise TimeoutError(f"closed {i} of {len(orphans)} runs left RUNNING before the deadline")
-        with waiting_on(_uri(client), f"closing run {r.info.run_id}"):
+        with waiting_on(client_uri(client), f"closing run {r.info.run_id}"):
             client.set_tag(r.info.run_id, "failure_reason", cap_reason(reason))
             client.set_terminated(r.info.run_id, "KILLED")
     return len(orphans)

@@ -12,7 +12,9 @@ dataset card, package versions and the environment (``environment.json``, ``requ
 JSON artifacts are valid JSON (:func:`json_safe`: NaN and infinities become null).
 
 The pipeline writes through the :class:`Tracker` interface; :class:`MlflowTracker` is its MLflow
-implementation, :class:`MemoryTracker` an in-memory one.
+implementation, :class:`MemoryTracker` an in-memory one. A run that fails inside :func:`start_run`
+ends FAILED with a ``failure_reason``; :func:`record_failure` gives an attempt that failed before
+its run opened (config, dataset) a FAILED run of its own.
 """
 
 from __future__ import annotations
@@ -34,9 +36,10 @@ from typing import Any, Protocol, runtime_checkable
 
 from spot import config as config_lib
 from spot import phases, runtime
-from spot.tracking.limits import failure_reason
+from spot.tracking.limits import failure_reason, waiting_on
 from spot.tracking.locking import prepare_store
 from spot.tracking.processes import close_dead_runs, process_tags
+from spot.tracking.queries import client_uri, first_run
 from spot.tracking.store import experiment_id, resolve_uri
 
 PACKAGES = (
@@ -524,6 +527,35 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
     if commit:
         out["mlflow.source.git.commit"] = commit
     return out
+
+
+def record_failure(
+    client: Any,
+    experiment_id: str,
+    cfg: config_lib.ExperimentConfig,
+    tags: dict[str, str],
+    error: BaseException,
+    *,
+    parent_run_id: str | None = None,
+) -> str | None:
+    """Make sure the attempt ``tags['attempt']`` has a FAILED run; return the run created, if any.
+
+    The pipeline's run already ends FAILED when the run failed after it started; this covers a
+    failure before that (config, dataset), with the config params, the run tags and the
+    ``failure_reason`` tag (capped, :func:`spot.tracking.limits.failure_reason`).
+    """
+    if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
+        return None
+    all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
+    all_tags.update(mlflow_tags(cfg, all_tags))
+    all_tags["failure_reason"] = failure_reason(error)
+    if parent_run_id:
+        all_tags["mlflow.parentRunId"] = parent_run_id
+    with waiting_on(client_uri(client), "recording a failed run"):
+        run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
+        log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
+        client.set_terminated(run.info.run_id, "FAILED")
+    return run.info.run_id
 
 
 def start_tags(

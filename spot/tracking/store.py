@@ -2,7 +2,7 @@
 
 ``spot run`` writes to ``sqlite:///<cwd>/mlruns/mlflow.db`` (artifacts under
 ``<cwd>/mlruns/artifacts``) when no URI is given; ``spot sweep`` serves
-``<cwd>/spot_runs/mlflow.db`` through a loopback server (:mod:`spot.mlflow_server`);
+``<cwd>/spot_runs/mlflow.db`` through a loopback server (:mod:`spot.sweep.mlflow_server`);
 ``spot tables`` and ``spot figures`` read whichever one of the two exists.
 """
 
@@ -17,6 +17,7 @@ from typing import Any
 
 from spot import SpotError
 from spot.tracking.limits import waiting_on
+from spot.tracking.locking import prepare_store, sqlite_path
 
 RUN_STORE = Path("mlruns") / "mlflow.db"
 """``spot run``'s default store, relative to the working folder."""
@@ -30,11 +31,6 @@ PAGE = 1000  # runs or experiments per page
 def given_uri(uri: str | None = None) -> str:
     """``uri``, else ``$MLFLOW_TRACKING_URI``, else ``""`` (no store named)."""
     return uri or os.environ.get("MLFLOW_TRACKING_URI", "")
-
-
-def sqlite_path(uri: str) -> Path | None:
-    """The database file of a ``sqlite:///`` URI (relative or absolute); None for other URIs."""
-    return Path(uri[len("sqlite:///") :]) if uri.startswith("sqlite:///") else None
 
 
 def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
@@ -139,8 +135,6 @@ def reader(uri: str | None = None) -> Any:
 def experiment_id(name: str, uri: str) -> str:
     """Get or create the experiment (with an explicit artifact location for local stores)."""
     from mlflow.tracking import MlflowClient
-
-    from spot.tracking.locking import prepare_store
 
     check_server(uri)  # an http(s) server that does not answer: a clear error, not minutes of retries
     prepare_store(uri)  # a new SQLite store is created and migrated by one process at a time

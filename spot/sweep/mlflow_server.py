@@ -22,7 +22,7 @@ is killed with ``kill -9``. :meth:`MlflowServer.stop` sends SIGTERM (forwarded b
 to its uvicorn child) and waits.
 
 A server that dies on its own while a sweep runs (``kill -9``, out of memory) is reported by
-:meth:`MlflowServer.died` (the sweep driver polls it while Tune runs, :mod:`spot.sweep.launch`), which
+:meth:`MlflowServer.died` (the sweep driver polls it while Tune runs, :mod:`spot.sweep.tracking_store`), which
 also ends what is left of the server's process group (``mlflow server`` runs uvicorn as a child,
 which would otherwise keep the port and the store).
 """
