@@ -37,7 +37,6 @@ LAYERS = [
             "spot.tables",
             "spot.figures",
             "spot.bench",
-            "spot.mlflow_server",
             "spot.results",
             "spot.report",
             "spot.stats",
