@@ -273,10 +273,10 @@ def sac_step_parts(env: str, cfg: Any, capacity: int, chunks: int, acts: int) ->
     import jax.numpy as jnp
 
     from spot import envs, loop
-    from spot.recipes import sac
+    from spot.recipes import sac, sac_train
     from spot.recipes.locomotion import ENV_IDS
 
-    gym_env = sac.make_env(ENV_IDS[env], cfg, **dict(envs.locomotion_make_kwargs(env)))
+    gym_env = sac_train.make_env(ENV_IDS[env], cfg, **dict(envs.locomotion_make_kwargs(env)))
     obs_dim, act_dim = gym_env.observation_space.shape[0], gym_env.action_space.shape[0]
     rng = np.random.default_rng(0)
     shapes = {"observations": (obs_dim,), "next_observations": (obs_dim,), "actions": (act_dim,)}
@@ -297,11 +297,11 @@ def sac_step_parts(env: str, cfg: Any, capacity: int, chunks: int, acts: int) ->
     update_s, update_cpu_s = (time.perf_counter() - t0) / (chunks * cfg.update_every), cpu_seconds() - c0
     obs, _ = gym_env.reset(seed=0)
     params, key = state.actor.params, jax.random.key(3)
-    np.asarray(sac._act_at(params, obs, key, 0, False, cfg))  # compile
+    np.asarray(sac_train._act_at(params, obs, key, 0, False, cfg))  # compile
     t_act = t_env = 0.0
     for t in range(acts):
         t0 = time.perf_counter()
-        action = np.asarray(sac._act_at(params, obs, key, t, False, cfg))
+        action = np.asarray(sac_train._act_at(params, obs, key, t, False, cfg))
         t1 = time.perf_counter()
         obs, _, terminated, truncated, _ = gym_env.step(action)
         t_env += time.perf_counter() - t1
@@ -342,7 +342,92 @@ def bench_sac(small: bool = False, env: str | None = None, size: str | None = No
     }
 
 
-BENCHES = {"iql": bench_iql, "pt": bench_pt, "relabel": bench_relabel, "cvae": bench_cvae, "sac": bench_sac}
+def _env_steps_per_s(
+    modes: dict[str, Any], repeats: int
+) -> tuple[dict[str, list[Any]], dict[str, float], dict[str, float]]:
+    """Each of ``modes`` (name -> a function returning evaluation results) once to build the envs
+    and compile, then ``repeats`` rounds of one timed call of each, interleaved (a shared machine's
+    load drifts): each mode's last results and env steps per second of wall and of CPU time."""
+    results = {name: fn() for name, fn in modes.items()}
+    wall, cpu = dict.fromkeys(modes, 0.0), dict.fromkeys(modes, 0.0)
+    for _ in range(repeats):
+        for name, fn in modes.items():
+            t0, c0 = time.perf_counter(), cpu_seconds()
+            results[name] = fn()
+            wall[name] += time.perf_counter() - t0
+            cpu[name] += cpu_seconds() - c0
+    steps = {name: repeats * sum(int(r["lengths"].sum()) for r in res) for name, res in results.items()}
+    return results, {n: steps[n] / wall[n] for n in modes}, {n: steps[n] / cpu[n] for n in modes}
+
+
+def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[str, Any]:
+    """Env steps per second of an evaluation on Hopper, ``seeds`` runs of ``episodes`` episodes:
+    ``batched``: all episodes stepped together, the policy one jitted call per env step for all
+    of them (:func:`spot.envs.evaluate_runs` with :func:`spot.stages.eval_policy`, as runs and
+    vmapped trials evaluate); ``sequential``: one episode after another
+    (:func:`spot.envs.evaluate_sequential`), the same program on one observation per step;
+    ``seq_eager``: one after another, ``iql.act`` run op by op (not jitted: spot's policy call
+    before issue 40); ``before``: together, ``iql.act`` op by op (spot's evaluation before issue
+    40 called it on the episodes still running). The actor: IQL's default, random init, its output
+    layer scaled by 0.03 (small actions: Hopper stands about 80-110 steps). ``same_episodes``: the
+    batched and the sequential returns and lengths are equal."""
+    import jax
+
+    from spot import envs, stages
+    from spot.policy import iql
+
+    cfg = IQLConfig(hidden=(64, 64)) if small else IQLConfig()
+    name, max_steps, repeats = "hopper-medium-replay", (30 if small else 0), (1 if small else 3)
+    actors = iql.init_state(jax.random.split(jax.random.key(0), seeds), 11, 3, cfg).actor.params
+    actors = {"params": {**actors["params"], "Dense_0": jax.tree.map(lambda a: a * 0.03, actors["params"]["Dense_0"])}}
+    base = [10_000 * (s + 1) for s in range(seeds)]  # stages.eval_seed of seeds 0, 1, ...
+    one = [jax.tree.map(lambda a, s=s: a[s], actors) for s in range(seeds)]
+
+    def eager(p: Any) -> Any:
+        return lambda obs: np.asarray(iql.act(p, obs, cfg))
+
+    def alone(policy: Any) -> Any:
+        return lambda: [
+            envs.evaluate_sequential(policy(p), name, episodes, b, max_steps=max_steps)
+            for p, b in zip(one, base, strict=True)
+        ]
+
+    def together(policy: Any) -> Any:
+        return lambda: envs.evaluate_runs(policy, name, episodes, base, max_steps=max_steps)
+
+    res, wall, cpu = _env_steps_per_s(
+        {
+            "batched": together(stages.eval_policy(actors, cfg, runs=True)),
+            "sequential": alone(lambda p: stages.eval_policy(p, cfg)),
+            "seq_eager": alone(eager),
+            "before": together(lambda obs: np.stack([eager(p)(o) for p, o in zip(one, obs, strict=True)])),
+        },
+        repeats,
+    )
+    pairs = list(zip(res["batched"], res["sequential"], strict=True))
+    same = all((a["returns"] == b["returns"]).all() and (a["lengths"] == b["lengths"]).all() for a, b in pairs)
+    return {
+        "what": f"evaluation env steps, Hopper, {seeds} run(s) x {episodes} episodes, actor {cfg.hidden}"
+        f"{', 30 steps (--small)' if small else ''}; {repeats} timed round(s), env steps per second",
+        "env_steps": sum(int(r["lengths"].sum()) for r in res["batched"]),
+        **{f"{mode}_steps_s": rate for mode, rate in wall.items()},
+        "ratio": wall["batched"] / wall["sequential"],
+        "ratio_cpu": cpu["batched"] / cpu["sequential"],
+        "ratio_vs_seq_eager": wall["batched"] / wall["seq_eager"],
+        "ratio_vs_before": wall["batched"] / wall["before"],
+        "same_episodes": same,
+        "peak_rss_mb": peak_rss_mb(),
+    }
+
+
+BENCHES = {
+    "iql": bench_iql,
+    "pt": bench_pt,
+    "relabel": bench_relabel,
+    "cvae": bench_cvae,
+    "sac": bench_sac,
+    "eval": bench_eval,
+}
 
 
 def format_result(name: str, result: dict[str, Any]) -> str:

@@ -301,6 +301,8 @@ def _bench(args: argparse.Namespace) -> int | None:
     for flag, value in (("--env", args.env), ("--size", args.size)):
         if value and args.what != "sac":
             raise SpotError(f"spot bench {args.what}: {flag} goes with 'spot bench sac'")
+    if args.episodes and args.what != "eval":
+        raise SpotError(f"spot bench {args.what}: --episodes goes with 'spot bench eval'")
     if args.what == "sweep":
         if not args.file:
             raise SpotError("spot bench sweep needs the sweep file: spot bench sweep FILE [--smoke]")
@@ -312,8 +314,10 @@ def _bench(args: argparse.Namespace) -> int | None:
         kwargs["seeds"], kwargs["order"] = args.seeds, args.order
     if args.what == "pt":
         kwargs["dtype"], kwargs["seeds"] = args.dtype, args.seeds
-    if args.seeds != 1 and args.what not in ("iql", "pt"):
-        raise SpotError(f"spot bench {args.what}: --seeds (seeds as a vmap axis) goes with iql and pt")
+    if args.what == "eval":
+        kwargs["seeds"], kwargs["episodes"] = args.seeds, args.episodes or 10
+    if args.seeds != 1 and args.what not in ("iql", "pt", "eval"):
+        raise SpotError(f"spot bench {args.what}: --seeds (seeds as a vmap axis) goes with iql, pt and eval")
     if args.what == "relabel":
         kwargs["mode"] = args.mode
     if args.what == "sac":
@@ -613,7 +617,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    for add in (_add_data, _add_labels, _add_run, _add_sweep, _add_tables, _add_figures):
+    for add in (_add_data, _add_labels, _add_run, _add_bench, _add_sweep, _add_tables, _add_figures):
         add(sub)
     return p
 
@@ -731,9 +735,7 @@ def _add_labels(sub: Any) -> None:
 
 
 def _add_run(sub: Any) -> None:
-    """The run, eval, bench commands."""
-    from spot.config import IQL_ORDERS, IQLConfig
-
+    """The run, eval commands."""
     d = _parser(
         sub,
         "run",
@@ -792,18 +794,24 @@ def _add_run(sub: Any) -> None:
     d.add_argument("--tracking-uri", help=_URI_HELP)
     d.set_defaults(fn=_eval)
 
+
+def _add_bench(sub: Any) -> None:
+    """The bench command."""
+    from spot.config import IQL_ORDERS, IQLConfig
+
     d = _parser(
         sub,
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
         "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
-        "spot bench sac --env hopper --size paper-fast\nspot bench sweep sweeps/quickstart.yaml",
+        "spot bench sac --env hopper --size paper-fast\nspot bench eval\nspot bench sweep sweeps/quickstart.yaml",
     )
-    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "sweep"), help="the stage, or a whole sweep")
+    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "eval", "sweep"), help="a stage, or a sweep")
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
     d.add_argument("--smoke", action="store_true", help="sweep: the file's smoke block")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
-    d.add_argument("--seeds", type=_positive_int, default=1, help="iql, pt: seeds as a vmap axis")
+    d.add_argument("--seeds", type=_positive_int, default=1, help="iql, pt: seeds as a vmap axis; eval: runs")
+    d.add_argument("--episodes", type=_positive_int, help="eval: episodes per run, batched vs sequential (default 10)")
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")

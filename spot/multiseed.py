@@ -19,8 +19,9 @@ own run, and each run gets its own learning curve, ``models/policy`` and final m
 (batched matmuls round differently): ``tests/test_multiseed.py``.
 
 Per-seed timings: ``time/iql_s`` of every seed is the wall time of the shared vmapped training
-(the evaluations excluded), ``time/eval_s`` that seed's own evaluations, ``time/total_s`` the
-whole multi-seed call. The runs are tagged ``seed_mode = vmap`` and ``vmap.seeds`` (all seeds).
+(the evaluations excluded), ``time/eval_s`` an equal share of the evaluations (all seeds'
+episodes step together), ``time/total_s`` the whole multi-seed call. The runs are tagged
+``seed_mode = vmap`` and ``vmap.seeds`` (all seeds).
 
 Members of several configs (``spot run --methods oracle,pt,spot --seeds 0,1,2``) share one
 IQL program too, when they agree on :data:`SHARED_SECTIONS`: the stages before the policy run
@@ -255,15 +256,29 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
     state = iql.init_state(init_keys, ds.obs_dim, ds.act_dim, cfg.iql)
     chunk = iql.make_vmapped_train_chunk(cfg.iql, per_seed_rewards=True)
     fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
-    evaluates = [stages._evaluate_fn(ctx) for ctx in ctxs]
     scores: list[list[float]] = [[] for _ in ctxs]
     eval_s = [0.0] * len(ctxs)
 
     def evaluate(actor_params: Any, step: int) -> float:
-        for s, fn in enumerate(evaluates):
-            t0 = time.perf_counter()
-            scores[s].append(float(fn(_seed(actor_params, s), step)["score_mean"]))
-            eval_s[s] += time.perf_counter() - t0
+        """Every seed's episodes stepped together (one jitted policy call per env step), each seed's
+        numbers those of its own evaluation; the time shared equally among the seeds."""
+        from spot import envs, phases
+
+        t0 = time.perf_counter()
+        with phases.phase("evaluate"):
+            results = envs.evaluate_runs(
+                stages.eval_policy(actor_params, cfg.iql, runs=True),
+                ctxs[0].env_name,
+                stages.eval_episodes(cfg, step),
+                [stages.eval_seed(ctx.cfg) for ctx in ctxs],
+                max_steps=cfg.eval.max_steps,
+            )
+        for s, (ctx, res) in enumerate(zip(ctxs, results, strict=True)):
+            stages.log_evaluation(ctx, res, step)
+            scores[s].append(float(res["score_mean"]))
+        share = (time.perf_counter() - t0) / len(ctxs)
+        for s in range(len(ctxs)):
+            eval_s[s] += share
         return float(np.mean([seed_scores[-1] for seed_scores in scores]))  # iql.train's curve; unused
 
     def log(metrics: dict[str, Any], step: int) -> None:

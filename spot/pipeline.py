@@ -183,17 +183,14 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
     run's). Returns the scores and the run's logged
     ``eval/score_final``, ``logged_score_final``.
     """
-    import numpy as np
-
     from spot import envs, tracking
-    from spot.policy import iql
 
     params, head = tracking.load_model(run_id, "policy", tracking_uri)
     cfg = tracking.run_config(run_id, tracking_uri)
     n = episodes or cfg.eval.final_episodes or cfg.eval.episodes
     actor = params["actor"]
     res = envs.evaluate(
-        lambda o: np.asarray(iql.act(actor, o, cfg.iql)),
+        stages.eval_policy(actor, cfg.iql),  # as the run evaluated it
         head["env"],
         n,
         seed=int(head["eval_seed"]),

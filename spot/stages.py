@@ -21,6 +21,7 @@ the scale IQL's hyperparameters expect.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -749,33 +750,74 @@ def eval_episodes(cfg: ExperimentConfig, step: int) -> int:
     return final if final > 0 and step >= cfg.iql.steps else cfg.eval.episodes
 
 
-def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
-    """``evaluate(actor_params, step)``: the policy's mean action in the evaluation env."""
-    from spot import envs
+@functools.cache
+def _act_each(iql_cfg: config_lib.IQLConfig) -> Callable[[Any, Any], Any]:
+    """One jitted program: actor params stacked on a leading axis ``[R]`` and observations
+    ``[R, n, obs_dim]`` -> mean actions ``[R, n, act_dim]``, each observation's action computed
+    alone (a ``lax.map`` over runs and one over rows, one observation per matrix product): a
+    product's rows differ in their last bits with the batch's size, so the episodes of a batched
+    evaluation get the actions they get evaluated one at a time, whatever else runs beside them.
+    Cached per config: compiled once per batch shape in a process."""
+    import jax
+
     from spot.policy import iql
+
+    def one(params: Any, obs: Any) -> Any:
+        return iql.act(params, obs[None], iql_cfg)[0]
+
+    def each(params: Any, obs: Any) -> Any:
+        return jax.lax.map(lambda run: jax.lax.map(lambda o: one(run[0], o), run[1]), (params, obs))
+
+    return jax.jit(each)
+
+
+def eval_policy(
+    actor_params: Any, iql_cfg: config_lib.IQLConfig, runs: bool = False
+) -> Callable[[np.ndarray], np.ndarray]:
+    """The ``policy_fn`` of :func:`spot.envs.evaluate` for an IQL actor (the policy's mean action,
+    one jitted call per step, each row computed alone); ``runs=True``: that of
+    :func:`spot.envs.evaluate_runs` for actor params stacked over runs (a vmapped trial's seeds)."""
+    import jax
+
+    act = _act_each(iql_cfg)
+    if runs:
+        return lambda obs: np.asarray(act(actor_params, obs))
+    stacked = jax.tree.map(lambda a: a[None], actor_params)
+    return lambda obs: np.asarray(act(stacked, obs[None]))[0]
+
+
+def log_evaluation(ctx: Context, res: dict[str, Any], step: int) -> None:
+    """Log an evaluation's result after ``step`` updates to ``ctx`` (and its ``on_eval``)."""
+    ctx.log(
+        {
+            "eval/score": res["score_mean"],
+            "eval/score_std": res["score_std"],
+            "eval/return": res["return_mean"],
+            "eval/length": res["episode_length_mean"],  # a fall (locomotion) ends an episode early
+        },
+        step=step,
+    )
+    if ctx.on_eval is not None:
+        ctx.on_eval({"step": step, "score": float(res["score_mean"])})
+
+
+def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
+    """``evaluate(actor_params, step)``: the policy's mean action in the evaluation env, its
+    episodes stepped together (:func:`eval_policy`)."""
+    from spot import envs
 
     cfg = ctx.cfg
 
     def evaluate(actor_params: Any, step: int) -> dict[str, float]:
         with phases.phase("evaluate"):  # a sweep trial's time breakdown (spot.phases)
             res = envs.evaluate(
-                lambda o: np.asarray(iql.act(actor_params, o, cfg.iql)),
+                eval_policy(actor_params, cfg.iql),
                 ctx.env_name,
                 eval_episodes(cfg, step),
                 seed=eval_seed(cfg),
                 max_steps=cfg.eval.max_steps,
             )
-        ctx.log(
-            {
-                "eval/score": res["score_mean"],
-                "eval/score_std": res["score_std"],
-                "eval/return": res["return_mean"],
-                "eval/length": res["episode_length_mean"],  # a fall (locomotion) ends an episode early
-            },
-            step=step,
-        )
-        if ctx.on_eval is not None:
-            ctx.on_eval({"step": step, "score": float(res["score_mean"])})
+        log_evaluation(ctx, res, step)
         return res
 
     return evaluate
