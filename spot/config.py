@@ -178,6 +178,24 @@ class RewardConfig:
         range=(0.0, 1.0),
     )
     eval_every: int = F(100, "steps between held-out evaluations (best held-out loss is kept)", range=(1, None))
+    eval_epochs: int = F(
+        0,
+        "if > 0, evaluate every eval_epochs epochs as the PT repo counts them, eval_epochs * (floor(N / "
+        "reward.batch_size) + 1) steps, instead of every reward.eval_every steps (PT repo / authors: eval_period 5)",
+        range=(0, None),
+    )
+    best_min_delta: float = F(
+        0.0,
+        "an evaluation is a new best checkpoint only when its held-out loss is below the best so far by more than "
+        "this (PT repo / authors: flax EarlyStopping min_delta 1e-3); 0 = any lower loss",
+        range=(0.0, None),
+    )
+    eval_initial: bool = F(
+        False,
+        "the untrained model's held-out loss is the first best (the PT repo's epoch-0 evaluation); it is never a "
+        "checkpoint itself: when no evaluation beats it, the last parameters are kept (train_offline.py falls back "
+        "to model.pkl)",
+    )
 
 
 @dataclass(frozen=True)
@@ -260,6 +278,16 @@ class SubgoalConfig:
         "per interval at every reward-model step)",
         range=(1, None),
     )
+    selection: str = F(
+        "quantile",
+        "how a group's attention criterion picks steps: quantile = per-segment linear quantiles q(p) of w (top: w >= "
+        "q(1 - K%), bottom: w <= q(K%), ...), every step that passes; authors = the authors' code (SGPbrl a5b03df): "
+        "thresholds are sorted weights at rank int(p * T) (bottom: w <= sort(w)[int(K% T)]), at most int(K% T) steps "
+        "(top: T - int((1 - K%) T)) pass, the first in time, and only a group that selects fewer starts its first "
+        "interval at step 0 (their padding with index 0); one that selects them all draws no triplet before its "
+        "first subgoal",
+        choices=("quantile", "authors"),
+    )
 
 
 @dataclass(frozen=True)
@@ -275,6 +303,22 @@ class CVAEConfig:
         "mse = eq. 7 only; mse_cos = eq. 7 + cosine term (Table 7); authors = the authors' code: per-dimension MSE - "
         "[mean((cos+1)/2) + 0.1 var(cos)] + beta * KL averaged over latent dimensions",
         choices=("mse", "mse_cos", "authors"),
+    )
+    cos_sign: str = F(
+        "minus",
+        "sign of the cosine term: minus = the cosine rewards a subgoal pointing along the target (mse_cos: + (1 - "
+        "cos)/2, the intended eq. 8; authors: MSE - [...], SGPbrl a5b03df); plus = as eq. 8 is printed (mse_cos: + "
+        "(1 + cos)/2; authors: MSE + [...], SGPbrl b6d94e2, the commit the experiments ran)",
+        choices=("minus", "plus"),
+    )
+    log_std_clip: bool = F(
+        True, "clip the encoder's and prior's log-std to [-5, 2]; false = unclipped (the authors' CVAE)"
+    )
+    holdout: float = F(
+        0.1,
+        "fraction of the preferred segments whose triplets the offline CVAE does not train on (they give the "
+        "cvae/heldout_* metrics); 0 = train on every triplet (the paper; the online CVAE always does)",
+        range=(0.0, 0.9),
     )
     inputs: str = F(
         "zscore",
@@ -667,13 +711,17 @@ BUDGET_PRESETS: dict[str, dict[str, Any]] = {
 
 # The PT repo's data and reward-model protocol, shared by `paper` (the reference code where the paper is
 # silent) and `authors` (SGPbrl keeps it): human labels where they exist, the per-dataset query
-# counts, training on all N queries with the last 10 % as the evaluation subset, epochs as the PT repo
-# counts them, and its action clipping (PT reward data 0.999; IQL D4RLDataset 1 - 1e-5).
+# counts, training on all N queries with the last 10 % as the evaluation subset, its best-checkpoint
+# rule (an evaluation every 5 epochs, a new best only 1e-3 below the best so far, the untrained model's
+# loss first) and its action clipping (PT reward data 0.999; IQL D4RLDataset 1 - 1e-5). The training
+# length is not shared (row 15): `paper` takes Table 5's 10k steps, `authors` the PT repo's epochs.
 _PT_PROTOCOL: dict[str, Any] = {
     "labels.source": "auto",
     "labels.query_counts": "pt",
     "labels.eval_split": "pt_subset",
-    "reward.length": "epochs",
+    "reward.eval_epochs": 5,  # new_preference_reward_main.py eval_period
+    "reward.best_min_delta": 1e-3,  # flax EarlyStopping(min_delta=1e-3) decides has_improved
+    "reward.eval_initial": True,  # epoch 0 is evaluated, never saved
     "reward.clip_action": 0.999,
     "iql.clip_action": 1.0 - 1e-5,
 }
@@ -691,13 +739,17 @@ HPL_IQL_SIZES: dict[str, Any] = {"iql.batch_size": 512, "iql.hidden": (256, 256,
 
 def variant_method_preset(variant: str, method: str, budget: str, data_name: str = "") -> dict[str, Any]:
     """What a variant changes for one method or suite only: HPL's own IQL settings; actor dropout
-    0.1 on robomimic (PT repo robomimic/adroit configs, IPL robomimic configs)."""
+    0.1 on robomimic (PT repo robomimic/adroit configs, IPL robomimic configs); for `authors`, IQL
+    expectile 0.7 on Meta-World for the methods their scripts run (hyperparameter_meta.sh passes
+    configs/mujoco_config.py to meta_world_train_offline.py; the suite preset's 0.75 is IPL's)."""
     out: dict[str, Any] = {}
     if variant in ("paper", "authors") and method == "hpl":
         out.update(HPL_IQL_CHOICES, **(HPL_IQL_SIZES if budget == "paper" else {}))
     robomimic_file = data_name.endswith((".hdf5", ".h5")) and Path(data_name).stem.startswith("low_dim")
     if variant in ("paper", "authors") and data_name and (suite_of(data_name) == "robosuite" or robomimic_file):
         out["iql.actor_dropout"] = 0.1
+    if variant == "authors" and method in ("mr", "pt", "spot") and data_name and suite_of(data_name) == "metaworld":
+        out["iql.expectile"] = 0.7
     return out
 
 
@@ -727,12 +779,18 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {
         **_PT_PROTOCOL,
         "subgoal.filter_groups": "all",  # eq. 5 states the reward criterion for the subgoal set
+        "cvae.holdout": 0.0,  # §4.1.3: the CVAE trains on the triplets, none held out
         "relabel.mode": "sliding",
         "relabel.window": 25,  # paper silent: PT repo (seq_len flag 25)
         "iql.order": "sequential",  # paper silent: ikostrikov IQL (vendored by the PT repo)
     },
-    "authors": {  # SGPbrl b6d94e2 (scripts, learner, critic) and a5b03df (JaxPref/PrefTransformer.py)
+    # SGPbrl a5b03df, the cleaned commit, for JaxPref/PrefTransformer.py (reward model, subgoals, CVAE);
+    # b6d94e2 for what a5b03df does not hold (hyperparameter.sh, train_offline.py, learner.py, critic.py).
+    # b6d94e2's own PrefTransformer.py differs in its CVAE loss sign (cvae.cos_sign=plus) and its 5-seed
+    # Table 1 block shapes on state and action (shaping.state_action=true): keys, not set here.
+    "authors": {
         **_PT_PROTOCOL,  # the PT repo's protocol, kept by SGPbrl (hyperparameter.sh, new_preference_reward_main.py)
+        "reward.length": "epochs",  # --n_epochs 10000, int(N / batch) + 1 steps per epoch
         "pt.n_layer": 3,
         "pt.n_head": 1,  # PrefTransformer.get_default_config; scripts do not override
         # the PT repo's optimiser, kept by SGPbrl: warmup 10 % of the steps to 10x lr, cosine back to lr,
@@ -745,6 +803,7 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
         "subgoal.filter_on": "z",
         "subgoal.last_step": True,
         "subgoal.triplets": "interval",
+        "subgoal.selection": "authors",  # sort(w)[int(p T)] thresholds, first int(K% T) in time
         "subgoal.filter_groups": "top",
         "relabel.mode": "sliding",
         "relabel.window": 25,  # train_offline.py seq_len 25
@@ -753,6 +812,8 @@ VARIANT_PRESETS: dict[str, dict[str, Any]] = {
         "shaping.subgoal": "sample",  # subgoal_cvae_model.py: a prior sample (its noise from a fixed key)
         "cvae.loss": "authors",
         "cvae.inputs": "raw",  # PrefTransformer.py vae_train_step, raw batches
+        "cvae.log_std_clip": False,  # subgoal_cvae_model.py: log_var unclipped
+        "cvae.holdout": 0.0,  # every triplet (the online CVAE ignores it)
         "cvae.schedule": "online",  # PrefTransformer.py train: one CVAE step per PT step, that minibatch's triplets
         "iql.order": "sequential",  # learner.py: critic target uses the just-updated value network
     },

@@ -24,6 +24,17 @@ Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
   gradient as one pass, with less peak memory and faster on CPU (docs/benchmarks.md).
 * After each chunk: held-out loss/accuracy; the parameters with the best held-out loss are kept
   (PT repo ``best_model.pkl``). A non-finite loss raises :class:`NonFiniteError` naming the step.
+  A chunk is ``reward.eval_every`` steps, or with ``reward.eval_epochs`` that many epochs as the PT
+  repo counts them (:func:`eval_period`; PT repo: 5). The best-checkpoint rule (:class:`BestRule`):
+  a new best needs a held-out loss below the best so far by more than ``reward.best_min_delta``
+  (PT repo: flax ``EarlyStopping(min_delta=1e-3)``), and with ``reward.eval_initial`` the
+  untrained model's loss is the first best, never kept itself (PT repo: the epoch-0 evaluation;
+  ``train_offline.py`` loads ``model.pkl``, the last parameters, when no ``best_model.pkl`` was
+  saved). Defaults (0, false): the lowest held-out loss over the chunks.
+* Minibatches are drawn i.i.d. at every step (each ``min(batch_size, Q)`` distinct pairs); the
+  PT repo shuffles once per epoch and walks the permutation in ``⌊Q / B⌋ + 1`` batches (the last
+  one ``Q mod B`` pairs): the same whenever ``Q <= B``, a different order and batch sizes above
+  (docs/fidelity.md).
 * A companion learner (``companion=``, :class:`Companion`; the online CVAE of
   ``cvae.schedule=online``, built by the stages from ``spot.subgoal.online``) takes one step after
   every update on that update's training forward pass (:class:`ForwardPass`: the minibatch, PT's
@@ -37,6 +48,7 @@ The model is any :class:`spot.reward.models.RewardModel` (``MR(cfg)``, ``PT(cfg)
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
@@ -146,6 +158,47 @@ def clip_actions(batch: Mapping[str, np.ndarray] | None, clip: float) -> Mapping
     if batch is None or clip <= 0:
         return batch
     return {**batch, **{k: np.clip(batch[k], -clip, clip) for k in ("act_1", "act_2") if k in batch}}
+
+
+def eval_period(reward_cfg: RewardConfig, num_pairs: int) -> int:
+    """Steps between held-out evaluations: ``reward.eval_every``, or with ``reward.eval_epochs > 0``
+    that many PT-repo epochs, ``eval_epochs * (floor(N / batch_size) + 1)`` steps (PT repo
+    ``new_preference_reward_main.py``: ``eval_period`` 5 epochs)."""
+    if reward_cfg.eval_epochs > 0:
+        return reward_cfg.eval_epochs * (num_pairs // reward_cfg.batch_size + 1)
+    return reward_cfg.eval_every
+
+
+class BestRule:
+    """Which evaluated parameters are kept: a held-out loss ``L`` is a new best when ``best - L >
+    min_delta`` (flax ``EarlyStopping.update``; ``best`` starts at ``inf``, or at the untrained
+    model's loss with ``baseline``); the best parameters are copied to the host. When nothing
+    beat the baseline, :meth:`result` is the last evaluation (the PT repo's ``model.pkl``)."""
+
+    def __init__(self, min_delta: float, baseline: float | None, params_of: Callable[[Any], Any]):
+        self.min_delta, self.params_of = min_delta, params_of
+        self.best_value = math.inf if baseline is None else baseline
+        self.best: dict[str, Any] | None = None
+        self.params: Any = None
+        self.last: tuple[dict[str, Any], Any] | None = None
+
+    def update(self, row: dict[str, Any], state: Any) -> None:
+        """``loop.run``'s ``on_chunk``: the chunk's row (with ``eval_loss``) and state."""
+        improved = self.best_value - row["eval_loss"] > self.min_delta
+        if improved or self.best is None:
+            host = jax.tree.map(lambda a: np.array(a, copy=True), self.params_of(state))
+            if improved:
+                self.best_value, self.best, self.params = row["eval_loss"], row, host
+            else:
+                self.last = (row, host)
+
+    def result(self) -> tuple[dict[str, Any], Any, bool]:
+        """``(row, params, improved)``: the best row and its parameters, or the last evaluation's
+        when no evaluation was a new best (``improved`` False)."""
+        if self.best is not None:
+            return self.best, self.params, True
+        assert self.last is not None
+        return (*self.last, False)
 
 
 def training_steps(reward_cfg: RewardConfig, num_pairs: int) -> int:
@@ -400,10 +453,9 @@ def train_reward_model(
       key: PRNG key (split here into init and training keys).
       train_batch, eval_batch: ``segment_batch`` dicts (:func:`pref_pairs`); an empty or missing
         eval batch evaluates on the training pairs (``history["eval_on"] = "train"``).
-      reward_cfg: steps, batch size and evaluation period.
+      reward_cfg: steps, batch size, evaluation period and best-checkpoint rule.
       progress: show a tqdm bar over steps.
-      micro_batch: gradient-accumulation slice size in pairs (see :func:`make_update`); only
-        speed and memory depend on it.
+      micro_batch: gradient-accumulation slice size in pairs (:func:`make_update`; speed only).
       companion: a learner that takes one step per update on its forward pass (module
         docstring); the reward model trains exactly as without it.
 
@@ -412,7 +464,8 @@ def train_reward_model(
       lists ``step`` (steps done), ``train_loss``, ``train_acc`` (chunk means), ``eval_loss``,
       ``eval_acc``, and ``best_step``, ``best_eval_loss``, ``best_eval_acc``, ``batch_size``,
       ``eval_on``, ``compile_s`` (next to nothing when this process compiled the same programs
-      before), ``train_s``, ``steps_per_s``, ``steps`` (steps taken). With a companion also
+      before), ``train_s``, ``steps_per_s``, ``steps`` (steps taken), ``initial_eval_loss``,
+      ``best_improved`` (:class:`BestRule`; False: the last evaluation's). With a companion also
       ``companion_state`` (its state after the last update) and ``companion`` (its metrics: one
       list of chunk means per name).
 
@@ -426,7 +479,7 @@ def train_reward_model(
     steps = training_steps(reward_cfg, _num_pairs(train))
     state = init_state(model, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], steps)
     batch_size = min(reward_cfg.batch_size, _num_pairs(train))
-    length = loop.chunk_length(steps, reward_cfg.eval_every)
+    length = loop.chunk_length(steps, eval_period(reward_cfg, _num_pairs(train)))
     eval_data, eval_weight = jax.device_put(
         loop.pad_minibatches(held_out, min(reward_cfg.batch_size, _num_pairs(held_out)))
     )
@@ -441,6 +494,8 @@ def train_reward_model(
     compile_s = loop.compile_seconds(train_chunk, state, length, train, train_key) + loop.compile_seconds(
         evaluate, params_of(state), eval_data, eval_weight
     )
+    baseline = float(evaluate(params_of(state), eval_data, eval_weight)[0]) if reward_cfg.eval_initial else None
+    rule = BestRule(reward_cfg.best_min_delta, baseline, params_of)
     out = loop.run(
         train_chunk,
         state,
@@ -452,12 +507,13 @@ def train_reward_model(
             zip(("eval_loss", "eval_acc"), evaluate(params_of(st), eval_data, eval_weight), strict=True)
         ),
         eval_loss=("eval_loss", "reward/eval_loss"),
-        best_by="eval_loss",
-        params_of=params_of,
+        on_chunk=rule.update,
         progress=progress,
         desc=f"reward ({model.kind})",
     )
+    out.best, out.best_params, improved = rule.result()
     history = _history(out, batch_size, eval_on, compile_s, steps, companion=companion is not None)
+    history.update(best_improved=improved, initial_eval_loss=baseline)
     return jax.device_put(out.best_params), history
 
 

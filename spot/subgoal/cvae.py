@@ -3,7 +3,8 @@
 Three :class:`spot.nets.MLP` networks (hidden sizes ``cfg.hidden``, Table 6 ``[32, 64, 32]``, ReLU):
 
 * encoder ``q_φ(z | g, s, a)`` and prior ``p_ψ(z | s, a)``: mean and log-std of ``z``
-  (``cfg.latent_dim``), log-std clipped to ``[-5, 2]``;
+  (``cfg.latent_dim``), log-std clipped to ``[-5, 2]`` (``cvae.log_std_clip``; the authors' CVAE
+  leaves its log-variance unclipped);
 * decoder ``p_θ(g | z, s, a) = N(μ_θ(z, s, a), I)``: only the mean is learned.
 
 Loss per triplet (batch mean), ``z ~ q`` by reparameterisation, one sample:
@@ -18,12 +19,15 @@ Loss per triplet (batch mean), ``z ~ q`` by reparameterisation, one sample:
   points along g, 1 when opposite). The cosine is taken on raw states, as the shaping reward of
   eq. 11 is. ``cfg.loss = "mse"`` drops this term (Table 7's "MSE only").
 
-``loss = recon + β · kl (+ cos)`` (eq. 9).
+``loss = recon + β · kl (+ cos)`` (eq. 9). ``cfg.cos_sign = "plus"`` adds ``½ (1 + cos)`` instead,
+eq. 8 as printed.
 
 ``cfg.loss = "authors"`` is the loss of the authors' code (SGPbrl ``PrefTransformer.vae_train_step``):
 ``mean_{b,d} (ĝ - g)² - [mean_b (cos_b + 1)/2 + 0.1 var_b(cos_b)] + β · KL / latent_dim`` (their
 KL is averaged over latent dimensions; the variance term is subtracted, as written there). It is
-meant with ``cfg.inputs = "raw"`` (their inputs are not standardised).
+meant with ``cfg.inputs = "raw"`` (their inputs are not standardised). That is the cleaned commit
+(a5b03df); the commit their experiments ran (b6d94e2) adds the bracket instead, ``MSE + [...]``
+(``cfg.cos_sign = "plus"``, the printed sign of eq. 8).
 
 Normalisation: ``s`` and ``g`` are z-scored with the dataset's observation mean and std (std
 floored at 1e-3), which live in :class:`CVAEParams` next to the network weights. Actions go in
@@ -77,11 +81,12 @@ class GaussianMLP(nn.Module):
 
     hidden: Sequence[int]
     out_dim: int
+    clip: bool = True  # log-std clipped to [LOG_STD_MIN, LOG_STD_MAX]
 
     @nn.compact
     def __call__(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         mean, log_std = jnp.split(MLP(self.hidden, 2 * self.out_dim)(x), 2, axis=-1)
-        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX) if self.clip else log_std
 
 
 class CVAE(nn.Module):
@@ -92,10 +97,11 @@ class CVAE(nn.Module):
     latent_dim: int
     hidden: Sequence[int]
     goal_act_dim: int = 0
+    log_std_clip: bool = True
 
     def setup(self) -> None:
-        self.encoder = GaussianMLP(self.hidden, self.latent_dim)
-        self.prior_net = GaussianMLP(self.hidden, self.latent_dim)
+        self.encoder = GaussianMLP(self.hidden, self.latent_dim, self.log_std_clip)
+        self.prior_net = GaussianMLP(self.hidden, self.latent_dim, self.log_std_clip)
         self.decoder = MLP(self.hidden, self.obs_dim + self.goal_act_dim)
 
     def posterior(self, g_n: jax.Array, s_n: jax.Array, a: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -126,6 +132,7 @@ class CVAEParams(struct.PyTreeNode):
     hidden: tuple[int, ...] = struct.field(pytree_node=False)
     latent_dim: int = struct.field(pytree_node=False)
     goal_act_dim: int = struct.field(pytree_node=False, default=0)
+    log_std_clip: bool = struct.field(pytree_node=False, default=True)
 
     @property
     def obs_dim(self) -> int:
@@ -134,7 +141,11 @@ class CVAEParams(struct.PyTreeNode):
     @property
     def module(self) -> CVAE:
         return CVAE(
-            obs_dim=self.obs_dim, latent_dim=self.latent_dim, hidden=self.hidden, goal_act_dim=self.goal_act_dim
+            obs_dim=self.obs_dim,
+            latent_dim=self.latent_dim,
+            hidden=self.hidden,
+            goal_act_dim=self.goal_act_dim,
+            log_std_clip=self.log_std_clip,
         )
 
     def normalize(self, x: jax.Array) -> jax.Array:
@@ -212,12 +223,19 @@ def _authors_loss(
     g_hat_n: jax.Array, g_n: jax.Array, sim: jax.Array, kl: jax.Array, o: int, cfg: CVAEConfig, weight
 ) -> jax.Array:
     """SGPbrl ``vae_train_step``: per-dimension MSE (state part, plus the action part's when the goal
-    has one) - [mean((cos_s + 1)/2) + 0.1 var(cos_s)] + beta * KL / latent_dim (module docstring)."""
+    has one) -/+ [mean((cos_s + 1)/2) + 0.1 var(cos_s)] + beta * KL / latent_dim: ``-`` at a5b03df
+    (``cvae.cos_sign=minus``), ``+`` at b6d94e2 (``plus``) (module docstring)."""
     if g_hat_n.shape[-1] == o:
         mse = _avg((g_hat_n - g_n) ** 2, weight)
     else:
         mse = _avg((g_hat_n[:, :o] - g_n[:, :o]) ** 2, weight) + _avg((g_hat_n[:, o:] - g_n[:, o:]) ** 2, weight)
-    return mse - _avg(0.5 * (sim + 1.0), weight) - 0.1 * _var(sim, weight) + cfg.beta * kl
+    bracket = _avg(0.5 * (sim + 1.0), weight) + 0.1 * _var(sim, weight)
+    return mse + _cos_sign(cfg) * bracket + cfg.beta * kl
+
+
+def _cos_sign(cfg: CVAEConfig) -> float:
+    """+1 for ``cvae.cos_sign=plus`` (eq. 8 as printed), -1 for ``minus``."""
+    return 1.0 if cfg.cos_sign == "plus" else -1.0
 
 
 def loss_fn(
@@ -258,10 +276,14 @@ def loss_fn(
     sim = cosine_similarity(g_hat[:, :o], g[:, :o])
     cos = _avg(0.5 * (1.0 - sim), weight)
     loss = recon + cfg.beta * kl
-    if cfg.loss == "mse_cos":
+    if cfg.loss == "mse_cos" and cfg.cos_sign == "minus":  # ½ (1 - cos) per part: the intended eq. 8
         loss = loss + cos
         if params.goal_act_dim:
             loss = loss + _avg(cosine_loss(g_hat[:, o:], g[:, o:]), weight)
+    elif cfg.loss == "mse_cos":  # ½ (1 + cos) per part: eq. 8 as printed
+        loss = loss + _avg(0.5 * (1.0 + sim), weight)
+        if params.goal_act_dim:
+            loss = loss + _avg(0.5 * (1.0 + cosine_similarity(g_hat[:, o:], g[:, o:])), weight)
     elif cfg.loss == "authors":  # SGPbrl PrefTransformer.vae_train_step (see the module docstring)
         loss = _authors_loss(g_hat_n, g_n, sim, kl / q_mean.shape[-1], o, cfg, weight)
     info = {
@@ -300,7 +322,13 @@ def init(
     if mean.shape != (obs_dim,) or std.shape != (obs_dim,):
         raise SpotError(f"obs_stats have shapes {mean.shape}, {std.shape}; expected ({obs_dim},)")
     goal_act_dim = act_dim if goal_actions else 0
-    model = CVAE(obs_dim=obs_dim, latent_dim=cfg.latent_dim, hidden=tuple(cfg.hidden), goal_act_dim=goal_act_dim)
+    model = CVAE(
+        obs_dim=obs_dim,
+        latent_dim=cfg.latent_dim,
+        hidden=tuple(cfg.hidden),
+        goal_act_dim=goal_act_dim,
+        log_std_clip=cfg.log_std_clip,
+    )
     net = _init_net(model, act_dim, key)
     params = CVAEParams(
         net=net,
@@ -309,6 +337,7 @@ def init(
         hidden=tuple(cfg.hidden),
         latent_dim=cfg.latent_dim,
         goal_act_dim=goal_act_dim,
+        log_std_clip=cfg.log_std_clip,
     )
     return CVAEState(params=params, opt_state=_optimizer(cfg).init(net), step=jnp.zeros((), jnp.int32))
 
@@ -402,7 +431,7 @@ def train_cvae(
     progress: bool = True,
     *,
     log_every: int = 500,
-    holdout: float = 0.1,
+    holdout: float | None = None,
     groups: np.ndarray | None = None,
     goal_actions: bool = False,
 ) -> tuple[CVAEParams, list[dict[str, float]]]:
@@ -420,7 +449,8 @@ def train_cvae(
         ``cfg.steps`` is not a multiple (the same compiled program, :mod:`spot.loop`). Chunk ``c``
         trains with the key ``fold_in(train_key, c)``.
       holdout: fraction of triplets (or of ``groups``) held out for the ``cvae/heldout_*``
-        metrics; no held-out split when it rounds to zero groups.
+        metrics; no held-out split when it rounds to zero groups. None: ``cfg.holdout``
+        (``cvae.holdout``: 0.1 by default, 0 under the ``paper`` and ``authors`` variants).
       groups: optional ``[M]`` segment id per triplet, so a segment's triplets are not split
         across train and held-out sets.
       goal_actions: the subgoal is a state and an action (``shaping.state_action``).
@@ -444,7 +474,7 @@ def train_cvae(
         )
     init_key, split_key, train_key, eval_key = jax.random.split(key, 4)
     del key
-    train_idx, held_idx = _split(split_key, m, holdout, groups)
+    train_idx, held_idx = _split(split_key, m, cfg.holdout if holdout is None else holdout, groups)
     data, count = _on_device(s, a, g, train_idx)
     held, held_weight = _on_device(s, a, g, held_idx) if held_idx.size else (None, None)
     if held is not None:

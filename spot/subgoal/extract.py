@@ -40,6 +40,26 @@ Subgoals are taken from *preferred* segments only:
   distinct. Equal weights all pass the same threshold (a uniform ``w`` selects every step for
   ``top`` and ``bottom``). ``subgoal.last_step`` adds the last step of every preferred segment to
   the subgoals whatever the filters say (the authors' code appends index ``T - 1``).
+
+  ``subgoal.selection=authors`` is the authors' selection (SGPbrl a5b03df
+  ``extract_and_accumulate_subgoals``) instead: with ``s = sort(w)`` (ascending) and ``n(p) =
+  int(T·p)``, the thresholds are ranks, not interpolated quantiles, and at most ``m`` steps pass,
+  the first ``m`` in time (ties fall in time order):
+
+  ============  ==========================================  ======================
+  group         attention criterion                         at most ``m`` steps
+  ============  ==========================================  ======================
+  top           ``w ≥ s[n(1 - k)]`` (and the reward filter)  ``T - n(1 - k)``
+  top_next      ``s[n(1 - 2k)] ≤ w < s[n(1 - k)]``           ``n(k)``
+  bottom_next   ``s[n(k)] < w ≤ s[n(2k)]``                   ``n(k)``
+  bottom        ``w ≤ s[n(k)]`` (``n(k) + 1`` steps pass)    ``n(k)``
+  ============  ==========================================  ======================
+
+  (``T = 100``, ``K = 10``: ``s[90]``, ``s[80]``, ``s[10]``, ``s[20]``; ``m = 10``.) Their list of
+  subgoal indices has a fixed size ``m`` and is padded with index 0 when fewer steps pass, so a
+  segment whose group selects fewer than ``m`` steps starts its first interval at step 0, and one
+  that selects ``m`` (the rule for ``top_next``/``bottom_next``/``bottom`` with distinct weights)
+  draws nothing before its first subgoal: :func:`subgoal_selection` returns that first step.
 * :func:`make_triplets` builds the CVAE data of §4.1.3 ("s_t, a_t between g_{t-1} and g_t"):
 
   - ``next_subgoal`` (default): every step ``t`` of a preferred segment is paired with the
@@ -56,7 +76,9 @@ Subgoals are taken from *preferred* segments only:
     starts at step 0; the padding also yields empty intervals that their code turns into spurious
     triplets, which are not reproduced.
 
-  In both modes steps after the last subgoal of a segment have no target and are dropped.
+  In both modes steps after the last subgoal of a segment have no target and are dropped, and so
+  are steps before the segment's first step (0, or the first subgoal under
+  ``subgoal.selection=authors`` when the group selected all its ``m`` steps).
 
 Everything here is host-side numpy: it runs once per reward model and its outputs have
 data-dependent sizes.
@@ -77,6 +99,7 @@ TIES = ("skip", "both")
 WEIGHTS = ("column_mean", "diagonal")
 FILTER_ON = ("r_hat", "z")
 TRIPLETS = ("next_subgoal", "interval")
+SELECTIONS = ("quantile", "authors")
 
 
 class Segments(NamedTuple):
@@ -192,6 +215,7 @@ def subgoal_mask(
     reward_filter: bool = True,
     filter_groups: str = "top",
     last_step: bool = False,
+    selection: str = "quantile",
 ) -> np.ndarray:
     """Dual-criteria subgoal filter, eq. 5-6 (see the module docstring for the groups).
 
@@ -205,36 +229,118 @@ def subgoal_mask(
         groups use attention alone (the authors' code, which produced Table 2's numbers);
         ``all``: to every group (eq. 5 read literally for each group).
       last_step: the last step of every segment is a subgoal whatever the filters say.
+      selection: ``quantile`` (linear per-segment quantiles, every step that passes) or
+        ``authors`` (rank thresholds, the first ``m`` steps in time; module docstring).
 
     Returns:
       ``[Q, T]`` bool, True at subgoal steps.
     """
+    return subgoal_selection(w, r, top_k, group, reward_filter, filter_groups, last_step, selection)[0]
+
+
+def subgoal_selection(
+    w: np.ndarray,
+    r: np.ndarray,
+    top_k: float,
+    group: str = "top",
+    reward_filter: bool = True,
+    filter_groups: str = "top",
+    last_step: bool = False,
+    selection: str = "quantile",
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`subgoal_mask` and each segment's first step ``start [Q]`` int: the step where its
+    first interval (``interval`` triplets) or its first triplet (``next_subgoal``) may start. 0 for
+    ``selection=quantile``; for ``authors`` 0 where the group selected fewer than its ``m`` steps
+    (the authors' padding with index 0), else the first subgoal (``T`` when there is none)."""
     if group not in GROUPS:
         raise SpotError(f"subgoal group {group!r}; expected one of {GROUPS}")
     if filter_groups not in FILTER_GROUPS:
         raise SpotError(f"subgoal filter_groups {filter_groups!r}; expected one of {FILTER_GROUPS}")
+    if selection not in SELECTIONS:
+        raise SpotError(f"subgoal selection {selection!r}; expected one of {SELECTIONS}")
     w = np.asarray(w, dtype=np.float64)
     r = np.asarray(r, dtype=np.float64)
     if w.ndim != 2 or w.shape != r.shape:
         raise SpotError(f"weights {w.shape} and rewards {r.shape} must both be [Q, T]")
+    reward_ok = r >= r.mean(axis=1, keepdims=True)
+    use_reward = reward_filter and (group == "top" or filter_groups == "all")
+    if selection == "quantile":
+        mask = _quantile_group(w, top_k, group)
+        if use_reward:
+            mask &= reward_ok
+        start = np.zeros(w.shape[0], np.int64)
+    else:
+        passing, size = _rank_group(w, top_k, group)
+        if use_reward:
+            passing &= reward_ok
+        mask = passing & (np.cumsum(passing, axis=1) <= size)  # the first `size` in time
+        padded = passing.sum(axis=1) < size
+    if last_step:
+        mask[:, -1] = True
+    if selection == "authors":
+        first = np.where(mask.any(axis=1), mask.argmax(axis=1), w.shape[1])
+        start = np.where(padded, 0, first).astype(np.int64)
+    return mask, start
+
+
+def _quantile_group(w: np.ndarray, top_k: float, group: str) -> np.ndarray:
+    """The attention criterion of ``group`` with per-segment linear quantiles (module docstring)."""
     k = top_k / 100.0
 
     def q(level: float) -> np.ndarray:  # per-segment quantile, shape [Q, 1]
         return np.quantile(w, np.clip(level, 0.0, 1.0), axis=1, keepdims=True)
 
     if group == "top":
-        mask = w >= q(1 - k)
-    elif group == "top_next":
-        mask = (w >= q(1 - 2 * k)) & (w < q(1 - k))
-    elif group == "bottom_next":
-        mask = (w > q(k)) & (w <= q(2 * k))
-    else:
-        mask = w <= q(k)
-    if reward_filter and (group == "top" or filter_groups == "all"):
-        mask &= r >= r.mean(axis=1, keepdims=True)
-    if last_step:
-        mask[:, -1] = True
-    return mask
+        return w >= q(1 - k)
+    if group == "top_next":
+        return (w >= q(1 - 2 * k)) & (w < q(1 - k))
+    if group == "bottom_next":
+        return (w > q(k)) & (w <= q(2 * k))
+    return w <= q(k)
+
+
+def rank_index(length: int, percent: float) -> int:
+    """``int(T · percent / 100)``, the authors' rank of a threshold in the sorted weights (``percent
+    = 90`` is their ``int(T · 90 / 100)``), clipped to ``[0, T - 1]``."""
+    return min(max(int(length * percent / 100.0), 0), length - 1)
+
+
+def rank_thresholds(top_k: float, group: str) -> tuple[float | None, float | None, str]:
+    """The percents of the authors' lower and upper rank thresholds of ``group`` (None: none) and
+    whether each bound is strict: ``top`` ``w ≥ s[100 - K]``; ``top_next`` ``s[100 - 2K] ≤ w <
+    s[100 - K]``; ``bottom_next`` ``s[K] < w ≤ s[2K]``; ``bottom`` ``w ≤ s[K]`` (module docstring).
+    The third item names the strict side: ``"upper"`` (``w <``), ``"lower"`` (``w >``) or ``""``."""
+    k = top_k
+    return {
+        "top": (100.0 - k, None, ""),
+        "top_next": (100.0 - 2 * k, 100.0 - k, "upper"),
+        "bottom_next": (k, 2 * k, "lower"),
+        "bottom": (None, k, ""),
+    }[group]
+
+
+def rank_size(length: int, top_k: float, group: str) -> int:
+    """How many steps the authors' fixed-size index list holds: ``T - int(T (100 - K) / 100)`` for
+    ``top``, ``int(T K / 100)`` for the other groups."""
+    if group == "top":
+        return length - int(length * (100.0 - top_k) / 100.0)
+    return int(length * top_k / 100.0)
+
+
+def _rank_group(w: np.ndarray, top_k: float, group: str) -> tuple[np.ndarray, int]:
+    """The authors' attention criterion of ``group`` (thresholds at ranks of each segment's sorted
+    weights) and the most steps it keeps (module docstring)."""
+    t = w.shape[1]
+    s = np.sort(w, axis=1)
+    lo, hi, strict = rank_thresholds(top_k, group)
+    ok = np.ones(w.shape, bool)
+    if lo is not None:
+        bound = s[:, rank_index(t, lo)][:, None]
+        ok &= w > bound if strict == "lower" else w >= bound
+    if hi is not None:
+        bound = s[:, rank_index(t, hi)][:, None]
+        ok &= w < bound if strict == "upper" else w <= bound
+    return ok, rank_size(t, top_k, group)
 
 
 def make_triplets(
@@ -245,6 +351,7 @@ def make_triplets(
     draws: int = 1,
     rng: np.random.Generator | None = None,
     goal_actions: bool = False,
+    start: np.ndarray | None = None,
 ) -> tuple[Triplets, dict[str, float]]:
     """CVAE triplets ``(s_t, a_t, g_t)`` from the subgoal steps of each segment (§4.1.3).
 
@@ -258,12 +365,14 @@ def make_triplets(
       draws: draws per interval (``interval`` only).
       rng: random generator of the draws (``interval`` only; default seed 0).
       goal_actions: ``g`` is the subgoal step's state and action (``[M, obs_dim + act_dim]``).
+      start: ``[P]`` the first step of each segment that may be a triplet's (the first interval
+        starts there; :func:`subgoal_selection`); default 0.
 
     Returns:
       ``(Triplets, info)``; ``info`` holds ``subgoal/num_segments``, ``subgoal/num_subgoals``,
       ``subgoal/num_triplets`` and ``subgoal/segments_without_subgoal``.
     """
-    triplets, _, info = make_triplets_with_segments(obs, act, mask, mode, draws, rng, goal_actions)
+    triplets, _, info = make_triplets_with_segments(obs, act, mask, mode, draws, rng, goal_actions, start)
     return triplets, info
 
 
@@ -275,6 +384,7 @@ def make_triplets_with_segments(
     draws: int = 1,
     rng: np.random.Generator | None = None,
     goal_actions: bool = False,
+    start: np.ndarray | None = None,
 ) -> tuple[Triplets, np.ndarray, dict[str, float]]:
     """:func:`make_triplets` plus the segment (row of ``obs``) of every triplet, ``[M]`` int, so
     that a train/held-out split can keep each segment's triplets on one side."""
@@ -286,24 +396,25 @@ def make_triplets_with_segments(
     p, t = mask.shape
     if obs.shape[:2] != (p, t) or act.shape[:2] != (p, t):
         raise SpotError(f"obs {obs.shape}, act {act.shape} and mask {mask.shape} must share [P, T]")
+    start = np.zeros(p, np.int64) if start is None else np.asarray(start, np.int64)
     if mode == "next_subgoal":
         # next_idx[i, t] = first subgoal index >= t in row i, or T if there is none.
         idx = np.where(mask, np.arange(t)[None, :], t)
         next_idx = np.minimum.accumulate(idx[:, ::-1], axis=1)[:, ::-1]
-        valid = next_idx < t
+        valid = (next_idx < t) & (np.arange(t)[None, :] >= start[:, None])
         rows = np.broadcast_to(np.arange(p)[:, None], (p, t))
         row, step, goal = rows[valid], np.nonzero(valid)[1], next_idx[valid]
     else:
         rng = np.random.default_rng(0) if rng is None else rng
         rows_l, steps_l, goals_l = [], [], []
         for i in range(p):
-            start = 0
+            lo = int(start[i])
             for g in np.flatnonzero(mask[i]):
-                if g > start:  # the interval [start, g) is not empty
+                if g > lo:  # the interval [lo, g) is not empty
                     rows_l.append(np.full(draws, i))
-                    steps_l.append(rng.integers(start, g, size=draws))
+                    steps_l.append(rng.integers(lo, g, size=draws))
                     goals_l.append(np.full(draws, g))
-                start = g
+                lo = max(lo, int(g))
         empty = np.zeros(0, np.int64)
         row, step, goal = (np.concatenate(x) if x else empty for x in (rows_l, steps_l, goals_l))
     g = np.concatenate([obs[row, goal], act[row, goal]], axis=-1) if goal_actions else obs[row, goal]
@@ -354,11 +465,18 @@ def extract_with_segments(
       SpotError: if no triplet is left (every label a tie, or no step passes the filter).
     """
     pref = take_preferred(seg_1, seg_2, y, ties)
-    mask = subgoal_mask(
-        pref.weight, pref.reward, cfg.top_k, cfg.group, cfg.reward_filter, cfg.filter_groups, cfg.last_step
+    mask, start = subgoal_selection(
+        pref.weight,
+        pref.reward,
+        cfg.top_k,
+        cfg.group,
+        cfg.reward_filter,
+        cfg.filter_groups,
+        cfg.last_step,
+        cfg.selection,
     )
     triplets, segments, info = make_triplets_with_segments(
-        pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng, goal_actions
+        pref.obs, pref.act, mask, cfg.triplets, cfg.interval_draws, rng, goal_actions, start
     )
     if triplets.s.shape[0] == 0:
         raise SpotError(

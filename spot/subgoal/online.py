@@ -12,13 +12,17 @@ computed with dropout on and the parameters before the update (as the authors re
 * :func:`step_scores`: ``w_t`` and the value the reward filter reads (``subgoal.weight``,
   ``subgoal.filter_on``), as :func:`spot.subgoal.extract.step_scores`;
 * the preferred segment of every non-tied query (a tie selects none, as offline);
-* :func:`subgoal_mask`: the filter of eq. 5-6 with the same groups, quantiles (linear, per
-  segment), reward criterion and ``subgoal.last_step`` as :func:`spot.subgoal.extract.subgoal_mask`
-  (float32 here, float64 there: a weight equal to a threshold in the last bits may fall either way);
+* :func:`subgoal_selection`: the filter of eq. 5-6 with the same groups, quantiles (linear, per
+  segment) or the authors' rank thresholds (``subgoal.selection``), reward criterion and
+  ``subgoal.last_step`` as :func:`spot.subgoal.extract.subgoal_selection`, and each segment's
+  first step (float32 here, float64 there: a weight equal to a quantile in the last bits may fall
+  either way; rank thresholds are weights themselves and select the same steps);
 * :func:`triplet_steps`: ``subgoal.triplets=interval``: one uniform draw from every non-empty
-  interval ``[g_(i-1), g_i)`` (``g_0 = 0``) paired with ``g_i``, redrawn at every step (the authors'
-  one draw per interval; ``subgoal.interval_draws`` sizes the offline fixed set only);
-  ``next_subgoal``: every step paired with the first subgoal at or after it.
+  interval ``[g_(i-1), g_i)`` (``g_0`` = the segment's first step: 0, or under the authors'
+  selection its first subgoal when the group selected all its steps) paired with ``g_i``, redrawn
+  at every step (the authors' one draw per interval; ``subgoal.interval_draws`` sizes the offline
+  fixed set only); ``next_subgoal``: every step from the first on paired with the first subgoal
+  at or after it.
 
 The triplets of one minibatch vary in number, so they are a fixed ``[P·T]`` batch with a 0/1
 weight, and :func:`spot.subgoal.cvae.loss_fn` averages over the rows of weight 1: the loss of the
@@ -40,7 +44,7 @@ import numpy as np
 import optax
 
 from spot.config import CVAEConfig, SubgoalConfig
-from spot.subgoal import cvae
+from spot.subgoal import cvae, extract
 from spot.subgoal.extract import Triplets
 
 
@@ -54,38 +58,79 @@ def step_scores(r_hat: jax.Array, attn: jax.Array, weight: str, filter_on: str) 
 
 def subgoal_mask(w: jax.Array, r: jax.Array, cfg: SubgoalConfig) -> jax.Array:
     """``[Q, T]`` bool: eq. 5-6 as :func:`spot.subgoal.extract.subgoal_mask` (its docstring has the groups)."""
-    k = cfg.top_k / 100.0
+    return subgoal_selection(w, r, cfg)[0]
+
+
+def subgoal_selection(w: jax.Array, r: jax.Array, cfg: SubgoalConfig) -> tuple[jax.Array, jax.Array]:
+    """``(mask [Q, T] bool, start [Q] int)`` as :func:`spot.subgoal.extract.subgoal_selection`."""
+    reward_ok = r >= r.mean(axis=1, keepdims=True)
+    use_reward = cfg.reward_filter and (cfg.group == "top" or cfg.filter_groups == "all")
+    length = w.shape[1]
+    if cfg.selection == "authors":
+        passing, size = _rank_group(w, cfg.top_k, cfg.group)
+        if use_reward:
+            passing = passing & reward_ok
+        mask = passing & (jnp.cumsum(passing, axis=1) <= size)  # the first `size` in time
+        padded = passing.sum(axis=1) < size
+    else:
+        mask = _quantile_group(w, cfg.top_k, cfg.group)
+        if use_reward:
+            mask = mask & reward_ok
+    if cfg.last_step:
+        mask = mask.at[:, -1].set(True)
+    if cfg.selection != "authors":
+        return mask, jnp.zeros(w.shape[0], jnp.int32)
+    first = jnp.where(mask.any(axis=1), jnp.argmax(mask, axis=1), length)
+    return mask, jnp.where(padded, 0, first).astype(jnp.int32)
+
+
+def _quantile_group(w: jax.Array, top_k: float, group: str) -> jax.Array:
+    k = top_k / 100.0
 
     def q(level: float) -> jax.Array:
         return jnp.quantile(w, float(np.clip(level, 0.0, 1.0)), axis=1, keepdims=True)
 
-    if cfg.group == "top":
-        mask = w >= q(1 - k)
-    elif cfg.group == "top_next":
-        mask = (w >= q(1 - 2 * k)) & (w < q(1 - k))
-    elif cfg.group == "bottom_next":
-        mask = (w > q(k)) & (w <= q(2 * k))
-    else:
-        mask = w <= q(k)
-    if cfg.reward_filter and (cfg.group == "top" or cfg.filter_groups == "all"):
-        mask = mask & (r >= r.mean(axis=1, keepdims=True))
-    if cfg.last_step:
-        mask = mask.at[:, -1].set(True)
-    return mask
+    if group == "top":
+        return w >= q(1 - k)
+    if group == "top_next":
+        return (w >= q(1 - 2 * k)) & (w < q(1 - k))
+    if group == "bottom_next":
+        return (w > q(k)) & (w <= q(2 * k))
+    return w <= q(k)
 
 
-def triplet_steps(mask: jax.Array, mode: str, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _rank_group(w: jax.Array, top_k: float, group: str) -> tuple[jax.Array, int]:
+    """The authors' rank thresholds (:func:`spot.subgoal.extract.rank_thresholds`)."""
+    length = w.shape[1]
+    s = jnp.sort(w, axis=1)
+    lo, hi, strict = extract.rank_thresholds(top_k, group)
+    ok = jnp.ones(w.shape, bool)
+    if lo is not None:
+        i = extract.rank_index(length, lo)
+        ok = ok & (w > s[:, i : i + 1] if strict == "lower" else w >= s[:, i : i + 1])
+    if hi is not None:
+        i = extract.rank_index(length, hi)
+        ok = ok & (w < s[:, i : i + 1] if strict == "upper" else w <= s[:, i : i + 1])
+    return ok, extract.rank_size(length, top_k, group)
+
+
+def triplet_steps(
+    mask: jax.Array, mode: str, key: jax.Array, start: jax.Array | None = None
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """``(step, goal, ok)``, each ``[Q, T]``: at position ``t`` of row ``q`` a triplet
     ``(s_step, a_step, g_goal)`` exists where ``ok``. ``interval``: one per subgoal step ``t`` whose
-    interval ``[previous subgoal or 0, t)`` is not empty, its step drawn uniformly from the interval
-    (``key``); ``next_subgoal``: one per step ``t`` with a subgoal at or after it."""
+    interval ``[previous subgoal or the row's start, t)`` is not empty, its step drawn uniformly
+    from the interval (``key``); ``next_subgoal``: one per step ``t >= start`` with a subgoal at or
+    after it. ``start [Q]``: each row's first step (default 0)."""
     length = mask.shape[1]
     t = jnp.broadcast_to(jnp.arange(length), mask.shape)
+    first = jnp.zeros((mask.shape[0], 1), t.dtype) if start is None else start.astype(t.dtype)[:, None]
     if mode == "next_subgoal":
         nxt = jax.lax.cummin(jnp.where(mask, t, length), axis=1, reverse=True)
-        return t, jnp.minimum(nxt, length - 1), nxt < length
+        return t, jnp.minimum(nxt, length - 1), (nxt < length) & (t >= first)
     last = jax.lax.cummax(jnp.where(mask, t, -1), axis=1)  # the last subgoal at or before t
-    prev = jnp.maximum(jnp.concatenate([jnp.full_like(last[:, :1], -1), last[:, :-1]], axis=1), 0)
+    before = jnp.concatenate([jnp.full_like(last[:, :1], -1), last[:, :-1]], axis=1)
+    prev = jnp.where(before < 0, first, before)
     ok = mask & (t > prev)
     u = jax.random.uniform(key, mask.shape)
     step = jnp.minimum(prev + jnp.floor(u * (t - prev)).astype(t.dtype), jnp.maximum(t - 1, 0))
@@ -104,8 +149,8 @@ def minibatch_triplets(fp: Any, cfg: SubgoalConfig, key: jax.Array, goal_actions
     valid = fp.label != 0.5  # a tie selects no segment
     obs = jnp.where(second[..., None], fp.obs_2, fp.obs_1)
     act = jnp.where(second[..., None], fp.act_2, fp.act_1)
-    mask = subgoal_mask(jnp.where(second, w2, w1), jnp.where(second, r2, r1), cfg) & valid[:, None]
-    step, goal, ok = triplet_steps(mask, cfg.triplets, key)
+    mask, start = subgoal_selection(jnp.where(second, w2, w1), jnp.where(second, r2, r1), cfg)
+    step, goal, ok = triplet_steps(mask & valid[:, None], cfg.triplets, key, start)
 
     def take(x: jax.Array, idx: jax.Array) -> jax.Array:
         return jnp.take_along_axis(x, idx[..., None], axis=1).reshape(-1, x.shape[-1])

@@ -55,7 +55,7 @@ def train_cvaes(
     progress: bool = True,
     *,
     log_every: int = 500,
-    holdout: float = 0.1,
+    holdout: float | None = None,
     groups: Sequence[np.ndarray | None] | None = None,
     goal_actions: bool = False,
 ) -> list[tuple[CVAEParams, list[dict[str, float]]]]:
@@ -65,6 +65,7 @@ def train_cvaes(
     Raises SpotError when the seeds cannot share one program: different observation or action
     sizes, or held-out triplets for some seeds and none for others."""
     groups = list(groups) if groups is not None else [None] * len(keys)
+    holdout = cfg.holdout if holdout is None else holdout  # cvae.holdout, as train_cvae
     seeds = [_Seed(k, *t, holdout, grp, goal_actions) for k, t, grp in zip(keys, triplets, groups, strict=True)]
     if len({(x.s.shape[1:], x.a.shape[1:], x.g.shape[1:], x.held_idx.size > 0) for x in seeds}) > 1:
         raise SpotError(
