@@ -20,7 +20,7 @@ import tqdm.auto  # noqa: F401 - imported before the audit window (no lazy impor
 import urllib3.exceptions  # noqa: F401
 
 from spot import SpotError
-from spot.data import fetch
+from spot.data import download, fetch, sources
 from tests.conftest import run_cli
 
 BODY = bytes(range(256)) * 4  # the file: 1,024 bytes
@@ -386,21 +386,21 @@ def test_redirect_loop_is_capped(tmp_path, server):
     ],
 )
 def test_redirect_rule_of_the_packaged_registry(current, location, allowed):
-    policy = fetch._Policy(fetch.declared_hosts(), frozenset(), fetch.Limits())
+    policy = download.Policy(sources.declared_hosts(), frozenset(), download.Limits())
     if allowed:
-        assert fetch._redirect_target(current, location, policy).startswith("https://")
+        assert download._redirect_target(current, location, policy).startswith("https://")
     else:
-        with pytest.raises(fetch._Refused, match="refused"):
-            fetch._redirect_target(current, location, policy)
+        with pytest.raises(download.Refused, match="refused"):
+            download._redirect_target(current, location, policy)
 
 
 def test_connection_to_a_loopback_address_is_refused_after_the_fact(server):
     """A host name that passed the check but connected to loopback (re-resolved) is refused."""
     server.routes["/toy.hdf5"] = ("body", BODY)
-    policy = fetch._Policy(frozenset(), frozenset(), fetch.Limits())
+    policy = download.Policy(frozenset(), frozenset(), download.Limits())
     with requests.get(server.base + "/toy.hdf5", stream=True, timeout=5) as r:
-        with pytest.raises(fetch._Refused, match="went to 127.0.0.1, a loopback address"):
-            fetch._check_peer(r, server.base + "/toy.hdf5", policy)
+        with pytest.raises(download.Refused, match="went to 127.0.0.1, a loopback address"):
+            download._check_peer(r, server.base + "/toy.hdf5", policy)
 
 
 def test_packaged_primary_urls_are_https():

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError, cli
-from spot.data import formats
+from spot.data import formats, hdf5_checks
 
 N = 40
 NAME = "hopper_medium_replay-v2.hdf5"  # D4RL's real file name: resolves to hopper-medium-replay-v2 (Hopper-v5)
@@ -167,7 +167,7 @@ def test_a_crafted_hdf5_file_is_one_clear_error_and_writes_nothing(
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     monkeypatch.setenv("SPOT_DATA_DIR", str(tmp_path / "data"))
     if mutate is gzip_bomb:
-        monkeypatch.setattr(formats, "DEFAULT_LIMITS", BOMB_LIMITS)
+        monkeypatch.setattr(hdf5_checks, "DEFAULT_LIMITS", BOMB_LIMITS)
     path = write_d4rl(tmp_path / NAME, skip, mutate)
     before = _tree(tmp_path)
     rc = cli.main(

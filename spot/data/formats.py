@@ -17,15 +17,15 @@
   ``object`` block reordered into the evaluation env's order (:func:`robomimic_object_order`).
 * Minari (Farama): episodes through ``minari.load_dataset`` / ``minari.MinariDataset``.
 
+Before anything is read, an hdf5 file is checked (:mod:`spot.data.hdf5_checks`).
+
 Every bad input raises :class:`SpotError` naming the file, the key and what was expected.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import re
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,7 @@ import numpy as np
 
 from spot import SpotError
 from spot.data.dataset import RAW_KEYS, RawDataset
+from spot.data.hdf5_checks import ReadLimits, as_flags, check_rows, open_hdf5, read_array
 
 ROBOMIMIC_OBS_KEYS = (
     "object",
@@ -58,266 +59,6 @@ _CAN_OBJECT_TO_V15 = np.r_[7:14, 0:7]
 
 
 # --------------------------------------------------------------------------- helpers
-@dataclass(frozen=True)
-class ReadLimits:
-    """What an hdf5 dataset file may make the reader allocate, checked from the file's declared
-    shapes and dtypes before any array is read (:func:`check_hdf5`).
-
-    Attributes:
-      memory_bytes: memory the arrays may take; None = the memory available now
-        (:func:`available_memory`). The file's datasets need twice their declared size (the arrays
-        read and their float32 copies).
-      max_expansion: most declared bytes per byte a dataset stores in the file, for datasets over
-        ``expansion_floor``. gzip cannot exceed about 1032:1, so only a compression bomb or chunks
-        never written (read back as fill values) pass it.
-      expansion_floor: datasets up to this many declared bytes are not ratio-checked (a small
-        all-zero array compresses to almost nothing).
-      max_links: most links (groups, datasets, soft links) a file may hold; robomimic's mh files
-        hold about 15,000.
-    """
-
-    memory_bytes: int | None = None
-    max_expansion: float = 1100.0
-    expansion_floor: int = 64 << 20
-    max_links: int = 200_000
-
-
-DEFAULT_LIMITS = ReadLimits()
-# HDF5's own filters (gzip, shuffle, fletcher32, szip, nbit, scaleoffset) and h5py's lzf: a file
-# naming another filter would make HDF5 look for a plugin library to run.
-_BUILTIN_FILTERS = {1: "gzip", 2: "shuffle", 3: "fletcher32", 4: "szip", 5: "nbit", 6: "scaleoffset", 32000: "lzf"}
-
-
-def available_memory() -> int:
-    """Bytes of memory available to this process now: psutil's ``available`` (else free pages from
-    ``os.sysconf``), lowered to what the cgroup (a container's limit) still allows."""
-    try:
-        import psutil
-
-        avail = int(psutil.virtual_memory().available)
-    except ImportError:
-        avail = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        if limit != "max":
-            used = int(Path("/sys/fs/cgroup/memory.current").read_text().strip())
-            avail = min(avail, max(int(limit) - used, 0))
-    except (OSError, ValueError):
-        pass
-    return avail
-
-
-def _size(n: float) -> str:
-    for unit in ("bytes", "KiB", "MiB", "GiB", "TiB"):
-        if n < 1024 or unit == "TiB":
-            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n} bytes"
-
-
-def _soft_target_error(f: h5py.File, name: str, target: str, depth: int = 0) -> str | None:
-    """Why the soft link ``name`` -> ``target`` may not be read (it dangles, loops, or reaches
-    another file through an external link), or None: it names an object of this file."""
-    if depth > 16:
-        return "is a chain of more than 16 soft links (a loop)"
-    parent = name.rsplit("/", 1)[0] if "/" in name else ""
-    where = "" if target.startswith("/") else parent
-    for part in [p for p in target.split("/") if p not in ("", ".")]:
-        here = f"{where}/{part}" if where else part
-        group = f[where] if where else f
-        link = group.get(part, getlink=True) if isinstance(group, h5py.Group) else None
-        if link is None:
-            return f"points to '{target}', which does not exist in the file (a dangling link)"
-        if isinstance(link, h5py.ExternalLink):
-            return f"points to '{target}', which passes through an external link to file '{link.filename}'"
-        if isinstance(link, h5py.SoftLink):
-            why = _soft_target_error(f, here, link.path, depth + 1)
-            if why is not None:
-                return why
-        where = here  # a checked soft link is then followed by HDF5 itself
-    return None
-
-
-def _link_error(f: h5py.File, name: str) -> str | None:
-    """Why the link ``name`` may not be read, or None."""
-    link = f.get(name, getlink=True)
-    if isinstance(link, h5py.ExternalLink):
-        return (
-            f"'{name}' is an external link to '{link.filename}:{link.path}'; expected every array inside "
-            "the file (external links are refused)"
-        )
-    if isinstance(link, h5py.SoftLink):
-        why = _soft_target_error(f, name, link.path)
-        if why is not None:
-            return f"soft link '{name}' {why}; expected links inside the file"
-    return None
-
-
-def _check_links(f: h5py.File, path: Path, limits: ReadLimits) -> None:
-    """Refuse external links, soft links that dangle or leave the file, and too many links.
-
-    The walk is HDF5's own (``H5Lvisit``, which follows no soft or external link), through h5py's
-    low-level API: a robomimic mh file's 15,000 links take a tenth of a second. Its callback must
-    not raise, so the walk stops at the first problem, which is raised after it.
-    """
-    count, problem = 0, []
-    soft_or_external = (h5py.h5l.TYPE_SOFT, h5py.h5l.TYPE_EXTERNAL)
-
-    def visit(name: bytes, info: Any) -> bool | None:
-        nonlocal count
-        count += 1
-        if count > limits.max_links:
-            return True
-        if info.type in soft_or_external:
-            why = _link_error(f, name.decode("utf-8", errors="replace"))
-            if why is not None:
-                problem.append(why)
-                return True
-        return None
-
-    f.id.links.visit(visit, info=True)
-    if problem:
-        raise SpotError(f"dataset file '{path}': {problem[0]}")
-    if count > limits.max_links:
-        raise SpotError(
-            f"dataset file '{path}' holds more than {limits.max_links} links (groups and arrays); "
-            "expected a D4RL or robomimic file"
-        )
-
-
-def _check_layout(name: str, dsid: Any, path: Path) -> None:
-    """Refuse a virtual dataset, external storage and unknown filters. ``dsid``: the dataset's
-    low-level ``h5py.h5d.DatasetID``."""
-    plist = dsid.get_create_plist()
-    if plist.get_layout() == h5py.h5d.VIRTUAL:
-        raise SpotError(
-            f"dataset file '{path}': '{name}' is a virtual dataset (VDS) mapping other files; "
-            "expected arrays stored in the file"
-        )
-    if plist.get_external_count() > 0:
-        target = plist.get_external(0)[0].decode(errors="replace")
-        raise SpotError(
-            f"dataset file '{path}': '{name}' stores its data in the external file '{target}'; "
-            "expected arrays stored in the file (HDF5 external storage is refused)"
-        )
-    for i in range(plist.get_nfilters()):
-        code = plist.get_filter(i)[0]
-        if code not in _BUILTIN_FILTERS:
-            raise SpotError(
-                f"dataset file '{path}': '{name}' is compressed with HDF5 filter {code}; expected one of "
-                f"{', '.join(sorted(_BUILTIN_FILTERS.values()))} (filter plugins are not loaded)"
-            )
-
-
-def check_hdf5(f: h5py.File, path: Path, limits: ReadLimits = DEFAULT_LIMITS) -> None:
-    """Check an open hdf5 file before reading anything from it; :class:`SpotError` names the file
-    and the dataset path.
-
-    Refused: external links, soft links that dangle or reach another file, datasets with HDF5
-    external storage, virtual datasets, filters other than HDF5's built-in ones and lzf, a
-    dataset whose declared size exceeds ``limits.max_expansion`` times what it stores, and files
-    whose datasets declare more than the memory available (``limits.memory_bytes``) can hold.
-    Every dataset of the file counts, read or not.
-    """
-    _check_links(f, path, limits)
-    names: list[bytes] = []
-
-    def visit(name: bytes, info: Any) -> None:  # H5Ovisit: each object once, hard links only
-        if info.type == h5py.h5o.TYPE_DATASET:
-            names.append(name)
-
-    h5py.h5o.visit(f.id, visit, info=True)
-    sizes = {}  # name -> (declared bytes, stored bytes, shape, dtype)
-    for raw_name in names:
-        dsid = h5py.h5d.open(f.id, raw_name)
-        name = raw_name.decode("utf-8", errors="replace")
-        _check_layout(name, dsid, path)
-        declared = int(np.prod(dsid.shape, dtype=object)) * int(dsid.dtype.itemsize)  # exact: no overflow
-        sizes[name] = (declared, int(dsid.get_storage_size()), dsid.shape, dsid.dtype)
-    total = sum(size[0] for size in sizes.values())
-    budget = limits.memory_bytes if limits.memory_bytes is not None else available_memory()
-    if sizes and 2 * total > budget:
-        name, (declared, _, shape, dtype) = max(sizes.items(), key=lambda kv: kv[1][0])
-        raise SpotError(
-            f"dataset file '{path}': '{name}' declares shape {shape} of {dtype} ({_size(declared)}); "
-            f"reading the file's arrays needs {_size(2 * total)} (twice their {_size(total)}) but "
-            f"{_size(budget)} of memory is available; expected a file that fits in memory"
-        )
-    for name, (declared, stored, shape, dtype) in sizes.items():
-        if declared > limits.expansion_floor and declared > limits.max_expansion * stored:
-            raise SpotError(
-                f"dataset file '{path}': '{name}' declares shape {shape} of {dtype} ({_size(declared)}) but "
-                f"stores {_size(stored)} in the file; expected at most {limits.max_expansion:g} times its "
-                "stored size (a compression bomb, or chunks never written)"
-            )
-
-
-def _open_hdf5(path: Path, limits: ReadLimits | None = None) -> h5py.File:
-    """Open ``path`` read-only and run :func:`check_hdf5` on it before anything else reads it."""
-    if not path.exists():
-        raise SpotError(f"dataset file '{path}' does not exist")
-    if not path.is_file():
-        raise SpotError(f"dataset file '{path}' is not a regular file; expected an hdf5 file")
-    try:
-        f = h5py.File(path, "r")
-    except OSError as err:
-        raise SpotError(f"dataset file '{path}' is not a readable hdf5 file ({err})") from None
-    try:
-        check_hdf5(f, path, limits or DEFAULT_LIMITS)
-    except BaseException:
-        f.close()
-        raise
-    return f
-
-
-def _array(group: h5py.Group, key: str, path: Path, rank: int | None = None) -> np.ndarray:
-    """A real numeric array ``group[key]`` (integers, floats or bools), or :class:`SpotError`
-    naming file and key. The file has passed :func:`check_hdf5` (opened by :func:`_open_hdf5`)."""
-    where = f"{group.name.rstrip('/')}/{key}".lstrip("/")
-    if key not in group:
-        raise SpotError(f"dataset file '{path}': missing key '{where}'; found {sorted(group.keys())}")
-    node = group[key]
-    if not isinstance(node, h5py.Dataset):
-        raise SpotError(f"dataset file '{path}': '{where}' is a group; expected an array")
-    if node.dtype.kind not in "biuf":
-        raise SpotError(
-            f"dataset file '{path}': '{where}' has dtype {node.dtype}; expected numbers (real: integers, "
-            "floats or bools)"
-        )
-    if rank is not None and node.ndim != rank:
-        raise SpotError(f"dataset file '{path}': '{where}' has shape {node.shape}; expected rank {rank}")
-    try:
-        return node[()]
-    except OSError as err:  # damaged chunks, a filter that fails
-        raise SpotError(f"dataset file '{path}': '{where}' cannot be read ({err})") from None
-
-
-def _check_rows(group: h5py.Group, keys: list[str], path: Path) -> None:
-    """The declared first dimension of every array ``keys`` present in ``group`` is the same
-    (checked before reading: a file whose arrays disagree is refused without loading them)."""
-    rows = {k: group[k].shape[0] for k in keys if isinstance(group.get(k), h5py.Dataset) and group[k].ndim >= 1}
-    first = next(iter(rows.items()), None)
-    for key, n in rows.items():
-        if first is not None and n != first[1]:
-            raise SpotError(
-                f"dataset file '{path}': '{key}' has {n} rows but '{first[0]}' has {first[1]}; "
-                "expected one row per step in every array"
-            )
-
-
-def _flags(arr: np.ndarray, key: str, path: Path) -> np.ndarray:
-    """A 0/1 flag array (terminals, timeouts, dones) as bool; any other value is an error (a 3.5
-    would otherwise read as True)."""
-    if arr.dtype != np.bool_:
-        bad = np.flatnonzero((arr != 0) & (arr != 1))
-        if bad.size:
-            raise SpotError(
-                f"dataset file '{path}': '{key}' has the value {arr[bad[0]].item()!r} at row {int(bad[0])} "
-                f"({bad.size} rows not 0/1); expected flags 0 or 1"
-            )
-    return arr.astype(bool)
-
-
 def _raw_dataset(path: Path, **fields: Any) -> RawDataset:
     """Build a :class:`RawDataset`, prefixing any validation error with the file name."""
     try:
@@ -371,27 +112,27 @@ def _d4rl_metadata(f: h5py.File, path: Path) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- D4RL
 def read_d4rl_hdf5(path: str | Path, limits: ReadLimits | None = None) -> RawDataset:
-    """Read a D4RL-layout hdf5 file, checked first by :func:`check_hdf5`.
+    """Read a D4RL-layout hdf5 file, checked first by :func:`~spot.data.hdf5_checks.check_hdf5`.
 
     Args:
       path: the ``.hdf5`` file.
-      limits: what the file may make the reader allocate; default :data:`DEFAULT_LIMITS`.
+      limits: what the file may make the reader allocate; default :data:`~spot.data.hdf5_checks.DEFAULT_LIMITS`.
 
     Returns:
       The raw dataset named after the file stem, observations/actions/rewards as float32 and the
       flags as bool; ``metadata`` holds the file's attributes and ``metadata`` group scalars.
     """
     path = Path(path)
-    with _open_hdf5(path, limits) as f:
+    with open_hdf5(path, limits) as f:
         return _read_d4rl(f, path)
 
 
 def _read_d4rl(f: h5py.File, path: Path) -> RawDataset:
-    """:func:`read_d4rl_hdf5` of a file opened and checked by :func:`_open_hdf5`."""
+    """:func:`read_d4rl_hdf5` of a file opened and checked by :func:`~spot.data.hdf5_checks.open_hdf5`."""
     ranks = {"observations": 2, "actions": 2, "rewards": 1, "terminals": 1, "timeouts": 1}
-    _check_rows(f, [*ranks, "next_observations"], path)
-    arrays = {key: _array(f, key, path, rank) for key, rank in ranks.items()}
-    next_obs = _array(f, "next_observations", path, 2) if "next_observations" in f else None
+    check_rows(f, [*ranks, "next_observations"], path)
+    arrays = {key: read_array(f, key, path, rank) for key, rank in ranks.items()}
+    next_obs = read_array(f, "next_observations", path, 2) if "next_observations" in f else None
     infos = _d4rl_infos(f, arrays["rewards"].shape[0], path)
     metadata = _d4rl_metadata(f, path)
     return _raw_dataset(
@@ -399,8 +140,8 @@ def _read_d4rl(f: h5py.File, path: Path) -> RawDataset:
         observations=arrays["observations"].astype(np.float32),
         actions=arrays["actions"].astype(np.float32),
         rewards=arrays["rewards"].astype(np.float32),
-        terminals=_flags(arrays["terminals"], "terminals", path),
-        timeouts=_flags(arrays["timeouts"], "timeouts", path),
+        terminals=as_flags(arrays["terminals"], "terminals", path),
+        timeouts=as_flags(arrays["timeouts"], "timeouts", path),
         next_observations=None if next_obs is None else next_obs.astype(np.float32),
         name=path.stem,
         metadata=metadata,
@@ -414,7 +155,7 @@ def _d4rl_infos(f: h5py.File, n: int, path: Path) -> dict[str, np.ndarray]:
     if not isinstance(group, h5py.Group):
         return {}
     return {
-        key: _array(group, key, path)
+        key: read_array(group, key, path)
         for key, node in group.items()
         if isinstance(node, h5py.Dataset)
         and node.ndim >= 1
@@ -487,7 +228,7 @@ def _concat_obs(
 ) -> np.ndarray:
     parts = []
     for k in keys:
-        part = _array(group, k, path)
+        part = read_array(group, k, path)
         part = part.reshape(part.shape[0], -1)
         if k == "object" and object_order is not None:
             if part.shape[1] != object_order.size:
@@ -514,8 +255,8 @@ def read_robomimic_hdf5(
     Args:
       path: the ``low_dim.hdf5`` file.
       obs_keys: observation keys to concatenate; default :data:`ROBOMIMIC_OBS_KEYS`.
-      limits: what the file may make the reader allocate (:func:`check_hdf5`); default
-        :data:`DEFAULT_LIMITS`.
+      limits: what the file may make the reader allocate (:func:`~spot.data.hdf5_checks.check_hdf5`); default
+        :data:`~spot.data.hdf5_checks.DEFAULT_LIMITS`.
 
     Returns:
       The raw dataset; ``metadata`` has ``env_name``, ``env_args``, ``obs_keys`` and
@@ -523,12 +264,12 @@ def read_robomimic_hdf5(
     """
     path = Path(path)
     keys = tuple(obs_keys) if obs_keys is not None else ROBOMIMIC_OBS_KEYS
-    with _open_hdf5(path, limits) as f:
+    with open_hdf5(path, limits) as f:
         return _read_robomimic(f, path, keys)
 
 
 def _read_robomimic(f: h5py.File, path: Path, keys: tuple[str, ...]) -> RawDataset:
-    """:func:`read_robomimic_hdf5` of a file opened and checked by :func:`_open_hdf5`."""
+    """:func:`read_robomimic_hdf5` of a file opened and checked by :func:`~spot.data.hdf5_checks.open_hdf5`."""
     data = f.get("data")
     if not isinstance(data, h5py.Group):
         raise SpotError(f"dataset file '{path}': missing group 'data'; expected robomimic layout")
@@ -575,9 +316,9 @@ def _robomimic_demo(
         raise SpotError(f"dataset file '{path}': missing group '{demo.name.lstrip('/')}/obs'")
     ep = {
         "observations": _concat_obs(demo["obs"], keys, path, object_order),
-        "actions": _array(demo, "actions", path, 2),
-        "rewards": _array(demo, "rewards", path, 1),
-        "terminals": _flags(_array(demo, "dones", path, 1), f"{demo.name.lstrip('/')}/dones", path),
+        "actions": read_array(demo, "actions", path, 2),
+        "rewards": read_array(demo, "rewards", path, 1),
+        "terminals": as_flags(read_array(demo, "dones", path, 1), f"{demo.name.lstrip('/')}/dones", path),
     }
     if with_next:
         ep["next_observations"] = _concat_obs(demo["next_obs"], keys, path, object_order)
@@ -664,11 +405,11 @@ def read_minari(dataset_id_or_path: str | Path) -> RawDataset:
 # --------------------------------------------------------------------------- dispatch
 def detect_format(path: str | Path, limits: ReadLimits | None = None) -> str:
     """``minari`` for a folder, else ``robomimic`` (hdf5 with ``data/demo_*``) or ``d4rl``
-    (hdf5 with ``observations``); the hdf5 file is checked first (:func:`check_hdf5`)."""
+    (hdf5 with ``observations``); the hdf5 file is checked first (:func:`~spot.data.hdf5_checks.check_hdf5`)."""
     path = Path(path)
     if path.is_dir():
         return "minari"
-    with _open_hdf5(path, limits) as f:
+    with open_hdf5(path, limits) as f:
         return _detect(f, path)
 
 
@@ -688,8 +429,8 @@ def load_dataset_file(path: str | Path, format: str = "auto", limits: ReadLimits
     """Read a dataset file in the given format, or the detected one (see :func:`detect_format`).
 
     ``format="minari"`` also accepts a Minari dataset id instead of a path. hdf5 files are
-    checked by :func:`check_hdf5` against ``limits`` (default :data:`DEFAULT_LIMITS`) before
-    anything is read.
+    checked by :func:`~spot.data.hdf5_checks.check_hdf5` against ``limits`` (default
+    :data:`~spot.data.hdf5_checks.DEFAULT_LIMITS`) before anything is read.
     """
     if format not in FORMATS:
         raise SpotError(f"unknown dataset format '{format}'; expected one of {', '.join(FORMATS)}")
@@ -699,7 +440,7 @@ def load_dataset_file(path: str | Path, format: str = "auto", limits: ReadLimits
             raise SpotError(f"dataset file '{path}' does not exist")
         if path.is_dir():
             return read_minari(path)
-        with _open_hdf5(path, limits) as f:  # opened and checked once, then detected and read
+        with open_hdf5(path, limits) as f:  # opened and checked once, then detected and read
             if _detect(f, path) == "robomimic":
                 return _read_robomimic(f, path, ROBOMIMIC_OBS_KEYS)
             return _read_d4rl(f, path)
