@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from spot import cache, stages
+from spot import cache, codeversion, stages
 from spot.batches import Transitions
 from tests.conftest import make_dataset
 
@@ -361,9 +361,10 @@ def test_process_state_in_module_globals_is_not_code(monkeypatch):
     before = cache.code_version(stages.learned_reward)
     monkeypatch.setattr(tracking_store, "_ANSWERED", {"http://127.0.0.1:5000"})
     monkeypatch.setattr(registry, "_VERIFIED", {("/data/x.hdf5", 1, 2)})
-    cache._STATE_CACHE.clear()
+    codeversion._STATE_CACHE.clear()
     assert cache.code_version(stages.learned_reward) == before
-    assert {"_ANSWERED", "_VERIFIED"} <= cache._state_names(vars(tracking_store)) | cache._state_names(vars(registry))
+    state = codeversion._state_names(vars(tracking_store)) | codeversion._state_names(vars(registry))
+    assert {"_ANSWERED", "_VERIFIED"} <= state
 
 
 def test_fast_compiled_entries_have_their_own_keys(monkeypatch):

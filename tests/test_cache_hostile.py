@@ -391,25 +391,24 @@ def test_a_full_disk_writing_a_dataset_and_its_card(tmp_path, full_disk):
 
 
 def test_a_full_disk_writing_the_sac_cache(tmp_path, full_disk):
-    from spot.recipes import sac
-    from spot.recipes import locomotion
+    from spot.recipes import locomotion_sac, sac, sac_train
 
     path = tmp_path / "sac" / "Hopper-v5__tiny__seed0__abc.msgpack"
     path.parent.mkdir()
     path.write_bytes(b"old cache")
-    locomotion.checksum_path(path).write_text("old  sum\n")
-    snap = sac.Snapshot(0, 1.0, 0.0, {"w": np.ones(2, np.float32)})
-    result = sac.SACResult("Hopper-v5", 0, sac.SACConfig(), [snap], {"rewards": np.zeros(3)}, {"total": 1.0})
+    locomotion_sac.checksum_path(path).write_text("old  sum\n")
+    snap = sac_train.Snapshot(0, 1.0, 0.0, {"w": np.ones(2, np.float32)})
+    result = sac_train.SACResult("Hopper-v5", 0, sac.SACConfig(), [snap], {"rewards": np.zeros(3)}, {"total": 1.0})
     with pytest.raises(SpotError, match=rf"^no space left on device writing {path}$"):
-        locomotion._save(result, path)
+        locomotion_sac._save(result, path)
     with pytest.raises(SpotError, match="no space left on device writing .*msgpack.sha256"):
-        locomotion._write_checksum(path)
-    run = object.__new__(sac._Run)  # the training checkpoint: only its payload and timing are used
+        locomotion_sac._write_checksum(path)
+    run = object.__new__(sac_train._Run)  # the training checkpoint: only its payload and timing are used
     run.payload, run.timing = (lambda: {"t": 1}), {"checkpoint": 0.0}
     ckpt = tmp_path / "sac" / "ckpt.msgpack"
     with pytest.raises(SpotError, match=rf"^no space left on device writing {ckpt}$"):
         run.save(ckpt)
-    assert path.read_bytes() == b"old cache" and locomotion.checksum_path(path).read_text() == "old  sum\n"
+    assert path.read_bytes() == b"old cache" and locomotion_sac.checksum_path(path).read_text() == "old  sum\n"
     assert not ckpt.exists()
     _no_temp(tmp_path)
 

@@ -787,20 +787,19 @@ def test_stale_temp_files_of_dead_processes_are_removed(data_dir, monkeypatch):
 def _sac_result(steps: int = 3):
     import numpy as np
 
-    from spot.recipes import sac
+    from spot.recipes import sac, sac_train
 
     cfg = sac.SACConfig()
-    snaps = [sac.Snapshot(i, float(i), 0.5, {"w": np.full((2, 2), i, np.float32)}) for i in range(steps)]
+    snaps = [sac_train.Snapshot(i, float(i), 0.5, {"w": np.full((2, 2), i, np.float32)}) for i in range(steps)]
     replay = {"observations": np.arange(6, dtype=np.float32).reshape(3, 2)}
-    return sac.SACResult("Hopper-v5", 0, cfg, snaps, replay, {"total": 1.0}, (0,))
+    return sac_train.SACResult("Hopper-v5", 0, cfg, snaps, replay, {"total": 1.0}, (0,))
 
 
 def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_damaged(tmp_path, monkeypatch, capsys):
     """The SAC cache file keeps its name and format; a .sha256 sidecar is written beside it. A file
     without one (cached before checksums) loads and gets one; a damaged file is moved aside and the
-    run trained again (sac.train_sac stubbed: no simulator)."""
-    from spot.recipes import sac
-    from spot.recipes import locomotion
+    run trained again (sac_train.train_sac stubbed: no simulator)."""
+    from spot.recipes import locomotion_sac, sac_train
 
     trained = []
 
@@ -808,10 +807,10 @@ def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_dama
         trained.append(env_id)
         return _sac_result()
 
-    monkeypatch.setattr(sac, "train_sac", fake_train)
-    path = locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0)
-    side = locomotion.checksum_path(path)
-    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    monkeypatch.setattr(sac_train, "train_sac", fake_train)
+    path = locomotion_sac.sac_cache_path(tmp_path, "hopper", "tiny", 0)
+    side = locomotion_sac.checksum_path(path)
+    result, hit = locomotion_sac.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
     assert (
         not hit
         and trained == ["Hopper-v5"]
@@ -822,18 +821,18 @@ def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_dama
         ]
     )
     side.unlink()  # cached before checksums: it loads, the sidecar is written
-    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    result, hit = locomotion_sac.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
     assert hit and len(result.snapshots) == 3 and side.exists() and len(trained) == 1
     path.write_bytes(path.read_bytes()[:50])  # truncated
-    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    result, hit = locomotion_sac.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
     err = capsys.readouterr().err
     assert not hit and len(trained) == 2 and "is damaged (sha256 " in err and "training it again" in err
     assert path.with_suffix(".damaged").exists() and side.exists()
     side.unlink()
     path.write_bytes(path.read_bytes()[:50])  # truncated and no sidecar: it does not load
-    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    result, hit = locomotion_sac.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
     assert not hit and len(trained) == 3 and "it does not load" in capsys.readouterr().err
-    result, hit = locomotion.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
+    result, hit = locomotion_sac.train_or_load_sac("hopper", "tiny", 0, tmp_path, progress=False)
     assert hit and len(trained) == 3
 
 

@@ -18,7 +18,17 @@ LAYERS = [
     (
         0,
         "base",
-        ["spot", "spot.runtime", "spot.phases", "spot.batches", "spot.nets", "spot.loop", "spot.cache", "spot.store"],
+        [
+            "spot",
+            "spot.runtime",
+            "spot.phases",
+            "spot.batches",
+            "spot.nets",
+            "spot.loop",
+            "spot.codeversion",
+            "spot.cache",
+            "spot.store",
+        ],
     ),
     (1, "data", ["spot.data"]),
     (2, "config", ["spot.config"]),

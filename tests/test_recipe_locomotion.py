@@ -9,8 +9,7 @@ import pytest
 from scipy import stats
 
 from spot import SpotError
-from spot.recipes import sac
-from spot.recipes import locomotion
+from spot.recipes import locomotion, locomotion_sac, sac, sac_train
 
 RAW_KEYS = ("observations", "actions", "rewards", "next_observations", "terminals", "timeouts")
 
@@ -71,7 +70,8 @@ def test_normalized_score_by_hand():
 
 def test_pick_medium_takes_first_snapshot_reaching_a_third():
     snaps = [
-        sac.Snapshot(step, ret, 0.0, None) for step, ret in [(1, 50.0), (2, 400.0), (3, 200.0), (4, 1100.0), (5, 900.0)]
+        sac_train.Snapshot(step, ret, 0.0, None)
+        for step, ret in [(1, 50.0), (2, 400.0), (3, 200.0), (4, 1100.0), (5, 900.0)]
     ]
     assert locomotion.pick_medium(snaps, 1 / 3).step == 2  # 400 >= 900 / 3; later dips don't count
 
@@ -79,7 +79,7 @@ def test_pick_medium_takes_first_snapshot_reaching_a_third():
 @pytest.mark.slow
 def test_a_build_under_a_stochastic_stop_rule_records_the_rule_and_the_stochastic_returns(tmp_path, monkeypatch):
     # tiny Hopper with paper-fast's Hopper rule and an unreachable target: SAC runs to its cap of 3000 steps
-    rule = locomotion.StopRule(1e9, 3000, policy="stochastic", evals=2)
+    rule = locomotion_sac.StopRule(1e9, 3000, policy="stochastic", evals=2)
     monkeypatch.setitem(locomotion.SIZES, "tiny", dataclasses.replace(locomotion.SIZES["tiny"], stop={"hopper": rule}))
     raw, card = locomotion.build("hopper-medium-replay", "tiny", 0, tmp_path, progress=False)
     b = card["behaviour"]
@@ -90,9 +90,9 @@ def test_a_build_under_a_stochastic_stop_rule_records_the_rule_and_the_stochasti
     assert b["medium_stochastic_return"] == pytest.approx(dict(b["stochastic_curve"])[medium_step], abs=0.05)
     assert card["recipe_version"] == f"{locomotion.RECIPE_VERSION}+stop-stochastic-2"
     # its SAC run is cached under its own name, never mistaken for the plain rule's run
-    assert locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
+    assert locomotion_sac.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
     monkeypatch.undo()
-    assert not locomotion.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
+    assert not locomotion_sac.sac_cache_path(tmp_path, "hopper", "tiny", 0).exists()
 
 
 # ------------------------------------------------------------------------- tiny builds (Hopper)

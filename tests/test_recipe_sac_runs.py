@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError
-from spot.recipes import sac
-from spot.recipes import locomotion
+from spot.recipes import locomotion, locomotion_sac, sac, sac_train
 
 CFG = locomotion.SIZES["tiny"].sac_config("hopper")  # 3000 steps, eval every 500
 
@@ -19,7 +18,7 @@ class _Killed(Exception):
     pass
 
 
-def _assert_same_run(a: sac.SACResult, b: sac.SACResult, steps: int | None = None) -> None:
+def _assert_same_run(a: sac_train.SACResult, b: sac_train.SACResult, steps: int | None = None) -> None:
     """``b`` equals ``a`` bit for bit (up to ``steps`` environment steps of ``a``)."""
     snaps_a = [s for s in a.snapshots if steps is None or s.step <= steps]
     assert [s.step for s in b.snapshots] == [s.step for s in snaps_a]
@@ -33,7 +32,7 @@ def _assert_same_run(a: sac.SACResult, b: sac.SACResult, steps: int | None = Non
 @pytest.fixture(scope="module")
 def full():
     """The uninterrupted tiny run, no stop rule."""
-    return sac.train_sac("Hopper-v5", CFG, 0, progress=False)
+    return sac_train.train_sac("Hopper-v5", CFG, 0, progress=False)
 
 
 @pytest.mark.slow
@@ -43,17 +42,17 @@ def test_target_return_stops_at_the_first_evaluation_reaching_it(full):
     target = returns[3]
     stop = next(s.step for s in full.snapshots if s.eval_return >= target)
     assert stop < CFG.total_steps
-    stopped = sac.train_sac("Hopper-v5", dataclasses.replace(CFG, target_return=target), 0, progress=False)
+    stopped = sac_train.train_sac("Hopper-v5", dataclasses.replace(CFG, target_return=target), 0, progress=False)
     assert stopped.snapshots[-1].step == stop and len(stopped.replay["rewards"]) == stop
     assert stopped.target_reached is True and full.target_reached is None
     _assert_same_run(full, stopped, steps=stop)  # the stop rule changes nothing before the stop
 
 
 def test_target_reached_compares_the_last_evaluation():
-    snaps = [sac.Snapshot(500, 10.0, 0.0, None), sac.Snapshot(1000, 40.0, 0.0, None)]
+    snaps = [sac_train.Snapshot(500, 10.0, 0.0, None), sac_train.Snapshot(1000, 40.0, 0.0, None)]
 
     def result(target):
-        return sac.SACResult("Hopper-v5", 0, dataclasses.replace(CFG, target_return=target), snaps, {}, {})
+        return sac_train.SACResult("Hopper-v5", 0, dataclasses.replace(CFG, target_return=target), snaps, {}, {})
 
     assert result(40.0).target_reached is True  # reached: >=
     assert result(40.5).target_reached is False  # the cap came first
@@ -62,23 +61,25 @@ def test_target_reached_compares_the_last_evaluation():
 def test_stop_rule_reads_the_chosen_policys_returns_over_consecutive_evaluations():
     # (step, deterministic return, stochastic return): the stochastic policy scores less, as Hopper's did
     snaps = [
-        sac.Snapshot(k * 500, det, 0.0, None, sto, 1.0)
+        sac_train.Snapshot(k * 500, det, 0.0, None, sto, 1.0)
         for k, (det, sto) in enumerate([(50, 10), (60, 35), (45, 31)], 1)
     ]
 
     def reached(upto, target, policy, evals):
         cfg = dataclasses.replace(CFG, target_return=target, stop_policy=policy, stop_evals=evals)
-        return sac.stop_reached(snaps[:upto], cfg)
+        return sac_train.stop_reached(snaps[:upto], cfg)
 
     assert reached(1, 40.0, "deterministic", 1) and not reached(1, 40.0, "stochastic", 1)  # 50 >= 40 > 10
     assert not reached(2, 30.0, "stochastic", 2)  # 10, 35: the first of the two misses
     assert reached(3, 30.0, "stochastic", 2) and not reached(3, 32.0, "stochastic", 2)  # 35, 31
     assert reached(3, 45.0, "deterministic", 2) and not reached(3, 46.0, "deterministic", 2)  # 60, 45
     assert not reached(1, 0.0, "deterministic", 2)  # fewer evaluations than the rule needs
-    assert not sac.stop_reached(snaps, CFG)  # no target: never
-    unmeasured = [sac.Snapshot(500, 99.0, 0.0, None)]  # a stochastic rule needs stochastic returns
-    assert not sac.stop_reached(unmeasured, dataclasses.replace(CFG, target_return=1.0, stop_policy="stochastic"))
-    result = sac.SACResult("Hopper-v5", 0, dataclasses.replace(CFG, target_return=30.0, stop_evals=2), snaps, {}, {})
+    assert not sac_train.stop_reached(snaps, CFG)  # no target: never
+    unmeasured = [sac_train.Snapshot(500, 99.0, 0.0, None)]  # a stochastic rule needs stochastic returns
+    assert not sac_train.stop_reached(unmeasured, dataclasses.replace(CFG, target_return=1.0, stop_policy="stochastic"))
+    result = sac_train.SACResult(
+        "Hopper-v5", 0, dataclasses.replace(CFG, target_return=30.0, stop_evals=2), snaps, {}, {}
+    )
     assert result.target_reached is True  # 60 and 45 both >= 30
 
 
@@ -90,9 +91,9 @@ def test_stop_rule_fields_are_checked_and_left_out_of_a_runs_identity_at_their_d
     with pytest.raises(SpotError, match="shape a stop rule, but target_return is None"):
         dataclasses.replace(CFG, stop_policy="stochastic")  # tiny has no target
     with pytest.raises(SpotError, match=r"StopRule.policy = 'mean'"):
-        locomotion.StopRule(3000.0, 1000, policy="mean")
+        locomotion_sac.StopRule(3000.0, 1000, policy="mean")
     with pytest.raises(SpotError, match="expected a finite target, a positive cap and at least one evaluation"):
-        locomotion.StopRule(3000.0, 1000, evals=0)
+        locomotion_sac.StopRule(3000.0, 1000, evals=0)
     # runs cached before the fields existed keep their cache names: at the defaults the identity is the old asdict
     old = {k: v for k, v in dataclasses.asdict(CFG).items() if k not in ("stop_policy", "stop_evals")}
     assert sac.identity(CFG) == old
@@ -105,7 +106,7 @@ def test_a_stochastic_two_in_a_row_rule_stops_where_its_returns_say_and_resumes_
     # first the whole run with the rule's evaluations and a target it never meets: the sampled-action
     # evaluations ride beside the deterministic ones and change nothing else
     never = dataclasses.replace(CFG, target_return=1e9, stop_policy="stochastic", stop_evals=2)
-    capped = sac.train_sac("Hopper-v5", never, 0, progress=False)
+    capped = sac_train.train_sac("Hopper-v5", never, 0, progress=False)
     assert capped.target_reached is False and capped.snapshots[-1].step == CFG.total_steps
     _assert_same_run(full, capped)
     stoch = [s.stochastic_return for s in capped.snapshots]
@@ -114,7 +115,7 @@ def test_a_stochastic_two_in_a_row_rule_stops_where_its_returns_say_and_resumes_
     target = max(pairs)
     stop = capped.snapshots[1 + pairs.index(target)].step  # the first pair that meets it
     cfg = dataclasses.replace(never, target_return=target)
-    run = sac.train_sac("Hopper-v5", cfg, 0, progress=False)
+    run = sac_train.train_sac("Hopper-v5", cfg, 0, progress=False)
     assert run.snapshots[-1].step == stop < CFG.total_steps and run.target_reached is True
     assert [s.stochastic_return for s in run.snapshots] == stoch[: len(run.snapshots)]
     _assert_same_run(full, run, steps=stop)
@@ -127,10 +128,10 @@ def test_a_stochastic_two_in_a_row_rule_stops_where_its_returns_say_and_resumes_
 
     with pytest.raises(_Killed):
         kw = {"on_eval": kill_at_1000, "checkpoint": ckpt, "checkpoint_every": 500}
-        sac.train_sac("Hopper-v5", never, 0, progress=False, **kw)
+        sac_train.train_sac("Hopper-v5", never, 0, progress=False, **kw)
     with pytest.raises(SpotError, match="belongs to another run"):  # the rule is part of the run's identity
-        sac.train_sac("Hopper-v5", dataclasses.replace(never, stop_evals=1), 0, progress=False, checkpoint=ckpt)
-    resumed = sac.train_sac("Hopper-v5", never, 0, progress=False, checkpoint=ckpt, checkpoint_every=500)
+        sac_train.train_sac("Hopper-v5", dataclasses.replace(never, stop_evals=1), 0, progress=False, checkpoint=ckpt)
+    resumed = sac_train.train_sac("Hopper-v5", never, 0, progress=False, checkpoint=ckpt, checkpoint_every=500)
     assert resumed.resumed_from == (500,)
     assert [s.stochastic_return for s in resumed.snapshots] == stoch
     _assert_same_run(capped, resumed)
@@ -145,13 +146,15 @@ def test_a_killed_run_resumes_from_its_checkpoint_bit_for_bit(full, tmp_path):
             raise _Killed
 
     with pytest.raises(_Killed):
-        sac.train_sac("Hopper-v5", CFG, 0, progress=False, on_eval=kill_at_2500, checkpoint=ckpt, checkpoint_every=1000)
+        sac_train.train_sac(
+            "Hopper-v5", CFG, 0, progress=False, on_eval=kill_at_2500, checkpoint=ckpt, checkpoint_every=1000
+        )
     assert ckpt.exists()  # written at steps 1000 and 2000; the run died after the 2500 evaluation
     other = tmp_path / "other.ckpt"
     other.write_bytes(ckpt.read_bytes())
     with pytest.raises(SpotError, match="belongs to another run"):
-        sac.train_sac("Hopper-v5", CFG, 1, progress=False, checkpoint=other)  # seed 1, not 0
-    resumed = sac.train_sac("Hopper-v5", CFG, 0, progress=False, checkpoint=ckpt, checkpoint_every=1000)
+        sac_train.train_sac("Hopper-v5", CFG, 1, progress=False, checkpoint=other)  # seed 1, not 0
+    resumed = sac_train.train_sac("Hopper-v5", CFG, 0, progress=False, checkpoint=ckpt, checkpoint_every=1000)
     assert resumed.resumed_from == (2000,)
     _assert_same_run(full, resumed)
     assert resumed.timing["checkpoint"] > 0 and resumed.timing["peak_rss_mb"] > 0
@@ -159,7 +162,7 @@ def test_a_killed_run_resumes_from_its_checkpoint_bit_for_bit(full, tmp_path):
 
 def test_checkpoint_interval_must_follow_evaluations():
     with pytest.raises(SpotError, match="checkpoint_every"):
-        sac.train_sac("Hopper-v5", CFG, 0, progress=False, checkpoint_every=700)
+        sac_train.train_sac("Hopper-v5", CFG, 0, progress=False, checkpoint_every=700)
 
 
 def test_paper_size_trains_to_d4rl_expert_level():
@@ -179,7 +182,7 @@ def test_paper_fast_keeps_papers_rows_and_targets_with_a_smaller_sac():
     assert (fast.transitions, fast.medium_fraction) == (paper.transitions, paper.medium_fraction)
     # the same targets and caps; Hopper's paper-fast rule reads the stochastic policy twice in a row
     assert {e: (r.target, r.cap) for e, r in fast.stop.items()} == {e: (r.target, r.cap) for e, r in paper.stop.items()}
-    assert fast.stop["walker2d"] == paper.stop["walker2d"] == locomotion.StopRule(4000.0, 3_000_000)
+    assert fast.stop["walker2d"] == paper.stop["walker2d"] == locomotion_sac.StopRule(4000.0, 3_000_000)
     hopper = fast.sac_config("hopper")
     assert (hopper.stop_policy, hopper.stop_evals) == ("stochastic", 2)
     assert (paper.sac_config("hopper").stop_policy, paper.sac_config("hopper").stop_evals) == ("deterministic", 1)
@@ -201,7 +204,8 @@ def test_paper_fast_keeps_papers_rows_and_targets_with_a_smaller_sac():
         assert (p.hidden_dims, p.batch_size, p.actor_lr) == ((256, 256), 256, 3e-4)
     # the cache name ends in a hash of the SAC settings: a paper-fast run is never taken for a paper one
     digests = [
-        locomotion.sac_cache_path(Path("c"), "walker2d", s, 0).stem.rsplit("__", 1)[1] for s in ("paper", "paper-fast")
+        locomotion_sac.sac_cache_path(Path("c"), "walker2d", s, 0).stem.rsplit("__", 1)[1]
+        for s in ("paper", "paper-fast")
     ]
     assert digests[0] != digests[1]
 
