@@ -363,7 +363,7 @@ def _env_steps_per_s(
 def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[str, Any]:
     """Env steps per second of an evaluation on Hopper, ``seeds`` runs of ``episodes`` episodes:
     ``batched``: all episodes stepped together, the policy one jitted call per env step for all
-    of them (:func:`spot.envs.evaluate_runs` with :func:`spot.stages.eval_policy`, as runs and
+    of them (:func:`spot.envs.evaluate_runs` with :func:`spot.run.policy_stages.eval_policy`, as runs and
     vmapped trials evaluate); ``sequential``: one episode after another
     (:func:`spot.envs.evaluate_sequential`), the same program on one observation per step;
     ``seq_eager``: one after another, ``iql.act`` run op by op (not jitted: spot's policy call
@@ -373,14 +373,15 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
     batched and the sequential returns and lengths are equal."""
     import jax
 
-    from spot import envs, stages
+    from spot import envs
     from spot.policy import iql
+    from spot.run import policy_stages
 
     cfg = IQLConfig(hidden=(64, 64)) if small else IQLConfig()
     name, max_steps, repeats = "hopper-medium-replay", (30 if small else 0), (1 if small else 3)
     actors = iql.init_state(jax.random.split(jax.random.key(0), seeds), 11, 3, cfg).actor.params
     actors = {"params": {**actors["params"], "Dense_0": jax.tree.map(lambda a: a * 0.03, actors["params"]["Dense_0"])}}
-    base = [10_000 * (s + 1) for s in range(seeds)]  # stages.eval_seed of seeds 0, 1, ...
+    base = [10_000 * (s + 1) for s in range(seeds)]  # policy_stages.eval_seed of seeds 0, 1, ...
     one = [jax.tree.map(lambda a, s=s: a[s], actors) for s in range(seeds)]
 
     def eager(p: Any) -> Any:
@@ -397,8 +398,8 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
 
     res, wall, cpu = _env_steps_per_s(
         {
-            "batched": together(stages.eval_policy(actors, cfg, runs=True)),
-            "sequential": alone(lambda p: stages.eval_policy(p, cfg)),
+            "batched": together(policy_stages.eval_policy(actors, cfg, runs=True)),
+            "sequential": alone(lambda p: policy_stages.eval_policy(p, cfg)),
             "seq_eager": alone(eager),
             "before": together(lambda obs: np.stack([eager(p)(o) for p, o in zip(one, obs, strict=True)])),
         },

@@ -326,15 +326,26 @@ def test_code_versions_do_not_depend_on_where_the_code_is_installed(tmp_path, mo
 
 
 def test_the_real_stages_versions_cover_their_modules():
-    reward = cache.code_parts(stages.learned_reward)
-    assert {"spot.stages:learned_reward", "spot.reward.train", "spot.reward.pt", "spot.reward.mr", "spot.nets"} <= set(
-        reward
-    )
-    assert "spot.stages:cvae_stage" not in reward and "spot.subgoal.cvae" not in reward
+    from spot.run import reward_stages, subgoal_stages
+
+    reward = cache.code_parts(reward_stages.learned_reward)
+    assert {
+        "spot.run.reward_stages:learned_reward",
+        "spot.run.reward_stages:_reward_deps",  # a helper of the stage's own module
+        "spot.run.context",  # Context, the slot types, save_model, dataset_deps: a module the stage uses
+        "spot.reward.train",
+        "spot.reward.pt",
+        "spot.reward.mr",
+        "spot.nets",
+    } <= set(reward)
+    assert "spot.run.subgoal_stages:cvae_stage" not in reward and "spot.subgoal.cvae" not in reward
+    assert not {p for p in reward if p.startswith(("spot.run.policy_stages", "spot.run.methods"))}
     assert not [m for m in reward if m.split(":")[0].startswith("spot.config")]  # config values are in the deps
-    cvae = cache.code_parts(stages.cvae_stage)
-    assert {"spot.stages:cvae_stage", "spot.subgoal.cvae"} <= set(cvae) and "spot.reward.pt" not in cvae
-    assert cache.code_version(stages.learned_reward) != cache.code_version(stages.cvae_stage)
+    cvae = cache.code_parts(subgoal_stages.cvae_stage)
+    assert {"spot.run.subgoal_stages:cvae_stage", "spot.run.context", "spot.subgoal.cvae"} <= set(cvae)
+    assert "spot.reward.pt" not in cvae and "spot.run.reward_stages:learned_reward" not in cvae
+    assert cache.code_version(reward_stages.learned_reward) != cache.code_version(subgoal_stages.cvae_stage)
+    assert stages.learned_reward is reward_stages.learned_reward  # the plugin API's name, the same stage
 
 
 def test_figures_read_a_cvae_entry_and_refuse_a_pickle(cache_dir, tmp_path):

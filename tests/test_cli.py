@@ -77,8 +77,9 @@ def test_data_build_info_and_labels(tmp_path, spot_dirs, tiny_drawer):
 def test_labels_make_resolves_its_settings_like_run(tmp_path, spot_dirs, tiny_drawer):
     """On drawer-open the Meta-World suite preset gives 25-step segments and the discounted teacher,
     for `spot labels make` as for `spot run`; flags and overrides win over presets."""
-    from spot import config, stages
+    from spot import config
     from spot.data import labels, registry
+    from spot.run import label_stages
 
     out = tmp_path / "q.npz"
     made = run_cli("labels", "make", "drawer-open", "--size", "tiny", "labels.num_queries=30", "--out", str(out))
@@ -88,7 +89,7 @@ def test_labels_make_resolves_its_settings_like_run(tmp_path, spot_dirs, tiny_dr
     cfg = config.load(None, ["data.name=drawer-open", "data.size=tiny", "labels.num_queries=30"])  # `spot run`'s
     assert (cfg.labels.segment_length, cfg.labels.teacher) == (25, "discounted")
     ds, _ = registry.load("drawer-open", "tiny", 0, progress=False)
-    expected = stages.make_preferences(cfg, ds)
+    expected = label_stages.make_preferences(cfg, ds)
     assert got.segment_length == 25 and len(got) == 30
     for name in ("starts_1", "starts_2", "labels"):
         np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from spot import NonFiniteError, SpotError, config, pipeline, stages, tracking
+from spot import NonFiniteError, SpotError, config, pipeline, tracking
 from spot.policy import iql
+from spot.run import policy_stages
 
 
 # --------------------------------------------------------------------------- the evaluation schedule
@@ -25,9 +26,9 @@ def test_eval_steps_by_hand():
 
 def test_the_last_evaluation_uses_final_episodes():
     cfg = config.load(None, ["budget=tiny", "iql.steps=250", "eval.episodes=4", "eval.final_episodes=20"])
-    assert [stages.eval_episodes(cfg, step) for step in (0, 100, 249, 250)] == [4, 4, 4, 20]
+    assert [policy_stages.eval_episodes(cfg, step) for step in (0, 100, 249, 250)] == [4, 4, 4, 20]
     unset = config.load(None, ["budget=tiny", "iql.steps=250", "eval.episodes=4"])
-    assert [stages.eval_episodes(unset, step) for step in (0, 250)] == [4, 4]
+    assert [policy_stages.eval_episodes(unset, step) for step in (0, 250)] == [4, 4]
 
 
 class _Counter:
@@ -218,7 +219,8 @@ def test_fig3_uses_the_runs_cvae_on_the_runs_dataset(tmp_path):
 
 
 def test_spot_eval_plays_whole_episodes_for_runs_logged_before_eval_max_steps(monkeypatch):
-    from spot import pipeline, tracking
+    from spot import tracking
+    from spot.run import pipeline
 
     monkeypatch.setattr(tracking, "load_artifact_text", lambda *a: "eval:\n  episodes: 1\n  every: 100\n")
     assert pipeline._logged_max_steps("r", None, 100) == 0  # resolved from the tiny preset, not logged

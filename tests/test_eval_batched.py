@@ -7,8 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from spot import config, envs, stages
+from spot import config, envs
 from spot.policy import iql
+from spot.run import policy_stages
 
 HOPPER = "hopper-medium-replay"  # Hopper-v5, 11-D observations, 3-D actions
 DRAWER = "drawer-open"  # Meta-World, 39-D observations, 4-D actions: the cheap env of test_envs
@@ -54,7 +55,9 @@ def _assert_same(batched, sequential):
 @pytest.mark.parametrize("episodes", [1, 3, 10])
 def test_a_runs_batched_episodes_equal_its_sequential_ones(name, episodes, iql_cfg):
     params = _one(_actors(name, iql_cfg, [0]), 0)
-    batched = envs.evaluate(stages.eval_policy(params, iql_cfg), name, episodes, 100, max_steps=MAX_STEPS[name])
+    batched = envs.evaluate(
+        policy_stages.eval_policy(params, iql_cfg), name, episodes, 100, max_steps=MAX_STEPS[name]
+    )
     sequential = _sequential(params, iql_cfg, name, episodes, 100)
     _assert_same(batched, sequential)
     assert len(batched["returns"]) == episodes
@@ -71,7 +74,7 @@ def test_a_vmapped_trials_seeds_evaluated_together_equal_each_seed_alone(iql_cfg
     seeds = [0, 1, 2, 3]
     eval_seeds = [10_000, 20_000, 10_000, 30_000]
     params = _actors(HOPPER, iql_cfg, seeds)
-    policy = stages.eval_policy(params, iql_cfg, runs=True)
+    policy = policy_stages.eval_policy(params, iql_cfg, runs=True)
     together = envs.evaluate_runs(policy, HOPPER, 10, eval_seeds)
     assert len(together) == len(seeds)
     for s, res in enumerate(together):

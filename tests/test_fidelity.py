@@ -234,16 +234,16 @@ def _prefs(q: int):
 def test_eval_split_pt_subset_trains_on_all_and_evaluates_on_the_last_tenth():
     import numpy as np
 
-    from spot import stages
+    from spot.run import label_stages
 
     prefs = _prefs(30)
-    train, held = stages.split_queries(prefs, config.load(None, ["variant=paper", "labels.eval_fraction=0.1"]))
+    train, held = label_stages.split_queries(prefs, config.load(None, ["variant=paper", "labels.eval_fraction=0.1"]))
     np.testing.assert_array_equal(train.starts_1, prefs.starts_1)  # all N
     np.testing.assert_array_equal(held.starts_1, [81, 84, 87])  # queries 27, 28, 29
-    train, held = stages.split_queries(prefs, config.load(None, ["variant=spot"]))
+    train, held = label_stages.split_queries(prefs, config.load(None, ["variant=spot"]))
     assert len(train) == 27 and len(held) == 3 and not set(train.starts_1) & set(held.starts_1)
-    assert len(stages.pt_eval_subset(_prefs(5), 0.1)) == 1  # at least one
-    assert len(stages.pt_eval_subset(_prefs(5), 0.0)) == 0
+    assert len(label_stages.pt_eval_subset(_prefs(5), 0.1)) == 1  # at least one
+    assert len(label_stages.pt_eval_subset(_prefs(5), 0.0)) == 0
 
 
 def test_reward_training_length_in_pt_epochs():
@@ -262,9 +262,9 @@ def test_reward_training_length_in_pt_epochs():
 def test_action_clipping_by_hand(tiny_drawer):
     import numpy as np
 
-    from spot import stages
     from spot.data import registry
     from spot.reward import train
+    from spot.run import policy_stages
 
     batch = {"act_1": np.array([[[1.0, -1.0, 0.5]]]), "act_2": np.array([[[-0.9995, 0.9995, 0.0]]]), "x": 1}
     out = train.clip_actions(batch, 0.999)
@@ -275,11 +275,11 @@ def test_action_clipping_by_hand(tiny_drawer):
     ds, _ = registry.load("drawer-open", "tiny")
     reward = np.zeros(len(ds), np.float32)
     cfg = config.load(None, ["variant=paper"])
-    data = stages.policy_transitions(cfg, ds, reward)
+    data = policy_stages.policy_transitions(cfg, ds, reward)
     eps = 1e-5
     assert np.abs(data.act).max() <= 1 - eps + 1e-7
     np.testing.assert_allclose(data.act, np.clip(ds.actions, -(1 - eps), 1 - eps), rtol=0, atol=1e-7)
-    unclipped = stages.policy_transitions(config.load(None, ["variant=spot"]), ds, reward)
+    unclipped = policy_stages.policy_transitions(config.load(None, ["variant=spot"]), ds, reward)
     np.testing.assert_array_equal(unclipped.act, ds.actions.astype(np.float32))
 
 
@@ -289,21 +289,21 @@ SHIPPED = ROOT / "spot" / "data" / "pt_human_labels"
 
 
 def test_human_label_folder_only_for_the_real_file():
-    from spot import stages
+    from spot.run import label_stages
 
     real = {"source": "file", "name": "hopper_medium_replay-v2", "path": "/d/d4rl/hopper_medium_replay-v2.hdf5"}
-    assert stages.human_label_folder(real) == SHIPPED / "hopper-medium-replay-v2"
+    assert label_stages.human_label_folder(real) == SHIPPED / "hopper-medium-replay-v2"
     robomimic = {"source": "file", "name": "low_dim", "path": "/d/robomimic/can/mh/low_dim.hdf5"}
-    assert stages.human_label_folder(robomimic) == SHIPPED / "Can_mh"
+    assert label_stages.human_label_folder(robomimic) == SHIPPED / "Can_mh"
     # a spot-built dataset, read by path or by name: its card names the recipe
     built = {"source": "file", "recipe": "d4rl-sac-locomotion", "path": "/d/hopper_medium_replay-v2.hdf5"}
-    assert stages.human_label_folder(built) is None
-    assert stages.human_label_folder({"source": "recipe", "recipe": "x", "name": "hopper-medium-replay"}) is None
-    assert stages.human_label_folder({"source": "file", "path": "/d/hopper_medium-v2.hdf5"}) is None  # no labels
+    assert label_stages.human_label_folder(built) is None
+    assert label_stages.human_label_folder({"source": "recipe", "recipe": "x", "name": "hopper-medium-replay"}) is None
+    assert label_stages.human_label_folder({"source": "file", "path": "/d/hopper_medium-v2.hdf5"}) is None  # no labels
     cfg = config.load(None, ["variant=authors"])
-    assert stages.label_source(cfg, real) == ("human", str(SHIPPED / "hopper-medium-replay-v2"))
-    assert stages.label_source(cfg, built) == ("script", "")
-    assert stages.label_source(config.load(None, ["variant=spot"]), real) == ("script", "")
+    assert label_stages.label_source(cfg, real) == ("human", str(SHIPPED / "hopper-medium-replay-v2"))
+    assert label_stages.label_source(cfg, built) == ("script", "")
+    assert label_stages.label_source(config.load(None, ["variant=spot"]), real) == ("script", "")
 
 
 @pytest.mark.parametrize(
@@ -387,20 +387,20 @@ def test_auto_labels_are_the_human_files_only_on_the_real_file():
     hopper-medium-replay-v2 file; the scripted teacher for a spot-built dataset of the same name."""
     import numpy as np
 
-    from spot import stages
     from spot.data import labels
+    from spot.run import label_stages
     from tests.conftest import make_dataset
 
     ds = make_dataset([1000] * 402, obs_dim=2, act_dim=1)  # rows past PT's largest index (401337 + 100)
     cfg = config.load(None, ["method=pt", "variant=paper", "data.name=hopper-medium-replay"])
     assert cfg.labels.num_queries == 500 and cfg.labels.source == "auto"
     real = {"source": "file", "name": "hopper_medium_replay-v2", "path": "/d/d4rl/hopper_medium_replay-v2.hdf5"}
-    prefs = stages.make_preferences(cfg, ds, real)
+    prefs = label_stages.make_preferences(cfg, ds, real)
     shipped = labels.read_pt_labels(SHIPPED / "hopper-medium-replay-v2")
     np.testing.assert_array_equal(prefs.starts_1, shipped.starts_1)
     np.testing.assert_array_equal(prefs.labels, shipped.labels)
     assert prefs.segment_length == 100 and prefs.source == str(SHIPPED / "hopper-medium-replay-v2")
     built = {**real, "recipe": "d4rl-sac-locomotion"}
-    scripted = stages.make_preferences(cfg, ds, built)
+    scripted = label_stages.make_preferences(cfg, ds, built)
     assert len(scripted) == 500 and scripted.segment_length == cfg.labels.segment_length
     assert not np.array_equal(scripted.starts_1, shipped.starts_1)

@@ -38,7 +38,7 @@ LAYERS = [
     (4, "policy", ["spot.policy"]),
     (5, "recipes", ["spot.recipes"]),
     (6, "tracking", ["spot.tracking"]),
-    (7, "stages", ["spot.stages", "spot.pipeline", "spot.multiseed"]),
+    (7, "stages", ["spot.run", "spot.stages", "spot.pipeline"]),
     (
         8,
         "apps",

@@ -1,4 +1,4 @@
-"""Seeds as a vmap axis: spot.multiseed.run against one spot.pipeline.run per seed."""
+"""Seeds as a vmap axis: spot.run.multiseed.run against one spot.pipeline.run per seed."""
 
 import warnings
 from pathlib import Path
@@ -7,7 +7,8 @@ import jax
 import numpy as np
 import pytest
 
-from spot import SpotError, cache, config, multiseed, pipeline, sweep
+from spot import SpotError, cache, config, pipeline, sweep
+from spot.run import multiseed
 from spot.tracking import MemoryTracker, locking
 
 TINY = [

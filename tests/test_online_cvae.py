@@ -301,30 +301,31 @@ def test_online_cvae_skips_a_minibatch_without_triplets_and_decodes_actions():
 def test_online_schedule_only_where_the_variant_or_key_says():
     """Offline stays today's default (spot, paper); authors trains online; runs without a CVAE
     (PT without diagnostics, MR) attach none."""
-    from spot import stages
+    from spot.run import subgoal_stages
 
     def cfg(*o):
         return config.load(None, ["method=spot", "budget=tiny", *o])
 
-    assert not stages.online_cvae(cfg()) and not stages.online_cvae(cfg("variant=paper"))
-    assert stages.online_cvae(cfg("variant=authors"))
-    assert stages.online_cvae(cfg("cvae.schedule=online"))
-    assert not stages.online_cvae(cfg("variant=authors", "cvae.schedule=offline"))
+    assert not subgoal_stages.online_cvae(cfg()) and not subgoal_stages.online_cvae(cfg("variant=paper"))
+    assert subgoal_stages.online_cvae(cfg("variant=authors"))
+    assert subgoal_stages.online_cvae(cfg("cvae.schedule=online"))
+    assert not subgoal_stages.online_cvae(cfg("variant=authors", "cvae.schedule=offline"))
     pt = config.load(None, ["method=pt", "variant=authors", "subgoal.diagnostics=false"])
-    assert not stages.online_cvae(pt)
-    assert not stages.online_cvae(config.load(None, ["method=mr", "variant=authors"]))
+    assert not subgoal_stages.online_cvae(pt)
+    assert not subgoal_stages.online_cvae(config.load(None, ["method=mr", "variant=authors"]))
 
 
 def test_online_cvae_code_is_in_the_reward_entry_only_when_online():
     """The online reward stage's cache key covers the CVAE's code; the offline one's does not (an
     edit of the CVAE retires no offline reward model)."""
     from spot import cache, stages
+    from spot.run import reward_stages
 
-    off, on = cache.code_parts(stages.learned_reward), cache.code_parts(stages.learned_reward_online)
+    off, on = cache.code_parts(reward_stages.learned_reward), cache.code_parts(reward_stages.learned_reward_online)
     assert "spot.subgoal.online" not in off and "spot.subgoal.cvae" not in off and "spot.reward.train" in off
     assert {"spot.subgoal.online", "spot.subgoal.cvae", "spot.reward.train"} <= set(on)
     authors = config.load(None, ["method=spot", "variant=authors"])
-    assert stages.stages_of(authors).reward is stages.learned_reward_online
+    assert stages.stages_of(authors).reward is reward_stages.learned_reward_online
     assert stages.stages_of(config.load(None, ["method=spot"])).reward is stages.learned_reward
 
 

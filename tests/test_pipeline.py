@@ -167,11 +167,12 @@ def test_policy_reward_is_normalised_model_reward_plus_lambda_shape(
 
     from spot import stages
     from spot.reward import relabel
+    from spot.run import reward_stages, subgoal_stages
     from spot.subgoal import cvae
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
     seen = {}
-    shaping_stage = stages.shaping_stage
+    shaping_stage = subgoal_stages.shaping_stage
 
     def capture_shaping(ctx, rewards, subgoals):
         seen.update(ctx=ctx, rewards=rewards, subgoals=subgoals)
@@ -183,7 +184,7 @@ def test_policy_reward_is_normalised_model_reward_plus_lambda_shape(
         seen["policy_reward"] = np.asarray(shaped.reward)
         return kind.policy(ctx, shaped, labelled)
 
-    monkeypatch.setattr(stages, "shaping_stage", capture_shaping)
+    monkeypatch.setattr(subgoal_stages, "shaping_stage", capture_shaping)
     monkeypatch.setitem(stages.REWARD_KINDS, "pt", dataclasses.replace(kind, policy=capture_policy))
     cfg = _cfg(tmp_path, f"method={method}", "shaping.weight=0.5", "iql.steps=100")
     assert cfg.subgoal.diagnostics and cfg.relabel.normalize == "iql"
@@ -192,7 +193,7 @@ def test_policy_reward_is_normalised_model_reward_plus_lambda_shape(
     ctx, rewards, subgoals = seen["ctx"], seen["rewards"], seen["subgoals"]
     ds = ctx.ds
     assert subgoals is not None  # both methods trained the CVAE
-    scale = stages.normalisation_scale(cfg, ctx.env_name)
+    scale = reward_stages.normalisation_scale(cfg, ctx.env_name)
     normalised = relabel.normalize_rewards(rewards.model, ds, "iql", scale)
     np.testing.assert_allclose(rewards.normalised, normalised, rtol=1e-6)
     if method == "pt":

@@ -18,8 +18,9 @@ import mlflow
 import numpy as np
 import pytest
 
-from spot import SpotError, cli, config, envs, stages
+from spot import SpotError, cli, config, envs
 from spot.data import fetch, labels, registry
+from spot.run import label_stages
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = fetch.load_registry()
@@ -97,10 +98,10 @@ def test_every_fetched_file_name_resolves_to_its_dataset(tmp_path, source):
             "can": "PickPlaceCan",
         }[env]
     )
-    label_folder = labels.pt_label_folder(want, stages.PT_HUMAN_LABELS)
+    label_folder = labels.pt_label_folder(want, label_stages.PT_HUMAN_LABELS)
     if source.labels:  # the PT label source the fetch registry pairs with this file
         assert labels.pt_label_name(want) == source.labels.split("/", 1)[1]
-        assert label_folder == stages.PT_HUMAN_LABELS / source.labels.split("/", 1)[1]
+        assert label_folder == label_stages.PT_HUMAN_LABELS / source.labels.split("/", 1)[1]
     else:
         assert label_folder is None
 
@@ -127,12 +128,13 @@ def test_a_d4rl_file_under_its_real_name_loads_as_that_dataset(tmp_path):
     assert card["name"] == ds.name == "hopper-medium-replay-v2" and card["source"] == "file"
     assert card["path"] == str(path.resolve())
     envs.check_fits_env(ds, card, card["name"])  # Hopper-v5's sizes and action space
-    assert stages.human_label_folder(card) == stages.PT_HUMAN_LABELS / "hopper-medium-replay-v2"
+    shipped = label_stages.PT_HUMAN_LABELS / "hopper-medium-replay-v2"
+    assert label_stages.human_label_folder(card) == shipped
     cfg = config.load(ROOT / "configs" / "quickstart.yaml", [f"data.name={path}", "labels.source=auto"])
-    assert stages.label_source(cfg, card) == ("human", str(stages.PT_HUMAN_LABELS / "hopper-medium-replay-v2"))
+    assert label_stages.label_source(cfg, card) == ("human", str(shipped))
     # PT's 500 human queries index the real 402,000 rows; this 1,000-row stand-in is refused clearly
     with pytest.raises(SpotError, match="past the end of dataset 'hopper-medium-replay-v2'"):
-        stages.make_preferences(cfg, ds, card)
+        label_stages.make_preferences(cfg, ds, card)
 
 
 @pytest.mark.parametrize("task, kind, env_name", [("lift", "ph", "Lift"), ("can", "mh", "PickPlaceCan")])
@@ -142,8 +144,9 @@ def test_a_robomimic_file_resolves_from_its_folders(tmp_path, task, kind, env_na
     assert card["name"] == f"{task}-{kind}" and raw.metadata["format"] == "robomimic"
     assert envs.env_spec(card["name"]).env_id == env_name
     pt = {"lift-ph": "Lift_ph", "can-mh": "Can_mh"}[card["name"]]
-    assert stages.human_label_folder(card) == stages.PT_HUMAN_LABELS / pt
-    assert stages.human_label_folder({**card, "name": "low_dim"}) == stages.PT_HUMAN_LABELS / pt  # by path too
+    shipped = label_stages.PT_HUMAN_LABELS / pt
+    assert label_stages.human_label_folder(card) == shipped
+    assert label_stages.human_label_folder({**card, "name": "low_dim"}) == shipped  # by path too
 
 
 def test_a_robomimic_file_under_another_tasks_folder_is_refused(tmp_path):

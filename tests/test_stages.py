@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError, config, pipeline, stages, sweep, tracking
+from spot.run import subgoal_stages
 from tests.conftest import TINY_RUN, run_cli
 
 
@@ -37,8 +38,8 @@ def test_every_method_has_its_stages():
     assert stages.stages_of(config.resolve({"method": "ipl"})).policy is stages.ipl_policy
     assert stages.stages_of(config.resolve({"method": "pt"})).policy is stages.iql_policy
     assert not stages.stages_of(config.resolve({"method": "oracle"})).uses_labels
-    assert stages.needs_subgoals(config.resolve({"method": "spot"}))
-    assert not stages.needs_subgoals(config.resolve({"method": "mr"}))
+    assert subgoal_stages.needs_subgoals(config.resolve({"method": "spot"}))
+    assert not subgoal_stages.needs_subgoals(config.resolve({"method": "mr"}))
 
 
 def test_in_segments_mask_marks_both_segments_and_clips_at_the_end():
@@ -46,7 +47,7 @@ def test_in_segments_mask_marks_both_segments_and_clips_at_the_end():
         starts_1, starts_2, segment_length = np.array([0, 7]), np.array([3, 9]), 2
 
     # segments [0,1], [7,8], [3,4], [9,10->clipped]
-    assert np.flatnonzero(stages.in_segments_mask(10, P())).tolist() == [0, 1, 3, 4, 7, 8, 9]
+    assert np.flatnonzero(subgoal_stages.in_segments_mask(10, P())).tolist() == [0, 1, 3, 4, 7, 8, 9]
 
 
 @pytest.mark.slow
@@ -72,7 +73,7 @@ def test_fig2_in_distribution_is_the_training_segments_only():
         prefs=P([0, 10], [4, 14]), train_prefs=P([0], [4]), train_batch={}, eval_batch=None, deps={}
     )
     # training segments [0, 1] and [4, 5]; the held-out query's [10, 11], [14, 15] are out of distribution
-    assert np.flatnonzero(stages.in_distribution(16, labelled)).tolist() == [0, 1, 4, 5]
+    assert np.flatnonzero(subgoal_stages.in_distribution(16, labelled)).tolist() == [0, 1, 4, 5]
 
 
 @pytest.mark.parametrize(("name", "scale"), [("lift-ph", 500), ("drawer-open", 500), ("hopper-medium-replay", 1000)])

@@ -143,7 +143,8 @@ def test_triplet_segments_and_cvae_split_by_segment():
 def test_cvae_stage_passes_segments_as_groups(monkeypatch):
     from types import SimpleNamespace
 
-    from spot import config, stages
+    from spot import config
+    from spot.run import subgoal_stages
     from spot.subgoal import cvae
 
     seen = {}
@@ -163,10 +164,10 @@ def test_cvae_stage_passes_segments_as_groups(monkeypatch):
         cached=lambda name, deps, compute: (compute(), "key"),
         log=lambda *a, **k: None,
     )
-    monkeypatch.setattr(stages, "save_model", lambda *a, **k: None)
+    monkeypatch.setattr(subgoal_stages, "save_model", lambda *a, **k: None)
     trip = extract.Triplets(np.zeros((3, 1)), np.zeros((3, 1)), np.zeros((3, 1)))
     rewards = SimpleNamespace(source=SimpleNamespace(cache_key="reward-key"))
-    stages.cvae_stage(ctx, (trip, np.zeros((1, 1)), np.array([4, 4, 9])), rewards)
+    subgoal_stages.cvae_stage(ctx, (trip, np.zeros((1, 1)), np.array([4, 4, 9])), rewards)
     np.testing.assert_array_equal(seen["groups"], [4, 4, 9])
 
 

@@ -6,7 +6,7 @@ evaluation and the best-checkpoint rule are that module's, vmapped over a leadin
 lives in its own module so that the stage cache's code version of the one-seed reward stage (which
 covers :mod:`spot.reward.train`) does not change with it. The result equals one-seed training up to
 rounding (``tests/test_reward.py``), amplified by Adam in the directions the preference loss
-cannot see; so a vmap trial stores it under keys of its own (``spot.multiseed.KEY_EXTRA``).
+cannot see; so a vmap trial stores it under keys of its own (``spot.run.multiseed.KEY_EXTRA``).
 """
 
 from __future__ import annotations

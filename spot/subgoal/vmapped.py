@@ -8,7 +8,7 @@ padding changes nothing) and its held-out triplets likewise with weight-0 rows. 
 own module so that the code version of the one-seed CVAE stage (which covers
 :mod:`spot.subgoal.cvae`) does not change with it; the result equals one-seed training to float
 tolerance (``tests/test_subgoal.py``) and a vmap trial stores it under keys of its own
-(``spot.multiseed.KEY_EXTRA``).
+(``spot.run.multiseed.KEY_EXTRA``).
 """
 
 from __future__ import annotations

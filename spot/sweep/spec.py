@@ -387,7 +387,7 @@ def _check_trial(trial: Trial, where: str) -> config_lib.ExperimentConfig:
         if cfg.data.source != "file" and not Path(name).exists():
             registry.entry(name)
         if trial.vmap:  # only IQL's policy stage is vmapped over seeds (IPL is refused)
-            from spot import multiseed
+            from spot.run import multiseed
 
             multiseed.check([cfg])
     except SpotError as e:

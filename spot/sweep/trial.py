@@ -5,7 +5,7 @@
 XLA/JAX for the trial's share of the node (:func:`configure_process`), before anything imports
 jax, and calls :func:`run_trial`, which looks each seed up in MLflow (a FINISHED run with the
 sweep id and trial key is reported instead of running again), runs the others with
-:func:`spot.pipeline.run` one after another, or together with :func:`spot.multiseed.run` (IQL
+:func:`spot.pipeline.run` one after another, or together with :func:`spot.run.multiseed.run` (IQL
 vmapped over the seeds) for a ``seed_mode: vmap`` trial, and records a FAILED run for a seed that
 failed before the pipeline opened its own. Nothing here imports jax at module level.
 
@@ -226,7 +226,7 @@ def _run_vmapped(
     report: Report,
     run_fn: Callable[..., list[dict[str, Any]]],
 ) -> list[dict[str, Any]]:
-    """Run the ``pending`` seeds (seed -> tags) together with ``run_fn`` (:func:`spot.multiseed.run`);
+    """Run the ``pending`` seeds (seed -> tags) together with ``run_fn`` (:func:`spot.run.multiseed.run`);
     a failure is recorded as a FAILED run for each seed and raised."""
 
     seeds = list(pending)
@@ -288,7 +288,7 @@ def run_trial(
       trial_id: Ray's trial id, logged as the ``trial_id`` tag.
       report: called with intermediate (``score``) and final (``score_final``) metrics.
       run_fn: :func:`spot.pipeline.run` unless given (tests pass another); with ``vmap``,
-        :func:`spot.multiseed.run` unless given.
+        :func:`spot.run.multiseed.run` unless given.
       vmap: run the seeds not finished yet together, IQL vmapped over them (one MLflow run per
         seed still); otherwise one after another.
 
@@ -316,7 +316,7 @@ def run_trial(
         _open_data(overrides, next(iter(pending)), ctx)
     if vmap and pending:
         if run_fn is None:
-            from spot import multiseed
+            from spot.run import multiseed
 
             run_fn = multiseed.run
         try:

@@ -1,6 +1,6 @@
 """Several seeds of one config in one process, IQL trained for all of them as one vmapped program.
 
-:func:`run` is :func:`spot.pipeline.run` for seeds ``s_1 .. s_S`` of a config (``seed_mode: vmap``
+:func:`run` is :func:`spot.run.pipeline.run` for seeds ``s_1 .. s_S`` of a config (``seed_mode: vmap``
 in a sweep file). Each seed gets its own run (its own MLflow run, or the tracker given), and
 the stages before the policy (labels, reward model, relabelling, subgoals, CVAE, shaping,
 diagnostics) run per seed, one seed after another, through the stage cache as in a one-seed run,
@@ -15,7 +15,7 @@ shared, each seed has its own reward (its reward model's, shaped by its CVAE), i
 and minibatch keys, derived from its seed exactly as in a one-seed run. After each stretch of
 updates every seed's policy is evaluated in the env with that seed's episodes and logged to its
 own run, and each run gets its own learning curve, ``models/policy`` and final metrics
-(:func:`spot.stages.finish`). The per-seed results equal one-seed runs' to float tolerance
+(:func:`spot.run.finish.finish`). The per-seed results equal one-seed runs' to float tolerance
 (batched matmuls round differently): ``tests/test_multiseed.py``.
 
 Per-seed timings: ``time/iql_s`` of every seed is the wall time of the shared vmapped training
@@ -29,7 +29,7 @@ config by config (a later config reuses an earlier one's stage-cache entries: SP
 reward models), and such runs are tagged ``vmap.members`` (``method:seed`` of every member).
 On a GPU this width is nearly free, where a second process sharing the GPU is not.
 
-Only methods whose policy stage is IQL (:func:`spot.stages.iql_policy`) can be vmapped; IPL
+Only methods whose policy stage is IQL (:func:`spot.policy_stages.iql_policy`) can be vmapped; IPL
 trains its own critic on the preferences and is refused (run its seeds with ``seed_mode:
 sequential`` or ``trials``). If one seed fails before or during training, every seed's run ends
 FAILED with the reason: the seeds share one program.
@@ -45,9 +45,10 @@ from typing import Any
 
 import numpy as np
 
-from spot import SpotError, cache, pipeline, stages
+from spot import SpotError, cache
 from spot.config import ExperimentConfig
-from spot.stages import Context, Policy, Shaped
+from spot.run import finish, label_stages, methods, pipeline, policy_stages, reward_stages, subgoal_stages
+from spot.run.context import Context, Policy, Shaped
 from spot.tracking import Tracker
 
 KEY_EXTRA = {"seed_mode": "vmap"}
@@ -67,7 +68,7 @@ def _identity(cfg: ExperimentConfig) -> ExperimentConfig:
     return dataclasses.replace(cfg, seed=0, tracking=dataclasses.replace(cfg.tracking, experiment=""))
 
 
-def check(cfgs: Sequence[ExperimentConfig]) -> list[stages.RewardKind]:
+def check(cfgs: Sequence[ExperimentConfig]) -> list[methods.RewardKind]:
     """Each member's stages, after checking that ``cfgs`` are distinct members (no config twice with
     one seed) that share :data:`SHARED_SECTIONS` and whose policy stage is IQL (SpotError otherwise)."""
     if not cfgs:
@@ -77,9 +78,9 @@ def check(cfgs: Sequence[ExperimentConfig]) -> list[stages.RewardKind]:
         if member in members[:i]:
             seeds = [c.seed for c, (_, cell) in zip(cfgs, members, strict=True) if cell == member[1]]
             raise SpotError(f"seed_mode vmap: seeds {seeds} repeat")
-    kinds = [stages.stages_of(c) for c in cfgs]
+    kinds = [methods.stages_of(c) for c in cfgs]
     for cfg, kind in zip(cfgs, kinds, strict=True):
-        if kind.policy is not stages.iql_policy:
+        if kind.policy is not policy_stages.iql_policy:
             raise SpotError(
                 f"seed_mode vmap trains IQL over seeds; method {cfg.method!r} trains its own policy "
                 f"({kind.policy.__name__}): use seed_mode: sequential or trials"
@@ -107,7 +108,7 @@ def run(
     """Run the members ``cfgs`` (seeds of one config, or of several configs that share
     :data:`SHARED_SECTIONS`), IQL vmapped over all of them (module docstring).
 
-    ``extra_tags``, ``on_eval`` and ``trackers`` are per member (as :func:`spot.pipeline.run`'s).
+    ``extra_tags``, ``on_eval`` and ``trackers`` are per member (as :func:`spot.run.pipeline.run`'s).
     The stages before the policy run config by config, in the order the configs first appear, so
     a later config reuses an earlier one's stage-cache entries (SPOT after PT: the same reward
     models). Returns each member's final metrics and ``run_id``, in the order of ``cfgs``.
@@ -134,7 +135,7 @@ def run(
             ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
             ctx.key_extra = dict(KEY_EXTRA)
             ctx.times["time/data_s"] = data_s
-            labelled.append(ctx.stage("labels", stages.labels_stage) if kind.uses_labels else None)
+            labelled.append(ctx.stage("labels", label_stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
         shaped: list[Any] = [None] * n
         for members in groups.values():
@@ -145,17 +146,17 @@ def run(
             for i in members:
                 shaped[i] = pipeline.from_cvae(ctxs[i], *parts[i])
         policies = train_iql(ctxs, shaped)
-        return [stages.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
+        return [finish.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
 
 
-def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stages.RewardKind) -> list[int]:
-    """Train the reward models (MR or PT, :func:`spot.stages.learned_reward`) of the seeds that miss
+def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: methods.RewardKind) -> list[int]:
+    """Train the reward models (MR or PT, :func:`spot.reward_stages.learned_reward`) of the seeds that miss
     the stage cache as one vmapped program (:func:`spot.reward.vmapped.train_reward_models`), when
     at least two miss and their preference pairs have one shape. Each model waits in its run's
     ``ctx.precomputed``; the seed's reward stage then stores it under its own key and logs it as
     computed, exactly as if it had trained it. Each seed's ``time/reward_s`` gets the shared
     training's wall time. Returns the indices of the seeds trained here."""
-    if kind.reward is not stages.learned_reward or len(ctxs) < 2:
+    if kind.reward is not reward_stages.learned_reward or len(ctxs) < 2:
         return []
     from spot.reward import models, vmapped
     from spot.reward import train as reward_train
@@ -163,8 +164,8 @@ def vmapped_rewards(ctxs: Sequence[Context], labelled: Sequence[Any], kind: stag
     cfg = ctxs[0].cfg
     model = models.from_config(cfg)
     extra = {"reward": model.kind, "reward_cfg": cfg.reward, "model_cfg": model.cfg}  # as the reward stage's
-    deps_of = lambda i: stages._reward_deps(ctxs[i], labelled[i], **extra)  # noqa: E731
-    todo = _misses(ctxs, "reward", deps_of, cache.code_version(stages.learned_reward))
+    deps_of = lambda i: reward_stages._reward_deps(ctxs[i], labelled[i], **extra)  # noqa: E731
+    todo = _misses(ctxs, "reward", deps_of, cache.code_version(reward_stages.learned_reward))
     if len(todo) < 2:
         return []
     clip = cfg.reward.clip_action
@@ -187,13 +188,13 @@ def vmapped_cvaes(ctxs: Sequence[Context], rewards: Sequence[Any], extracted: Se
     triplets fit one program; as :func:`vmapped_rewards`, each waits in ``ctx.precomputed`` for
     its seed's CVAE stage, and each seed's ``time/cvae_s`` gets the shared wall time. Returns the
     indices of the seeds trained here."""
-    if len(ctxs) < 2 or extracted[0] is None or stages.online_cvae(ctxs[0].cfg):
+    if len(ctxs) < 2 or extracted[0] is None or subgoal_stages.online_cvae(ctxs[0].cfg):
         return []
     from spot.subgoal import cvae, vmapped
 
     cfg = ctxs[0].cfg
-    deps_of = lambda i: stages.cvae_deps(ctxs[i], rewards[i])  # noqa: E731
-    todo = _misses(ctxs, "cvae", deps_of, cache.code_version(stages._offline_cvae))
+    deps_of = lambda i: subgoal_stages.cvae_deps(ctxs[i], rewards[i])  # noqa: E731
+    todo = _misses(ctxs, "cvae", deps_of, cache.code_version(subgoal_stages._offline_cvae))
     if len(todo) < 2:
         return []
     t0 = time.perf_counter()
@@ -241,7 +242,7 @@ def _seed(tree: Any, s: int) -> Any:
 
 def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]:
     """IQL for every seed of ``ctxs`` as one vmapped program; each seed evaluated and logged to its
-    own context, as :func:`spot.stages.iql_policy` does for one seed (same keys, same schedule)."""
+    own context, as :func:`spot.policy_stages.iql_policy` does for one seed (same keys, same schedule)."""
     import jax
     import jax.numpy as jnp
 
@@ -249,7 +250,7 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
 
     cfg, ds = ctxs[0].cfg, ctxs[0].ds
     rewards = np.stack([np.asarray(s.reward, np.float32) for s in shaped])
-    data = jax.device_put(stages.policy_transitions(cfg, ds, rewards[0])._replace(rew=rewards))
+    data = jax.device_put(policy_stages.policy_transitions(cfg, ds, rewards[0])._replace(rew=rewards))
     init_keys, train_keys = (
         jnp.stack(k) for k in zip(*(jax.random.split(c.keys["policy"]) for c in ctxs), strict=True)
     )
@@ -262,19 +263,19 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
     def evaluate(actor_params: Any, step: int) -> float:
         """Every seed's episodes stepped together (one jitted policy call per env step), each seed's
         numbers those of its own evaluation; the time shared equally among the seeds."""
-        from spot import envs, phases
+        from spot import evaluation, phases
 
         t0 = time.perf_counter()
         with phases.phase("evaluate"):
-            results = envs.evaluate_runs(
-                stages.eval_policy(actor_params, cfg.iql, runs=True),
+            results = evaluation.evaluate_runs(
+                policy_stages.eval_policy(actor_params, cfg.iql, runs=True),
                 ctxs[0].env_name,
-                stages.eval_episodes(cfg, step),
-                [stages.eval_seed(ctx.cfg) for ctx in ctxs],
+                policy_stages.eval_episodes(cfg, step),
+                [policy_stages.eval_seed(ctx.cfg) for ctx in ctxs],
                 max_steps=cfg.eval.max_steps,
             )
         for s, (ctx, res) in enumerate(zip(ctxs, results, strict=True)):
-            stages.log_evaluation(ctx, res, step)
+            policy_stages.log_evaluation(ctx, res, step)
             scores[s].append(float(res["score_mean"]))
         share = (time.perf_counter() - t0) / len(ctxs)
         for s in range(len(ctxs)):
@@ -290,6 +291,6 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
     train_s = time.perf_counter() - t0 - curve.eval_s
     policies = []
     for s, ctx in enumerate(ctxs):
-        ctx.times["time/iql_s"] = train_s + eval_s[s]  # stages.finish subtracts this seed's evaluations
+        ctx.times["time/iql_s"] = train_s + eval_s[s]  # finish.finish subtracts this seed's evaluations
         policies.append(Policy(_seed(curve.state, s), curve.steps, scores[s], eval_s[s]))
     return policies
