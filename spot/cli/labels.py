@@ -71,8 +71,9 @@ _LABEL_FLAGS = {
 def _labels_make(args: argparse.Namespace) -> None:
     """The queries `spot run` would make with the same config: the labels settings are resolved like
     a run's (defaults < method < budget < suite preset < --config file < overrides and flags)."""
-    from spot import config, stages
+    from spot import config
     from spot.data import registry
+    from spot.run import label_stages as stages
 
     flags = [f"{key}={getattr(args, name)}" for name, key in _LABEL_FLAGS.items() if getattr(args, name) is not None]
     cfg = config.load(args.config_file, [f"data.name={args.dataset}", *args.overrides, *flags])

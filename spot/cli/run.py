@@ -89,7 +89,8 @@ def _terminate_as_interrupt(signum: int, frame: Any) -> None:
 
 
 def _run(args: argparse.Namespace) -> None:
-    from spot import config, multiseed, pipeline, tracking
+    from spot import config, pipeline, tracking
+    from spot.run import multiseed
 
     overrides = [*args.overrides, *([f"tracking.uri={args.tracking_uri}"] if args.tracking_uri else [])]
     overrides += [f"tracking.record={args.record}"] if args.record else []
