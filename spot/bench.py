@@ -162,14 +162,14 @@ def reward_steps(
     import jax
     import jax.numpy as jnp
 
-    from spot.reward import train, vmapped
+    from spot.reward import train, update, vmapped
 
     init_keys, train_keys = zip(*(jax.random.split(jax.random.key(seed + s)) for s in range(seeds)), strict=True)
     pairs = [train.pref_pairs(synthetic_pairs(batch, length, obs_dim, act_dim, seed + s)) for s in range(seeds)]
-    states = [train.init_state(model, k, obs_dim, act_dim, steps) for k in init_keys]
+    states = [update.init_state(model, k, obs_dim, act_dim, steps) for k in init_keys]
     if seeds == 1:
         state, data, key = states[0], jax.device_put(pairs[0]), train_keys[0]
-        chunk = train.make_train_chunk(model, batch, steps, steps, micro_batch)
+        chunk = update.make_train_chunk(model, batch, steps, steps, micro_batch)
     else:
         state, data = jax.device_put((vmapped._stack(states), vmapped._stack(pairs)))
         key, chunk = jnp.stack(train_keys), vmapped._vmapped_train_chunk(model, batch, steps, steps, micro_batch)
@@ -363,9 +363,9 @@ def _env_steps_per_s(
 def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[str, Any]:
     """Env steps per second of an evaluation on Hopper, ``seeds`` runs of ``episodes`` episodes:
     ``batched``: all episodes stepped together, the policy one jitted call per env step for all
-    of them (:func:`spot.envs.evaluate_runs` with :func:`spot.run.policy_stages.eval_policy`, as runs and
+    of them (:func:`spot.evaluation.evaluate_runs` with :func:`spot.run.policy_stages.eval_policy`, as runs and
     vmapped trials evaluate); ``sequential``: one episode after another
-    (:func:`spot.envs.evaluate_sequential`), the same program on one observation per step;
+    (:func:`spot.evaluation.evaluate_sequential`), the same program on one observation per step;
     ``seq_eager``: one after another, ``iql.act`` run op by op (not jitted: spot's policy call
     before issue 40); ``before``: together, ``iql.act`` op by op (spot's evaluation before issue
     40 called it on the episodes still running). The actor: IQL's default, random init, its output
@@ -373,7 +373,7 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
     batched and the sequential returns and lengths are equal."""
     import jax
 
-    from spot import envs
+    from spot import evaluation
     from spot.policy import iql
     from spot.run import policy_stages
 
@@ -389,12 +389,12 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
 
     def alone(policy: Any) -> Any:
         return lambda: [
-            envs.evaluate_sequential(policy(p), name, episodes, b, max_steps=max_steps)
+            evaluation.evaluate_sequential(policy(p), name, episodes, b, max_steps=max_steps)
             for p, b in zip(one, base, strict=True)
         ]
 
     def together(policy: Any) -> Any:
-        return lambda: envs.evaluate_runs(policy, name, episodes, base, max_steps=max_steps)
+        return lambda: evaluation.evaluate_runs(policy, name, episodes, base, max_steps=max_steps)
 
     res, wall, cpu = _env_steps_per_s(
         {

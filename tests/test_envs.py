@@ -1,4 +1,5 @@
-"""Tests of spot.envs: name -> env map, D4RL score constants, lockstep evaluation in the real simulators."""
+"""Tests of spot.envs and spot.evaluation: name -> env map, D4RL score constants, lockstep evaluation in the
+real simulators."""
 
 import warnings
 
@@ -6,7 +7,8 @@ import numpy as np
 import pytest
 
 from spot import SpotError
-from spot.envs import D4RL_REF_SCORES, env_spec, evaluate, make_env, normalized_score, valid_names
+from spot.envs import D4RL_REF_SCORES, env_spec, make_env, normalized_score, valid_names
+from spot.evaluation import evaluate
 
 
 @pytest.mark.parametrize(
@@ -203,40 +205,40 @@ def _noisy_policy(act_dim, seed):
     [("hopper-medium-replay", 3, 0), ("drawer-open", 4, 60), ("lift-ph", 7, 30)],
 )
 def test_a_kept_env_gives_the_episode_of_a_new_env(name, act_dim, max_steps):
-    """evaluate keeps its envs for the next evaluation (spot.envs.pooled_env): an episode in a kept
+    """evaluate keeps its envs for the next evaluation (spot.evaluation.pooled_env): an episode in a kept
     env, after other episodes have run in it, equals the episode in a newly built env."""
-    from spot import envs
+    from spot import envs, evaluation
 
     if envs.env_spec(name).family == "robosuite":
         pytest.importorskip("robosuite")
     policy = _noisy_policy(act_dim, 0)
-    envs.clear_env_pool()
+    evaluation.clear_env_pool()
     fresh = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
-    assert len(envs._POOL) == 2
+    assert len(evaluation._POOL) == 2
     evaluate(_noisy_policy(act_dim, 1), name, 3, seed=2, max_steps=max_steps)  # the envs of seeds 3, 4 move on
-    assert len(envs._POOL) == 3  # seeds 2, 3, 4
+    assert len(evaluation._POOL) == 3  # seeds 2, 3, 4
     kept = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
     for k in ("returns", "lengths", "scores"):
         np.testing.assert_array_equal(kept[k], fresh[k])
     if max_steps:
         assert kept["lengths"].max() <= max_steps
-    envs.clear_env_pool()
-    assert not envs._POOL
+    evaluation.clear_env_pool()
+    assert not evaluation._POOL
 
 
 def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
-    from spot import envs
+    from spot import envs, evaluation
 
-    envs.clear_env_pool()
+    evaluation.clear_env_pool()
     policy = _noisy_policy(3, 0)
     together = evaluate(policy, "hopper-medium-expert", 5, seed=0)
-    monkeypatch.setitem(envs.MAX_LIVE, "locomotion", 2)
-    envs.clear_env_pool()
+    monkeypatch.setitem(evaluation.MAX_LIVE, "locomotion", 2)
+    evaluation.clear_env_pool()
     built = []
     make = envs.make_env
-    monkeypatch.setattr(envs, "make_env", lambda n, s: built.append(s) or make(n, s))
+    monkeypatch.setattr(evaluation, "make_env", lambda n, s: built.append(s) or make(n, s))
     waves = evaluate(policy, "hopper-medium-expert", 5, seed=0)
-    assert built == [0, 1, 2, 3, 4] and len(envs._POOL) == 2  # waves of 2, 2, 1; at most 2 alive or kept
+    assert built == [0, 1, 2, 3, 4] and len(evaluation._POOL) == 2  # waves of 2, 2, 1; at most 2 alive or kept
     # the policy computes each row alone: waves of other sizes give the same episodes
     np.testing.assert_array_equal(waves["returns"], together["returns"])
     again = evaluate(policy, "hopper-medium-expert", 1, seed=4)
@@ -244,5 +246,5 @@ def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
     with pytest.raises(SpotError, match="max_steps must be >= 0"):
         evaluate(policy, "hopper-medium-expert", 1, seed=0, max_steps=-1)
     evaluate(_noisy_policy(6, 0), "walker2d-medium-replay", 1, seed=0, max_steps=5)  # another env
-    assert [k[1] for k in envs._POOL] == ["Walker2d-v5"]  # the Hopper envs were closed
-    envs.clear_env_pool()
+    assert [k[1] for k in evaluation._POOL] == ["Walker2d-v5"]  # the Hopper envs were closed
+    evaluation.clear_env_pool()

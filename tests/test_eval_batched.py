@@ -1,13 +1,13 @@
 """Batched evaluation (issue 40): the episodes of a run, and those of the seeds of a vmapped trial,
 step together with one policy call per env step, and every episode's return and length equal, to
-the last digit, what it gets when the episodes run one after another (spot.envs.evaluate_sequential
+the last digit, what it gets when the episodes run one after another (spot.evaluation.evaluate_sequential
 with the plain ``iql.act`` on one observation at a time)."""
 
 import jax
 import numpy as np
 import pytest
 
-from spot import config, envs
+from spot import config, evaluation
 from spot.policy import iql
 from spot.run import policy_stages
 
@@ -39,7 +39,7 @@ def _one(params, s):
 
 def _sequential(params, cfg, name, episodes, seed):
     """The reference: one episode after another, the plain actor on one observation per step."""
-    return envs.evaluate_sequential(
+    return evaluation.evaluate_sequential(
         lambda o: np.asarray(iql.act(params, o, cfg)), name, episodes, seed, max_steps=MAX_STEPS[name]
     )
 
@@ -55,7 +55,7 @@ def _assert_same(batched, sequential):
 @pytest.mark.parametrize("episodes", [1, 3, 10])
 def test_a_runs_batched_episodes_equal_its_sequential_ones(name, episodes, iql_cfg):
     params = _one(_actors(name, iql_cfg, [0]), 0)
-    batched = envs.evaluate(
+    batched = evaluation.evaluate(
         policy_stages.eval_policy(params, iql_cfg), name, episodes, 100, max_steps=MAX_STEPS[name]
     )
     sequential = _sequential(params, iql_cfg, name, episodes, 100)
@@ -75,18 +75,18 @@ def test_a_vmapped_trials_seeds_evaluated_together_equal_each_seed_alone(iql_cfg
     eval_seeds = [10_000, 20_000, 10_000, 30_000]
     params = _actors(HOPPER, iql_cfg, seeds)
     policy = policy_stages.eval_policy(params, iql_cfg, runs=True)
-    together = envs.evaluate_runs(policy, HOPPER, 10, eval_seeds)
+    together = evaluation.evaluate_runs(policy, HOPPER, 10, eval_seeds)
     assert len(together) == len(seeds)
     for s, res in enumerate(together):
         _assert_same(res, _sequential(_one(params, s), iql_cfg, HOPPER, 10, eval_seeds[s]))
     assert together[0]["returns"].tolist() != together[2]["returns"].tolist()  # same envs, other policy
     # waves: at most 5 envs alive, so 1 episode per run at a time; the same numbers
-    monkeypatch.setitem(envs.MAX_LIVE, "locomotion", 5)
-    waves = envs.evaluate_runs(policy, HOPPER, 3, eval_seeds)
+    monkeypatch.setitem(evaluation.MAX_LIVE, "locomotion", 5)
+    waves = evaluation.evaluate_runs(policy, HOPPER, 3, eval_seeds)
     for s, res in enumerate(waves):
         assert res["returns"].tolist() == together[s]["returns"][:3].tolist()
         assert res["lengths"].tolist() == together[s]["lengths"][:3].tolist()
-    assert len(envs._POOL) <= 5
+    assert len(evaluation._POOL) <= 5
 
 
 def test_one_policy_call_per_env_step_for_all_runs_and_episodes():
@@ -99,12 +99,12 @@ def test_one_policy_call_per_env_step_for_all_runs_and_episodes():
         # an episode's action from its own observation only: push forward until the torso tilts
         return np.where(obs[..., 1:2] > 0, -0.5, 0.5) * np.ones(3)
 
-    res = envs.evaluate_runs(policy, HOPPER, 4, [7, 8], max_steps=300)
+    res = evaluation.evaluate_runs(policy, HOPPER, 4, [7, 8], max_steps=300)
     lengths = np.array([r["lengths"] for r in res])
     assert len(shapes) == lengths.max() and set(shapes) == {(2, 4, 11)}
     assert lengths.sum() > len(shapes)  # many env steps per policy call
     for s, seed in enumerate([7, 8]):
-        alone = envs.evaluate_sequential(policy, HOPPER, 4, seed, max_steps=300)
+        alone = evaluation.evaluate_sequential(policy, HOPPER, 4, seed, max_steps=300)
         assert alone["returns"].tolist() == res[s]["returns"].tolist()
 
 
@@ -112,14 +112,14 @@ def test_evaluate_runs_checks_its_arguments():
     def zeros(obs):
         return np.zeros((*obs.shape[:-1], 3))
 
-    with pytest.raises(envs.SpotError, match="at least one run"):
-        envs.evaluate_runs(zeros, HOPPER, 1, [])
-    with pytest.raises(envs.SpotError, match="episodes must be >= 1"):
-        envs.evaluate_runs(zeros, HOPPER, 0, [0])
-    with pytest.raises(envs.SpotError, match="max_steps must be >= 0"):
-        envs.evaluate_sequential(zeros, HOPPER, 1, 0, max_steps=-1)
-    with pytest.raises(envs.SpotError, match=r"shape \(1, 2, 2\)"):
-        envs.evaluate_runs(lambda obs: np.zeros((*obs.shape[:-1], 2)), HOPPER, 2, [0])
+    with pytest.raises(evaluation.SpotError, match="at least one run"):
+        evaluation.evaluate_runs(zeros, HOPPER, 1, [])
+    with pytest.raises(evaluation.SpotError, match="episodes must be >= 1"):
+        evaluation.evaluate_runs(zeros, HOPPER, 0, [0])
+    with pytest.raises(evaluation.SpotError, match="max_steps must be >= 0"):
+        evaluation.evaluate_sequential(zeros, HOPPER, 1, 0, max_steps=-1)
+    with pytest.raises(evaluation.SpotError, match=r"shape \(1, 2, 2\)"):
+        evaluation.evaluate_runs(lambda obs: np.zeros((*obs.shape[:-1], 2)), HOPPER, 2, [0])
 
 
 def test_spot_bench_eval_prints_both_rates_and_their_ratio(capsys):

@@ -216,10 +216,10 @@ def test_online_minibatch_triplets_under_the_authors_variant():
     attn = rng.random((q, t, t)).astype(np.float32)
     attn /= attn.sum(-1, keepdims=True)
     r_hat = rng.normal(size=(q, t)).astype(np.float32)
-    from spot.reward import train
+    from spot.reward import update
 
     label = np.array([1.0, 0.0, 0.5, 1.0, 0.0, 1.0], np.float32)
-    fp = train.ForwardPass(obs, act, r_hat, attn, obs + 100, act, r_hat, attn, label)
+    fp = update.ForwardPass(obs, act, r_hat, attn, obs + 100, act, r_hat, attn, label)
     trip, weight = online.minibatch_triplets(fp, sub, jax.random.key(0), goal_actions=False)
     ok = np.asarray(weight).reshape(q, t) > 0
     s, g = np.asarray(trip.s)[:, 0].reshape(q, t), np.asarray(trip.g)[:, 0].reshape(q, t)
@@ -359,7 +359,7 @@ def test_evaluation_cadence_per_variant(variant):
 def test_trainer_keeps_the_checkpoint_the_rule_picks():
     """Row 8 end to end: an MR trained with the PT repo's rule returns the evaluation the rule
     picks from its own logged curve (recomputed here) and that evaluation's parameters."""
-    from spot.reward import models, train
+    from spot.reward import models, train, update
     from tests.test_online_cvae import _pairs
 
     cfg = _cfg("authors", "method=mr", "budget=tiny", "reward.length=steps", "reward.steps=12", "reward.eval_epochs=1")
@@ -373,7 +373,7 @@ def test_trainer_keeps_the_checkpoint_the_rule_picks():
         if best - loss > 0.002:
             best, pick = loss, step
     assert h["best_step"] == (pick if pick is not None else 12) and h["best_improved"] == (pick is not None)
-    evaluate = train.make_evaluate(model)
+    evaluate = update.make_evaluate(model)
     data, weight = train.loop.pad_minibatches(train.pref_pairs(eb), 4)
     assert float(evaluate(params, data, weight)[0]) == pytest.approx(h["best_eval_loss"], rel=1e-5)
 

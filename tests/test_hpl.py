@@ -22,7 +22,7 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import NonFiniteError, SpotError
 from spot.config import HPLConfig
 from spot.data import labels, registry
-from spot.reward import hpl, hpl_nets, relabel, train
+from spot.reward import hpl, hpl_nets, relabel, update
 from tests.conftest import make_dataset
 
 OBS, ACT = 4, 2
@@ -120,7 +120,7 @@ def test_huber_and_preference_bce_by_hand():
     softplus = lambda x: math.log1p(math.exp(x))  # noqa: E731
     expected = [softplus(-1.0), softplus(2.0), math.log(2.0), 0.5 * softplus(2.0) + 0.5 * softplus(-2.0)]
     np.testing.assert_allclose(hpl_nets.preference_bce(ret_1, ret_2, label), expected, rtol=1e-6)
-    loss, _ = train.pref_loss(ret_1, ret_2, label)  # the PT/MR loss on summed returns is the same
+    loss, _ = update.pref_loss(ret_1, ret_2, label)  # the PT/MR loss on summed returns is the same
     assert float(loss) == pytest.approx(np.mean(expected), rel=1e-6)
 
 

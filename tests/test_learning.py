@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 
-from spot import config, envs, loop
+from spot import config, evaluation, loop
 from spot.data import labels, registry
 from spot.policy import iql
 from spot.reward import models, train
@@ -48,9 +48,9 @@ def test_iql_beats_random_policy_on_local_hopper(spot_dirs):
     for c in range(cfg.steps // cfg.chunk):
         state, metrics = chunk(state, cfg.chunk, data, jax.random.key(c))
     loop.check_finite(metrics, cfg.steps)
-    policy = envs.evaluate(lambda o: np.asarray(iql.act(state.actor.params, o, cfg)), "hopper-medium", 5, 100)
+    policy = evaluation.evaluate(lambda o: np.asarray(iql.act(state.actor.params, o, cfg)), "hopper-medium", 5, 100)
     rng = np.random.default_rng(0)
-    random = envs.evaluate(lambda o: rng.uniform(-1, 1, (o.shape[0], ds.act_dim)), "hopper-medium", 5, 100)
+    random = evaluation.evaluate(lambda o: rng.uniform(-1, 1, (o.shape[0], ds.act_dim)), "hopper-medium", 5, 100)
     assert policy["return_mean"] > 150 and policy["return_mean"] > 3 * random["return_mean"], (
         policy["return_mean"],
         random["return_mean"],

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from spot import SpotError, config
-from spot.reward import models, train
+from spot.reward import models, train, update
 from spot.subgoal import cvae, extract, online, shaping
 from tests.conftest import TINY_RUN
 
@@ -200,7 +200,7 @@ def test_minibatch_triplets_come_from_the_preferred_segments():
     rng = np.random.default_rng(3)
     attn = jax.nn.softmax(jnp.asarray(rng.normal(size=(2, q, t, t)), jnp.float32), axis=-1)
     r_hat = jnp.asarray(rng.normal(size=(2, q, t)), jnp.float32)
-    fp = train.ForwardPass(
+    fp = update.ForwardPass(
         b["obs_1"], b["act_1"], r_hat[0], attn[0], b["obs_2"], b["act_2"], r_hat[1], attn[1], b["label"]
     )
     cfg = config.SubgoalConfig(weight="diagonal", filter_on="z", last_step=True, triplets="interval")
@@ -251,7 +251,7 @@ def test_online_cvae_steps_once_per_reward_step_on_that_minibatch():
     _, train_key = jax.random.split(key)
     for i in range(5):
         batch_key, dropout_key = jax.random.split(jax.random.fold_in(train_key, i))
-        idx = np.asarray(train.batch_indices(batch_key, q, 4))
+        idx = np.asarray(update.batch_indices(batch_key, q, 4))
         np.testing.assert_array_equal(np.asarray(seen[i]), idx.astype(np.float32))
         if i == 0:  # the training pass: initial parameters, dropout on (one micro-batch)
             init_key, _ = jax.random.split(key)
@@ -283,7 +283,7 @@ def test_online_cvae_skips_a_minibatch_without_triplets_and_decodes_actions():
     state = online.init_state(jax.random.key(0), b["obs_1"].reshape(-1, o), a, cvae_cfg, True)
     attn = jnp.full((q, t, t), 1.0 / t)
     r_hat = jnp.zeros((q, t))
-    fp = train.ForwardPass(b["obs_1"], b["act_1"], r_hat, attn, b["obs_2"], b["act_2"], r_hat, attn, b["label"])
+    fp = update.ForwardPass(b["obs_1"], b["act_1"], r_hat, attn, b["obs_2"], b["act_2"], r_hat, attn, b["label"])
     after, metrics = jax.jit(step)(state, fp, jax.random.key(1))
     assert int(after.step) == 0 and float(metrics["cvae/triplets"]) == 0.0
     np.testing.assert_array_equal(jax.tree.leaves(after.params.net)[0], jax.tree.leaves(state.params.net)[0])

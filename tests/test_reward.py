@@ -20,7 +20,7 @@ import spot  # noqa: F401  (sets the XLA flag before jax is imported)
 from spot import SpotError
 from spot.config import MRConfig, PTConfig, RelabelConfig, RewardConfig
 from spot.nets import MLP, Dropout, param_count
-from spot.reward import mr, pt, relabel, train, vmapped
+from spot.reward import mr, pt, relabel, train, update, vmapped
 from spot.reward.mr import MR
 from spot.reward.pt import PT
 from tests.conftest import make_dataset
@@ -66,7 +66,7 @@ def test_pref_loss_by_hand():
     logit_1 = jnp.array([0.0, 1.0, 2.0, 0.5])
     logit_2 = jnp.array([1.0, 1.0, 0.0, -0.5])
     label = jnp.array([1.0, 0.5, 1.0, 0.0])
-    loss, acc = train.pref_loss(logit_1, logit_2, label)
+    loss, acc = update.pref_loss(logit_1, logit_2, label)
     expected = [
         math.log(1 + math.exp(-1.0)),  # -log sigmoid(1): segment 2 preferred and ahead by 1
         math.log(2.0),  # tie with equal logits: -(0.5 log 0.5 + 0.5 log 0.5)
@@ -76,7 +76,7 @@ def test_pref_loss_by_hand():
     assert float(loss) == pytest.approx(np.mean(expected), rel=1e-6)
     assert float(acc) == pytest.approx(2 / 3)  # non-tie pairs 0, 2, 3; pair 2 is wrong
 
-    tie_only, tie_acc = train.pref_loss(jnp.array([3.0]), jnp.array([1.0]), jnp.array([0.5]))
+    tie_only, tie_acc = update.pref_loss(jnp.array([3.0]), jnp.array([1.0]), jnp.array([0.5]))
     assert float(tie_only) == pytest.approx(0.5 * math.log(1 + math.exp(2.0)) + 0.5 * math.log(1 + math.exp(-2.0)))
     assert float(tie_acc) == 0.0
 
@@ -188,10 +188,10 @@ def test_jit_matches_nojit(pt_params):
     jitted = pt_forward(pt_params, PT_TINY, obs, act, ts, mask)
     with jax.disable_jit():
         eager = pt.forward(pt_params, PT_TINY, obs, act, ts, mask)
-        eager_loss = train.pref_loss(eager[2][:1], eager[2][1:], jnp.array([1.0]))
+        eager_loss = update.pref_loss(eager[2][:1], eager[2][1:], jnp.array([1.0]))
     for a, b in zip(jitted, eager, strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    jit_loss = jax.jit(train.pref_loss)(jitted[2][:1], jitted[2][1:], jnp.array([1.0]))
+    jit_loss = jax.jit(update.pref_loss)(jitted[2][:1], jitted[2][1:], jnp.array([1.0]))
     np.testing.assert_allclose(jit_loss, eager_loss, rtol=1e-6)
 
 
@@ -200,13 +200,13 @@ def test_train_chunk_compiles_once_with_partial_last_chunk():
     cfg = RewardConfig(steps=25, batch_size=8, eval_every=10)
     args = (MR(MR_TINY), jax.random.key(0), synthetic_pairs(32, 5, 0), synthetic_pairs(8, 5, 1), cfg)
     _, history = train.train_reward_model(*args, progress=False)
-    chunk = train.make_train_chunk(MR(MR_TINY), 8, 10, 25)  # the run's chunk (kept per model and sizes)
+    chunk = update.make_train_chunk(MR(MR_TINY), 8, 10, 25)  # the run's chunk (kept per model and sizes)
     assert chunk._cache_size() == 1
     assert history["step"] == [10, 20, 25]
     assert len(history["eval_loss"]) == 3 and history["best_step"] in history["step"]
     # Same config and shapes again (another seed): the compiled programs are reused.
     _, again = train.train_reward_model(*args[:1], jax.random.key(1), *args[2:], progress=False)
-    assert chunk._cache_size() == 1 and train.make_evaluate(MR(MR_TINY))._cache_size() == 1
+    assert chunk._cache_size() == 1 and update.make_evaluate(MR(MR_TINY))._cache_size() == 1
 
 
 @pytest.mark.parametrize("kind", ["mr", "pt"])
@@ -283,7 +283,7 @@ def test_mr_learns_synthetic_preferences():
     logits = [
         f(eval_b[f"obs_{s}"], eval_b[f"act_{s}"], eval_b[f"timesteps_{s}"], mask)[0].mean(axis=1) for s in ("1", "2")
     ]
-    loss, _ = train.pref_loss(*logits, jnp.asarray(eval_b["label"]))
+    loss, _ = update.pref_loss(*logits, jnp.asarray(eval_b["label"]))
     assert float(loss) == pytest.approx(history["best_eval_loss"], rel=1e-4)
 
 
@@ -371,7 +371,7 @@ def test_nan_loss_names_the_step():
     train_key = jax.random.split(key)[1]
     drawn = jax.jit(
         jax.vmap(
-            lambda s: train.batch_indices(jax.random.split(jax.random.fold_in(train_key, s))[0], num_pairs, batch_size)
+            lambda s: update.batch_indices(jax.random.split(jax.random.fold_in(train_key, s))[0], num_pairs, batch_size)
         )
     )(jnp.arange(100))
     first = int(np.flatnonzero((np.asarray(drawn) == bad).any(axis=1))[0])

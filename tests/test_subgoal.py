@@ -12,7 +12,7 @@ import pytest
 
 from spot import NonFiniteError, SpotError, cache
 from spot.config import CVAEConfig, ShapingConfig, SubgoalConfig
-from spot.subgoal import cvae, diagnostics, extract, shaping
+from spot.subgoal import cvae, cvae_loss, diagnostics, extract, shaping
 
 # --------------------------------------------------------------------------- extraction
 # One segment of T = 10 with distinct weights; sorted ascending the indices are
@@ -189,7 +189,7 @@ def test_gaussian_kl_by_hand_and_monte_carlo():
     mp, lp = np.array([0.0, 0.5]), np.log(np.array([1.0, 1.5]))
     # KL per dim = log(sp/sq) + (sq² + (mq - mp)²) / (2 sp²) - 1/2
     by_hand = (math.log(2.0) + (0.25 + 1.0) / 2 - 0.5) + (math.log(0.75) + (4.0 + 1.0) / (2 * 2.25) - 0.5)
-    kl = float(cvae.gaussian_kl(jnp.array(mq), jnp.array(lq), jnp.array(mp), jnp.array(lp)))
+    kl = float(cvae_loss.gaussian_kl(jnp.array(mq), jnp.array(lq), jnp.array(mp), jnp.array(lp)))
     assert kl == pytest.approx(by_hand, rel=1e-5)
 
     z = mq + np.exp(lq) * np.random.default_rng(0).standard_normal((200_000, 2))
@@ -203,10 +203,10 @@ def test_gaussian_kl_by_hand_and_monte_carlo():
 
 def test_cosine_loss_by_hand():
     g = jnp.array([[1.0, 2.0, -1.0], [3.0, 0.0, 0.0]])
-    np.testing.assert_allclose(cvae.cosine_loss(g, g), [0.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(cvae.cosine_loss(-g, g), [1.0, 1.0], atol=1e-6)
-    np.testing.assert_allclose(cvae.cosine_loss(jnp.array([[0.0, 0.0, 5.0]]), g[1:]), [0.5], atol=1e-6)
-    assert float(cvae.cosine_loss(jnp.zeros((1, 3)), g[:1])[0]) == pytest.approx(0.5)  # eps guard
+    np.testing.assert_allclose(cvae_loss.cosine_loss(g, g), [0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(cvae_loss.cosine_loss(-g, g), [1.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(cvae_loss.cosine_loss(jnp.array([[0.0, 0.0, 5.0]]), g[1:]), [0.5], atol=1e-6)
+    assert float(cvae_loss.cosine_loss(jnp.zeros((1, 3)), g[:1])[0]) == pytest.approx(0.5)  # eps guard
 
 
 def _toy_triplets(n, seed=0):
@@ -343,11 +343,11 @@ def test_cvae_learns_deterministic_subgoal():
     assert history[-1]["cvae/heldout_loss"] < history[0]["cvae/heldout_loss"]
     s_test, a_test, g_test = _toy_triplets(500, seed=1)
     g_hat = cvae.generate(params, s_test, a_test, batch_size=256)
-    cos = np.asarray(cvae.cosine_similarity(g_hat, g_test))
-    baseline = np.asarray(cvae.cosine_similarity(np.broadcast_to(g.mean(0), g_test.shape), g_test))
+    cos = np.asarray(cvae_loss.cosine_similarity(g_hat, g_test))
+    baseline = np.asarray(cvae_loss.cosine_similarity(np.broadcast_to(g.mean(0), g_test.shape), g_test))
     assert cos.mean() > 0.98 and baseline.mean() < 0.7, (cos.mean(), baseline.mean())
     g_sample = cvae.generate(params, s_test, a_test, key=jax.random.key(3), mode="sample", batch_size=256)
-    assert np.asarray(cvae.cosine_similarity(g_sample, g_test)).mean() > 0.95
+    assert np.asarray(cvae_loss.cosine_similarity(g_sample, g_test)).mean() > 0.95
 
 
 def test_generate_batches_compile_once_and_sample_is_keyed(small_params):
@@ -415,7 +415,7 @@ def test_shaped_rewards_whole_dataset(small_params):
     want_shape = np.asarray(shaping.shape_reward("cosine", s_next, g_hat))
     np.testing.assert_allclose(out.shape, want_shape, atol=1e-5)
     np.testing.assert_allclose(out.reward, r_model + 0.5 * want_shape, atol=1e-5)
-    np.testing.assert_allclose(out.cos_to_subgoal, np.asarray(cvae.cosine_similarity(s, g_hat)), atol=1e-5)
+    np.testing.assert_allclose(out.cos_to_subgoal, np.asarray(cvae_loss.cosine_similarity(s, g_hat)), atol=1e-5)
     assert info["shaping/r_shape_min"] >= 0.0 and info["shaping/r_shape_max"] <= 1.0
 
 

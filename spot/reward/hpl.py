@@ -86,7 +86,8 @@ from spot.reward.hpl_nets import (
     sample_latent,
     vae_loss,
 )
-from spot.reward.train import PrefPairs, pref_pairs
+from spot.reward.train import pref_pairs
+from spot.reward.update import PrefPairs
 
 EVAL_PAIRS = 64  # pairs per minibatch when encoding / evaluating labelled pairs
 

@@ -1,9 +1,6 @@
-"""Reward-model training from preferences: the Bradley-Terry loss and the PT/MR training loop.
-
-Loss (paper §3, eq. 1-2; PT repo ``JaxPref/jax_utils.py``): with segment logits ``l_1, l_2`` (the
-mean over steps of PT's ``z_t`` or MR's ``r_phi``), ``P[sigma_2 > sigma_1] = softmax([l_1, l_2])_2``
-and the loss is the softmax cross-entropy with soft targets ``[1 - y, y]`` (``y = 0.5`` for ties),
-averaged over the batch. Accuracy counts non-tie pairs only.
+"""Reward-model training from preferences: the PT/MR training loop. The loss (eq. 1-2) and the
+jitted programs it runs (one update, a chunk of updates, the held-out evaluation) are
+:mod:`spot.reward.update`'s.
 
 Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
 
@@ -37,7 +34,7 @@ Training (reference/algorithms.md §1.2, §1.5; paper Table 5):
   (docs/fidelity.md).
 * A companion learner (``companion=``, :class:`Companion`; the online CVAE of
   ``cvae.schedule=online``, built by the stages from ``spot.subgoal.online``) takes one step after
-  every update on that update's training forward pass (:class:`ForwardPass`: the minibatch, PT's
+  every update on that update's training forward pass (:class:`spot.reward.update.ForwardPass`: the minibatch, PT's
   per-step rewards and preference attention, dropout on, parameters before the update), with its
   own key; the reward model's keys, minibatches and parameters are the same as without it. Its
   state rides in the scan state, its metrics in the chunk rows, and its final state is returned.
@@ -53,58 +50,15 @@ from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
 
 from spot import NonFiniteError, SpotError, loop  # noqa: F401  (NonFiniteError: raised by loop.run)
 from spot.config import RewardConfig
 from spot.nets import Params
 from spot.reward.models import RewardModel
+from spot.reward.update import ForwardPass, PrefPairs, init_state, make_evaluate, make_train_chunk, num_pairs
 
 PAIR_KEYS = ("obs_1", "act_1", "timesteps_1", "obs_2", "act_2", "timesteps_2", "label")
-
-
-class RewardState(NamedTuple):
-    """Training state of a reward model: parameters, optimizer state and steps taken (int32 ``[]``)."""
-
-    params: Params
-    opt_state: optax.OptState
-    step: jax.Array
-
-
-class PrefPairs(NamedTuple):
-    """Preference pairs on device. Segment 2 is preferred when ``label = 1``.
-
-    Shapes: ``obs_* [Q, T, obs_dim]``, ``act_* [Q, T, act_dim]``, ``timesteps_* [Q, T]`` int32,
-    ``mask_* [Q, T]`` float32 (1 = real step), ``label [Q]`` float32 in {0, 0.5, 1}.
-    """
-
-    obs_1: jax.Array
-    act_1: jax.Array
-    timesteps_1: jax.Array
-    mask_1: jax.Array
-    obs_2: jax.Array
-    act_2: jax.Array
-    timesteps_2: jax.Array
-    mask_2: jax.Array
-    label: jax.Array
-
-
-class ForwardPass(NamedTuple):
-    """One update's training forward pass, as a companion sees it: the minibatch's segments
-    (``obs_* [B, T, o]``, ``act_* [B, T, a]``), PT's per-step rewards ``r_hat_* [B, T]`` and
-    preference attention ``attn_* [B, T, T]`` (dropout on), and ``label [B]``."""
-
-    obs_1: jax.Array
-    act_1: jax.Array
-    r_hat_1: jax.Array
-    attn_1: jax.Array
-    obs_2: jax.Array
-    act_2: jax.Array
-    r_hat_2: jax.Array
-    attn_2: jax.Array
-    label: jax.Array
 
 
 class Companion(NamedTuple):
@@ -119,7 +73,7 @@ class Companion(NamedTuple):
 
 def pref_pairs(batch: Mapping[str, np.ndarray], where: str = "preference batch") -> PrefPairs:
     """Check a ``segment_batch`` dict (see :mod:`spot.data.labels`) and cast it to a host
-    :class:`PrefPairs` (numpy; ``jax.device_put`` moves it).
+    :class:`spot.reward.update.PrefPairs` (numpy; ``jax.device_put`` moves it).
 
     Optional keys ``mask_1``/``mask_2`` mark padded steps; without them every step is real.
     """
@@ -146,10 +100,6 @@ def pref_pairs(batch: Mapping[str, np.ndarray], where: str = "preference batch")
         fields[f"timesteps_{s}"] = np.asarray(batch[f"timesteps_{s}"], np.int32)
         fields[f"mask_{s}"] = np.asarray(batch.get(f"mask_{s}", ones), np.float32)
     return PrefPairs(**fields, label=np.asarray(batch["label"], np.float32))
-
-
-def _num_pairs(pairs: PrefPairs) -> int:
-    return int(pairs.label.shape[0])
 
 
 def clip_actions(batch: Mapping[str, np.ndarray] | None, clip: float) -> Mapping[str, np.ndarray] | None:
@@ -210,211 +160,6 @@ def training_steps(reward_cfg: RewardConfig, num_pairs: int) -> int:
     return reward_cfg.steps
 
 
-# --------------------------------------------------------------------------- loss
-def _pair_terms(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Per-pair cross-entropy ``[B]``, correctness ``[B]`` and non-tie flag ``[B]``."""
-    logits = jnp.stack([logit_1, logit_2], axis=-1).astype(jnp.float32)
-    target = jnp.stack([1.0 - label, label], axis=-1)
-    ce = -jnp.sum(target * jax.nn.log_softmax(logits, axis=-1), axis=-1)
-    non_tie = label != 0.5
-    correct = (logit_2 > logit_1) == (label > 0.5)
-    return ce, correct, non_tie
-
-
-def pref_loss(logit_1: jax.Array, logit_2: jax.Array, label: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Soft-target softmax cross-entropy (eq. 2), batch mean, and accuracy on non-tie pairs.
-
-    Args:
-      logit_1, logit_2: ``[B]`` segment logits; label: ``[B]`` in {0, 0.5, 1}, 1 = segment 2 preferred.
-
-    Returns:
-      ``(loss, accuracy)``; accuracy is 0 when every pair is a tie.
-    """
-    if logit_1.shape != logit_2.shape or logit_1.shape != label.shape or logit_1.ndim != 1:
-        raise ValueError(f"expected three [B] arrays, got {logit_1.shape}, {logit_2.shape}, {label.shape}")
-    ce, correct, non_tie = _pair_terms(logit_1, logit_2, label)
-    acc = jnp.sum(correct & non_tie) / jnp.maximum(jnp.sum(non_tie), 1)
-    return ce.mean(), acc
-
-
-# --------------------------------------------------------------------------- model
-def both_segments(pairs: PrefPairs) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
-    """``(obs, act, timesteps, mask)`` of the ``2B`` segments of one forward pass: first segments,
-    then second segments."""
-    cat = functools.partial(jnp.concatenate, axis=0)
-    return (
-        cat([pairs.obs_1, pairs.obs_2]),
-        cat([pairs.act_1, pairs.act_2]),
-        cat([pairs.timesteps_1, pairs.timesteps_2]),
-        cat([pairs.mask_1, pairs.mask_2]),
-    )
-
-
-def _pair_logits(
-    model: RewardModel, params: Params, pairs: PrefPairs, dropout_key: jax.Array | None
-) -> tuple[jax.Array, jax.Array]:
-    """Both segments in one forward pass of ``2B`` segments."""
-    _, _, logit = model.apply(params, *both_segments(pairs), dropout_key)
-    b = pairs.label.shape[0]
-    return logit[:b], logit[b:]
-
-
-def init_state(model: RewardModel, key: jax.Array, obs_dim: int, act_dim: int, steps: int) -> RewardState:
-    """Fresh parameters, the state of the optimizer of a ``steps``-step run, and step 0."""
-    params = model.init(key, obs_dim, act_dim)
-    return RewardState(params, model.optimizer(steps).init(params), jnp.zeros((), jnp.int32))
-
-
-# --------------------------------------------------------------------------- jitted programs
-def batch_indices(key: jax.Array, num_pairs: int, batch_size: int) -> jax.Array:
-    """Indices of one minibatch: ``batch_size`` distinct pairs out of ``num_pairs``."""
-    return jax.random.permutation(key, num_pairs)[:batch_size]
-
-
-def micro_batches(batch_size: int, micro_batch: int) -> int:
-    """Number of equal gradient-accumulation micro-batches of at most ~``micro_batch`` pairs."""
-    n = max(1, batch_size // micro_batch)
-    while batch_size % n:
-        n -= 1
-    return n
-
-
-def make_update(
-    model: RewardModel, batch_size: int, steps: int, micro_batch: int = 64
-) -> Callable[[RewardState, PrefPairs, jax.Array], tuple[RewardState, dict]]:
-    """``update(state, data, key) -> (state, {loss, acc})``: one step on a minibatch of
-    ``batch_size`` pairs drawn with ``fold_in(key, state.step)`` (also the dropout key), with the
-    optimizer of a ``steps``-step run.
-
-    The minibatch's gradient is accumulated over :func:`micro_batches` equal slices (a scan): the
-    same mean loss and gradient as one pass (dropout masks aside), with a fraction of the
-    activation memory, and faster on CPU at PT's batch of 256 pairs (docs/benchmarks.md).
-    """
-    tx = model.optimizer(steps)
-    n_micro = micro_batches(batch_size, micro_batch)
-
-    def micro_loss(params: Params, mb: PrefPairs, dropout_key: jax.Array) -> tuple[jax.Array, jax.Array]:
-        logit_1, logit_2 = _pair_logits(model, params, mb, dropout_key)
-        ce, correct, non_tie = _pair_terms(logit_1, logit_2, mb.label)
-        return ce.mean(), jnp.stack([jnp.sum(correct & non_tie), jnp.sum(non_tie)]).astype(jnp.float32)
-
-    def update(state: RewardState, data: PrefPairs, key: jax.Array) -> tuple[RewardState, dict]:
-        batch_key, dropout_key = jax.random.split(jax.random.fold_in(key, state.step))
-        idx = batch_indices(batch_key, _num_pairs(data), batch_size).reshape(n_micro, -1)
-
-        def accumulate(carry: tuple, i: jax.Array) -> tuple[tuple, None]:
-            mb = jax.tree.map(lambda x: x[idx[i]], data)
-            (loss, counts), grads = jax.value_and_grad(micro_loss, has_aux=True)(
-                state.params, mb, jax.random.fold_in(dropout_key, i)
-            )
-            return jax.tree.map(jnp.add, carry, (loss, counts, grads)), None
-
-        zeros = (jnp.zeros(()), jnp.zeros(2), jax.tree.map(jnp.zeros_like, state.params))
-        (loss, counts, grads), _ = jax.lax.scan(accumulate, zeros, jnp.arange(n_micro))
-        grads = jax.tree.map(lambda g: g / n_micro, grads)  # mean loss over equal micro-batches
-        updates, opt_state = tx.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        metrics = {"loss": loss / n_micro, "acc": counts[0] / jnp.maximum(counts[1], 1.0)}
-        return RewardState(params, opt_state, state.step + 1), metrics
-
-    return update
-
-
-COMPANION_STREAM = 0x5EED5
-"""``fold_in(step_key, COMPANION_STREAM)`` is a companion's key at a step: no key of the reward
-model's (with ``jax_threefry_partitionable``, on by default, ``split(step_key)`` is
-``fold_in(step_key, 0)`` and ``fold_in(step_key, 1)``; this is ``fold_in(step_key, 0x5EED5)``)."""
-
-
-def make_companion_update(
-    model: RewardModel, batch_size: int, steps: int, micro_batch: int, companion_step: Callable
-) -> Callable[[tuple, PrefPairs, jax.Array], tuple[tuple, dict]]:
-    """``update((reward_state, companion_state), data, key)``: :func:`make_update`'s step of the
-    reward model (the same minibatch, dropout masks, loss and parameters), reading the preference
-    attention of the same pass (``model.apply_attention``), then one ``companion_step`` on that
-    pass (:class:`ForwardPass`) with the key ``fold_in(step_key, COMPANION_STREAM)``."""
-    tx = model.optimizer(steps)
-    n_micro = micro_batches(batch_size, micro_batch)
-
-    def micro_loss(params: Params, mb: PrefPairs, dropout_key: jax.Array) -> tuple[jax.Array, tuple]:
-        r_hat, attn, logit = model.apply_attention(params, *both_segments(mb), dropout_key)
-        b = mb.label.shape[0]
-        ce, correct, non_tie = _pair_terms(logit[:b], logit[b:], mb.label)
-        counts = jnp.stack([jnp.sum(correct & non_tie), jnp.sum(non_tie)]).astype(jnp.float32)
-        return ce.mean(), (counts, (r_hat[:b], attn[:b], r_hat[b:], attn[b:]))
-
-    def update(state: tuple, data: PrefPairs, key: jax.Array) -> tuple[tuple, dict]:
-        rs, cs = state
-        step_key = jax.random.fold_in(key, rs.step)
-        batch_key, dropout_key = jax.random.split(step_key)
-        idx = batch_indices(batch_key, _num_pairs(data), batch_size).reshape(n_micro, -1)
-
-        def accumulate(carry: tuple, i: jax.Array) -> tuple[tuple, tuple]:
-            mb = jax.tree.map(lambda x: x[idx[i]], data)
-            (loss, (counts, out)), grads = jax.value_and_grad(micro_loss, has_aux=True)(
-                rs.params, mb, jax.random.fold_in(dropout_key, i)
-            )
-            return jax.tree.map(jnp.add, carry, (loss, counts, grads)), out
-
-        zeros = (jnp.zeros(()), jnp.zeros(2), jax.tree.map(jnp.zeros_like, rs.params))
-        (loss, counts, grads), outs = jax.lax.scan(accumulate, zeros, jnp.arange(n_micro))
-        grads = jax.tree.map(lambda g: g / n_micro, grads)
-        updates, opt_state = tx.update(grads, rs.opt_state, rs.params)
-        rs_next = RewardState(optax.apply_updates(rs.params, updates), opt_state, rs.step + 1)
-        r1, a1, r2, a2 = (x.reshape(-1, *x.shape[2:]) for x in outs)  # [n_micro, b, ...] -> [B, ...]
-        mb = jax.tree.map(lambda x: x[idx.reshape(-1)], data)
-        fp = ForwardPass(mb.obs_1, mb.act_1, r1, a1, mb.obs_2, mb.act_2, r2, a2, mb.label)
-        cs, c_metrics = companion_step(cs, fp, jax.random.fold_in(step_key, COMPANION_STREAM))
-        metrics = {"loss": loss / n_micro, "acc": counts[0] / jnp.maximum(counts[1], 1.0), **c_metrics}
-        return (rs_next, cs), metrics
-
-    return update
-
-
-def make_train_chunk(
-    model: RewardModel,
-    batch_size: int,
-    length: int,
-    steps: int,
-    micro_batch: int = 64,
-    companion_step: Callable | None = None,
-) -> loop.Chunk:
-    """Jitted ``chunk(state, n, data, key) -> (state, {loss, acc, active} [length])``: ``n <= length``
-    steps of :func:`make_update` (:func:`spot.loop.make_chunk`, ``"stack"``), or of
-    :func:`make_companion_update` with a ``companion_step`` (the state is then ``(reward_state,
-    companion_state)``). Kept per arguments, so a second run with the same model and sizes reuses
-    the compiled program."""
-    return _train_chunk(model, batch_size, length, steps, micro_batch, companion_step)
-
-
-@functools.lru_cache(maxsize=16)
-def _train_chunk(
-    model: RewardModel, batch_size: int, length: int, steps: int, micro_batch: int, companion_step: Callable | None
-) -> loop.Chunk:
-    if companion_step is None:
-        return loop.make_chunk(make_update(model, batch_size, steps, micro_batch), length, "stack")
-    update = make_companion_update(model, batch_size, steps, micro_batch, companion_step)
-    return loop.make_chunk(update, length, "stack")
-
-
-@functools.lru_cache(maxsize=16)
-def make_evaluate(model: RewardModel) -> Callable[[Params, PrefPairs, jax.Array], tuple]:
-    """``evaluate(params, data, weight) -> (loss, acc)`` over minibatches ``data [M, b, ...]``
-    (deterministic); ``weight [M, b]`` is 0 for padding pairs."""
-
-    def evaluate(params: Params, data: PrefPairs, weight: jax.Array) -> tuple[jax.Array, jax.Array]:
-        def one(args: tuple[PrefPairs, jax.Array]) -> jax.Array:
-            mb, wt = args
-            ce, correct, non_tie = _pair_terms(*_pair_logits(model, params, mb, None), mb.label)
-            counted = wt * non_tie
-            return jnp.stack([jnp.sum(wt * ce), jnp.sum(wt), jnp.sum(counted * correct), jnp.sum(counted)])
-
-        sums = jax.lax.map(one, (data, weight)).sum(axis=0)
-        return sums[0] / sums[1], sums[2] / jnp.maximum(sums[3], 1.0)
-
-    return jax.jit(evaluate)
-
-
 # --------------------------------------------------------------------------- driver
 def _checked_pairs(
     model: RewardModel, train_batch: Mapping[str, np.ndarray], eval_batch: Mapping[str, np.ndarray] | None
@@ -455,7 +200,7 @@ def train_reward_model(
         eval batch evaluates on the training pairs (``history["eval_on"] = "train"``).
       reward_cfg: steps, batch size, evaluation period and best-checkpoint rule.
       progress: show a tqdm bar over steps.
-      micro_batch: gradient-accumulation slice size in pairs (:func:`make_update`; speed only).
+      micro_batch: gradient-accumulation slice size in pairs (:func:`spot.reward.update.make_update`; speed only).
       companion: a learner that takes one step per update on its forward pass (module
         docstring); the reward model trains exactly as without it.
 
@@ -476,12 +221,12 @@ def train_reward_model(
     train, held_out, eval_on = _checked_pairs(model, train_batch, eval_batch)
     init_key, train_key = jax.random.split(key)
     del key
-    steps = training_steps(reward_cfg, _num_pairs(train))
+    steps = training_steps(reward_cfg, num_pairs(train))
     state = init_state(model, init_key, train.obs_1.shape[-1], train.act_1.shape[-1], steps)
-    batch_size = min(reward_cfg.batch_size, _num_pairs(train))
-    length = loop.chunk_length(steps, eval_period(reward_cfg, _num_pairs(train)))
+    batch_size = min(reward_cfg.batch_size, num_pairs(train))
+    length = loop.chunk_length(steps, eval_period(reward_cfg, num_pairs(train)))
     eval_data, eval_weight = jax.device_put(
-        loop.pad_minibatches(held_out, min(reward_cfg.batch_size, _num_pairs(held_out)))
+        loop.pad_minibatches(held_out, min(reward_cfg.batch_size, num_pairs(held_out)))
     )
     train = jax.device_put(train)
 

@@ -24,17 +24,8 @@ from spot import NonFiniteError, SpotError, loop
 from spot.config import RewardConfig
 from spot.nets import Params
 from spot.reward.models import RewardModel
-from spot.reward.train import (
-    PrefPairs,
-    RewardState,
-    _checked_pairs,
-    _history,
-    _num_pairs,
-    init_state,
-    make_evaluate,
-    make_update,
-    training_steps,
-)
+from spot.reward.train import _checked_pairs, _history, training_steps
+from spot.reward.update import PrefPairs, RewardState, init_state, make_evaluate, make_update, num_pairs
 
 
 def train_reward_models(
@@ -59,15 +50,15 @@ def train_reward_models(
     _check_same_shapes(checked)
     train = _stack([c[0] for c in checked])
     held_out, eval_on = [c[1] for c in checked], checked[0][2]
-    num_pairs = _num_pairs(checked[0][0])
-    steps = training_steps(reward_cfg, num_pairs)
+    pairs_per_run = num_pairs(checked[0][0])
+    steps = training_steps(reward_cfg, pairs_per_run)
     split = [jax.random.split(k) for k in keys]
     obs_dim, act_dim = train.obs_1.shape[-1], train.act_1.shape[-1]
     state = _stack([init_state(model, init_key, obs_dim, act_dim, steps) for init_key, _ in split])
     train_keys = jnp.stack([train_key for _, train_key in split])
-    batch_size = min(reward_cfg.batch_size, num_pairs)
+    batch_size = min(reward_cfg.batch_size, pairs_per_run)
     length = loop.chunk_length(steps, reward_cfg.eval_every)
-    padded = [loop.pad_minibatches(h, min(reward_cfg.batch_size, _num_pairs(h))) for h in held_out]
+    padded = [loop.pad_minibatches(h, min(reward_cfg.batch_size, num_pairs(h))) for h in held_out]
     eval_data, eval_weight = jax.device_put((_stack([p[0] for p in padded]), np.stack([p[1] for p in padded])))
     train = jax.device_put(train)
     chunk = _vmapped_train_chunk(model, batch_size, length, steps, micro_batch)

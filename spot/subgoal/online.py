@@ -140,7 +140,7 @@ def triplet_steps(
 def minibatch_triplets(fp: Any, cfg: SubgoalConfig, key: jax.Array, goal_actions: bool) -> tuple[Triplets, jax.Array]:
     """The triplets of one training minibatch as a fixed batch and its 0/1 weight ``[Q·T]``.
 
-    ``fp``: the reward trainer's forward pass (:class:`spot.reward.train.ForwardPass`: ``obs_1``,
+    ``fp``: the reward trainer's forward pass (:class:`spot.reward.update.ForwardPass`: ``obs_1``,
     ``act_1``, ``r_hat_1``, ``attn_1``, the same for side 2, ``label [Q]``, 1 = segment 2 preferred).
     """
     w1, r1 = step_scores(fp.r_hat_1, fp.attn_1, cfg.weight, cfg.filter_on)

@@ -46,7 +46,8 @@ import numpy as np
 
 from spot import SpotError
 from spot.config import ShapingConfig
-from spot.subgoal.cvae import CVAEParams, cosine_similarity, generate, split_goal
+from spot.subgoal.cvae import CVAEParams, generate, split_goal
+from spot.subgoal.cvae_loss import cosine_similarity
 
 KINDS = ("none", "cosine", "neg_distance", "potential", "constant")
 POTENTIAL_SIGNS = ("neg", "pos")
