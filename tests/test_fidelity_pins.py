@@ -461,7 +461,7 @@ def test_oracle_arms_normalise_the_true_reward_by_hand(tmp_path):
     train_offline.py without a reward model) is r * 1000 / (R_max - R_min); the like-for-like arm
     (relabel.normalize=pt) adds the learned rewards' +0.5 per step."""
     from spot import stages
-    from spot.tracking.record import MemoryTracker
+    from spot.tracking.trackers import MemoryTracker
     from tests.conftest import make_dataset
 
     ds = make_dataset([5, 3, 4], seed=2)

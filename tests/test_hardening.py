@@ -839,7 +839,7 @@ def test_a_sac_cache_file_is_checked_against_its_sidecar_and_retrained_when_dama
 # --------------------------------------------------------------------------- files in the configured folders (item 10)
 def test_run_temp_folders_live_under_the_cache_dir_and_dead_ones_are_removed(tmp_path, monkeypatch):
     from spot import runtime
-    from spot.tracking import record
+    from spot.tracking import run_temp
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "cache"))
     root = tmp_path / "cache" / "tmp"
@@ -847,10 +847,10 @@ def test_run_temp_folders_live_under_the_cache_dir_and_dead_ones_are_removed(tmp
     killed.mkdir(parents=True)
     (killed / ".host").write_text(platform.node())
     (root / f"spot-run-{os.getppid()}-live").mkdir()  # a running process's
-    folder = record.run_temp_dir()
+    folder = run_temp.run_temp_dir()
     assert folder.parent == root and folder.name.startswith(f"spot-run-{os.getpid()}-")
     assert sorted(p.name for p in root.iterdir()) == sorted([folder.name, f"spot-run-{os.getppid()}-live"])
-    record.remove_run_temp(folder)
+    run_temp.remove_run_temp(folder)
     assert not folder.exists()
     assert runtime.jax_cache_dir().is_relative_to(tmp_path / "cache")  # the JAX compilation cache too
 
@@ -862,7 +862,7 @@ def test_a_stage_cache_entry_that_does_not_fit_its_stage_is_evicted_and_recomput
     import numpy as np
 
     from spot import cache, config, stages
-    from spot.tracking.record import MemoryTracker
+    from spot.tracking.trackers import MemoryTracker
 
     monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "cache"))
     computed = []

@@ -18,7 +18,7 @@ from mlflow.entities import ViewType
 from mlflow.tracking import MlflowClient
 
 from spot import SpotError, cli, config
-from spot.tracking import recorded
+from spot.tracking import record_checks, recorded
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=100", "iql.chunk=50", "eval.every=50", "eval.episodes=1"]
 SECRET = "not-for-the-store-7f3a"
@@ -223,9 +223,9 @@ def test_artifacts_over_the_limits_are_refused(tmp_path, monkeypatch, limit):
         "MAX_ARTIFACTS_BYTES": sum(sizes) - 1,  # each file fits, all of them do not
         "MAX_ARTIFACT_FILES": len(sizes) - 1,
     }[limit]
-    monkeypatch.setattr(recorded, limit, small)
+    monkeypatch.setattr(record_checks, limit, small)
     if limit != "MAX_ARTIFACT_BYTES":
-        monkeypatch.setattr(recorded, "MAX_ARTIFACT_BYTES", max(sizes))
+        monkeypatch.setattr(record_checks, "MAX_ARTIFACT_BYTES", max(sizes))
     db = tmp_path / "mlflow.db"
     with pytest.raises(
         SpotError, match=rf"record {folder}: artifact '.+' (is 3000 bytes, over 2999 bytes a file|brings)"
@@ -236,14 +236,14 @@ def test_artifacts_over_the_limits_are_refused(tmp_path, monkeypatch, limit):
 
 def _after_scan(monkeypatch, change):
     """Run ``change`` right after the import listed the artifacts: a record that changes under it."""
-    scan = recorded.scan_artifacts
+    scan = record_checks.scan_artifacts
 
     def scan_then_change(folder):
         files = scan(folder)
         change(folder)
         return files
 
-    monkeypatch.setattr(recorded, "scan_artifacts", scan_then_change)
+    monkeypatch.setattr(record_checks, "scan_artifacts", scan_then_change)
 
 
 def _grow(folder):
@@ -273,15 +273,15 @@ def test_a_record_changed_while_imported_leaves_no_run_and_imports_once_fixed(tm
     hold while copying, before the run is created; once the record is put right it imports."""
     folder = _record(tmp_path)
     largest = max(p.stat().st_size for p in (folder / A).rglob("*") if p.is_file())
-    monkeypatch.setattr(recorded, "MAX_ARTIFACT_BYTES", largest + 10)  # _grow appends 7000 bytes
+    monkeypatch.setattr(record_checks, "MAX_ARTIFACT_BYTES", largest + 10)  # _grow appends 7000 bytes
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    scan = recorded.scan_artifacts
+    scan = record_checks.scan_artifacts
     _after_scan(monkeypatch, change)
     with pytest.raises(SpotError, match=expected):
         recorded.import_records(tmp_path / "rec", uri)
     assert _runs(tmp_path / "mlflow.db") == []  # copied before the run was created
     assert not (tmp_path / "artifacts").exists() or not any(p.is_file() for p in (tmp_path / "artifacts").rglob("*"))
-    monkeypatch.setattr(recorded, "scan_artifacts", scan)
+    monkeypatch.setattr(record_checks, "scan_artifacts", scan)
     if (folder / "old").exists():  # the record put right
         (folder / A / "plots").unlink()
         (folder / "old").rename(folder / A / "plots")
@@ -321,8 +321,8 @@ def test_a_valid_record_from_spots_recorder_imports_whole(tmp_path):
     folder = _record(tmp_path)
     (folder / A / "plots" / "deep" / "er").mkdir(parents=True)
     (folder / A / "plots" / "deep" / "er" / "data.bin").write_bytes(bytes(range(256)) * 4)
-    head = recorded.read_record(folder)
-    assert {k for k in head["tags"] if k.startswith("mlflow.")} <= set(recorded.MLFLOW_TAGS)
+    head = record_checks.read_record(folder)
+    assert {k for k in head["tags"] if k.startswith("mlflow.")} <= set(record_checks.MLFLOW_TAGS)
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     (done,) = recorded.import_records(tmp_path / "rec", uri, "imported")
     assert done["action"] == "imported"
@@ -339,4 +339,7 @@ def test_a_valid_record_from_spots_recorder_imports_whole(tmp_path):
     for rel in mine:
         assert (stored / rel).read_bytes() == (folder / A / rel).read_bytes(), rel
     # the shipped limits are MLflow's (names and values) and spot's (files)
-    assert recorded.MAX_ARTIFACT_BYTES == 1 << 30 and recorded.MAX_ARTIFACTS_BYTES >= recorded.MAX_ARTIFACT_BYTES
+    assert (
+        record_checks.MAX_ARTIFACT_BYTES == 1 << 30
+        and record_checks.MAX_ARTIFACTS_BYTES >= record_checks.MAX_ARTIFACT_BYTES
+    )

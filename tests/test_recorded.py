@@ -8,7 +8,7 @@ from mlflow.tracking import MlflowClient
 
 from spot import SpotError, config
 from spot.results import load
-from spot.tracking import recorded
+from spot.tracking import record_checks, recorded
 
 TINY = ["budget=tiny", "data.name=drawer-open", "iql.steps=100", "iql.chunk=50", "eval.every=50", "eval.episodes=1"]
 
@@ -43,12 +43,12 @@ class _nothing:
 
 def test_a_record_holds_the_run_and_imports_once(tmp_path):
     folder = _record(tmp_path)
-    head = recorded.read_record(folder)
+    head = record_checks.read_record(folder)
     assert head["status"] == "FINISHED" and head["end_time"] >= head["start_time"]
     assert head["tags"]["method"] == "oracle" and head["tags"]["cache.reward"] == "hit"
     assert head["params"]["iql.steps"] == "100" and head["params"]["seed"] == "0"
     # NaN is not logged (as MLflow's tracker); the points keep their steps
-    points = [(k, v, s) for k, v, s, _ in recorded.read_metrics(folder)]
+    points = [(k, v, s) for k, v, s, _ in record_checks.read_metrics(folder)]
     assert points == [
         ("eval/score", 1.5, 0),
         ("eval/score", 2.5, 50),
@@ -76,7 +76,7 @@ def test_a_record_holds_the_run_and_imports_once(tmp_path):
 def test_failed_runs_import_failed_and_running_ones_wait(tmp_path):
     failed = _record(tmp_path, "FAILED", seed=1)
     running = _record(tmp_path, "RUNNING", seed=2)
-    assert recorded.read_record(failed)["tags"]["failure_reason"] == "RuntimeError: boom"
+    assert record_checks.read_record(failed)["tags"]["failure_reason"] == "RuntimeError: boom"
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     done = {d["record_id"]: d for d in recorded.import_records(tmp_path / "rec", uri)}
     assert done[running.name]["action"].startswith("skipped: still RUNNING")
@@ -89,10 +89,10 @@ def test_bad_records_are_refused_before_anything_is_imported(tmp_path):
     # a last line cut short by a killed process is dropped; a bad line before it is an error
     with open(folder / "metrics.jsonl", "a") as f:
         f.write('{"key": "eval/sc')
-    assert len(recorded.read_metrics(folder)) == 4
+    assert len(record_checks.read_metrics(folder)) == 4
     (folder / "metrics.jsonl").write_text('{"key": "x"}\n{"key": "y", "value": 1, "step": 0, "timestamp": 1}\n')
     with pytest.raises(SpotError, match=r"metrics.jsonl: line 1 is not a metric point"):
-        recorded.read_metrics(folder)
+        record_checks.read_metrics(folder)
     for change, message in [
         ({"status": "DONE"}, r"status 'DONE', expected one of RUNNING"),
         ({"start_time": "yesterday"}, r"field 'start_time' should be int"),
@@ -104,12 +104,12 @@ def test_bad_records_are_refused_before_anything_is_imported(tmp_path):
             recorded.import_records(tmp_path / "rec", f"sqlite:///{tmp_path / 'never.db'}")
     assert not (tmp_path / "never.db").exists()  # nothing was written
     with pytest.raises(SpotError, match="does not exist"):
-        recorded.find_records(tmp_path / "nowhere")
+        record_checks.find_records(tmp_path / "nowhere")
 
 
 def test_an_artifact_cannot_leave_its_record(tmp_path):
     folder = _record(tmp_path)
-    tracker = recorded.RecordTracker(folder, recorded.read_record(folder))
+    tracker = recorded.RecordTracker(folder, record_checks.read_record(folder))
     with pytest.raises(SpotError, match="leaves the record's artifacts folder"):
         tracker.log_text("x", "../../outside.txt")
     assert not (tmp_path / "outside.txt").exists()
@@ -185,10 +185,10 @@ def test_sigterm_ends_a_spot_run_killed(tmp_path, spot_dirs, tiny_drawer):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "interrupted" in err
-    (folder,) = recorded.find_records(tmp_path / "rec")
-    head = recorded.read_record(folder)
+    (folder,) = record_checks.find_records(tmp_path / "rec")
+    head = record_checks.read_record(folder)
     assert head["status"] == "KILLED" and head["tags"]["failure_reason"] == "KeyboardInterrupt: signal SIGTERM"
-    assert [k for k, *_ in recorded.read_metrics(folder)].count("eval/score") >= 1  # its curve so far
+    assert [k for k, *_ in record_checks.read_metrics(folder)].count("eval/score") >= 1  # its curve so far
 
 
 def test_a_sweep_may_not_record(tmp_path):
@@ -226,7 +226,7 @@ def test_the_gpu_script_records_every_method(tmp_path, spot_dirs, tiny_drawer):
         timeout=900,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    heads = [recorded.read_record(f) for f in recorded.find_records(tmp_path / "rec")]
+    heads = [record_checks.read_record(f) for f in record_checks.find_records(tmp_path / "rec")]
     assert sorted(h["tags"]["method"] for h in heads) == ["oracle", "pt"]
     for head in heads:
         assert head["status"] == "FINISHED" and head["experiment"] == "gpu_paper_hopper_fr_pf"

@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     args = _parse(argv)  # --help, --version and usage errors exit here, before any heavy import
-    from spot.tracking.record import COMMAND_ENV
+    from spot.tracking.provenance import COMMAND_ENV
 
     # the command line, recorded as each run's mlflow.source.name (sweep trials inherit it)
     os.environ[COMMAND_ENV] = shlex.join(["spot", *(sys.argv[1:] if argv is None else argv)])

@@ -2,15 +2,21 @@
 
 * :mod:`spot.tracking.store`: the one tracking-URI resolver (:func:`resolve_uri`), the local
   stores, experiments.
-* :mod:`spot.tracking.record`: what a run logs (tags, params, the :class:`Tracker` interface, its
-  MLflow and in-memory implementations, :func:`start_run`).
+* :mod:`spot.tracking.provenance`: what every run records about itself (tags, params, MLflow's
+  own fields, the environment and the files every run starts with).
+* :mod:`spot.tracking.trackers`: the :class:`Tracker` interface and its MLflow and in-memory
+  implementations.
+* :mod:`spot.tracking.record`: a run's MLflow run (:func:`start_run`: params, dataset input,
+  system metrics, FAILED on error) and :func:`record_failure` for an attempt that failed before it.
+* :mod:`spot.tracking.run_temp`: the folders where runs stage their artifact files.
 * :mod:`spot.tracking.queries`: quoted filter strings, paging through runs, finished-run lookup,
-  failure records, orphan closing, artifacts (used by sweeps, tables and figures).
+  orphan closing, artifacts (used by sweeps, tables and figures).
 * :mod:`spot.tracking.models`: a run's trained models as data-only artifacts with a JSON header
   (``models/<name>.npz`` + ``.json``), saved and loaded again (``spot eval``, ``spot figures``).
 * :mod:`spot.tracking.ui`: the lean ``mlflow ui`` command and links that open the runs table.
 * :mod:`spot.tracking.recorded`: runs recorded as files where no MLflow store is at hand
-  (``tracking.record``), imported into one later (``spot results import``).
+  (``tracking.record``), imported into one later (``spot results import``);
+  :mod:`spot.tracking.record_checks` checks a record whole before it is imported.
 * :mod:`spot.tracking.limits`: deadlines of MLflow's HTTP requests (set for spot's processes when
   this package is imported, unless the environment sets them), one-line errors for a request that
   got no answer, and the cap on ``failure_reason``.
@@ -21,6 +27,18 @@ With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with 
 
 from spot.tracking.limits import TrackingUnreachable, failure_reason, set_http_deadlines, waiting_on
 from spot.tracking.models import MODELS_DIR, load_artifact_text, load_model, run_config, save_model
+from spot.tracking.provenance import (
+    COMMAND_ENV,
+    PACKAGES,
+    active_params,
+    command_line,
+    environment,
+    git_commit,
+    mlflow_tags,
+    package_versions,
+    reproduce_command,
+    run_tags,
+)
 from spot.tracking.queries import (
     artifact_uri,
     close_orphans,
@@ -32,26 +50,7 @@ from spot.tracking.queries import (
     search_runs,
     tag_filter,
 )
-from spot.tracking.record import (
-    COMMAND_ENV,
-    PACKAGES,
-    MemoryTracker,
-    MlflowTracker,
-    Tracker,
-    active_params,
-    command_line,
-    environment,
-    finite_metrics,
-    git_commit,
-    json_safe,
-    log_params,
-    mlflow_tags,
-    package_versions,
-    record_failure,
-    reproduce_command,
-    run_tags,
-    start_run,
-)
+from spot.tracking.record import log_params, record_failure, start_run
 from spot.tracking.store import (
     LOCAL_STORES,
     RUN_STORE,
@@ -65,6 +64,7 @@ from spot.tracking.store import (
     resolve_uri,
     sqlite_path,
 )
+from spot.tracking.trackers import MemoryTracker, MlflowTracker, Tracker, finite_metrics, json_safe
 from spot.tracking.ui import run_url, runs_url, sweep_url, ui_command, where_logged
 
 set_http_deadlines()  # before any MLflow request of this process (MLflow reads them at each request)

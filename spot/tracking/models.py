@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError, cache, store
-from spot.tracking.record import Tracker, git_commit, json_safe, package_versions
+from spot.tracking.provenance import git_commit, package_versions
+from spot.tracking.trackers import Tracker, json_safe
 
 MODELS_DIR = "models"
 FORMAT = (
