@@ -174,14 +174,43 @@ def _add_report(sub: Any) -> None:
         help="count the periodic evaluations scoring at least SCORE, per arm, from the exported curves (default 50)",
     )
     d.add_argument("--out", help="write the report (Markdown) to this file instead of printing it")
+    d.add_argument(
+        "--html",
+        metavar="FILE",
+        help="also write one self-contained HTML page: the figures (claims, curves, profile) and the tables",
+    )
     d.set_defaults(fn=_report)
 
 
 def _report(args: argparse.Namespace) -> None:
-    from spot.results import claims, export, load, report, table_format
+    from spot.results import report, table_format
 
     if args.out:
         table_format.check_out(args.out)  # before reading any run
+    if args.html:
+        table_format.check_out(args.html)
+    claims_file, runs = report_inputs(args, curves=bool(args.html))
+    built = report.build(runs, claims_file, args.high_mode)
+    if args.html:
+        from spot.results import figures_report
+
+        title = f"spot report: {args.study or args.claims or 'the paper claims'}"
+        table_format.write_out(args.html, figures_report.html_page(runs, built, title))
+        print(f"wrote {args.html}")
+    text = report.format_report(built)
+    if args.out:
+        table_format.write_out(args.out, text)
+        print(f"wrote {args.out}")
+    else:
+        print(text, end="")
+
+
+def report_inputs(args: argparse.Namespace, curves: bool = False) -> tuple[Any, Any]:
+    """``(claims file, runs)`` of ``spot report`` (and ``spot figures claims``): a study folder or
+    ``--claims FILE`` (with ``--use``), and its results, ``--results`` or the MLflow store (each
+    run's eval/score history too with ``curves``, as a results CSV holds it)."""
+    from spot.results import claims, export, load
+
     if args.study and args.claims:
         raise SpotError(f"spot report: give a study folder ({args.study}) or --claims FILE, not both")
     use = {}
@@ -195,10 +224,8 @@ def _report(args: argparse.Namespace) -> None:
     if results:
         runs = load.read(results)
     else:  # the claims file names no results: the MLflow store
-        runs = export.to_frame(load.load_runs(args.tracking_uri, None, args.sweep_id))
-    text = report.format_report(report.build(runs, claims_file, args.high_mode))
-    if args.out:
-        table_format.write_out(args.out, text)
-        print(f"wrote {args.out}")
-    else:
-        print(text, end="")
+        from spot import tracking
+
+        runs = load.load_runs(args.tracking_uri, None, args.sweep_id)
+        runs = export.to_frame(export.add_curves(runs, tracking.reader(args.tracking_uri)) if curves else runs)
+    return claims_file, runs

@@ -4,7 +4,10 @@ reopened on ``--resume``, and closed with the summary when the launch ends.
 
 from __future__ import annotations
 
+import tempfile
 import time
+import warnings
+from pathlib import Path
 from typing import Any
 
 from spot.sweep.spec import Sweep, tag_value
@@ -91,6 +94,40 @@ def close_parent(client: Any, ctx: SweepContext, rows: list[Row], table: str, *,
         ],
     )
     client.log_text(ctx.parent_run_id, table + "\n", "summary.txt")
+    log_curves_figure(client, ctx)
     client.set_terminated(
         ctx.parent_run_id, "KILLED" if interrupted else "FINISHED" if n_done == len(rows) else "FAILED"
     )
+
+
+CURVES_ARTIFACT = "curves.png"
+
+
+def curves_by(axis_keys: tuple[str, ...], params: set[str]) -> str:
+    """What a sweep's curves are grouped by: its first swept param (beside the method), else the method."""
+    return next((k for k in axis_keys if k != "method" and f"params.{k}" in params), "method")
+
+
+def log_curves_figure(client: Any, ctx: SweepContext) -> str | None:
+    """Log the sweep's evaluation curves (mean over seeds, 95 % CI band, per swept value) as
+    :data:`CURVES_ARTIFACT` of its parent run. Best effort: a figure that cannot be drawn or logged
+    is a warning and ``None``, never a failed sweep; returns the artifact path when logged."""
+    try:
+        from spot.results import export, figures_curves, load
+
+        runs = load.load_runs(ctx.tracking_uri, [ctx.experiment_name], ctx.sweep_id)
+        if runs.empty:
+            return None
+        runs = export.add_curves(runs, client)
+        by = curves_by(ctx.axis_keys, set(runs.columns))
+        summary = figures_curves.summarize_curves(figures_curves.curve_points(runs, by))
+        fig = figures_curves.draw_curves(summary, title=f"sweep {ctx.sweep_id} ({ctx.sweep_name})")
+        with tempfile.TemporaryDirectory(prefix="spot-curves-") as tmp:
+            figures_curves.save(fig, Path(tmp) / CURVES_ARTIFACT)
+            client.log_artifact(ctx.parent_run_id, str(Path(tmp) / CURVES_ARTIFACT))
+        return CURVES_ARTIFACT
+    except Exception as err:  # noqa: BLE001 - a picture never fails the sweep
+        warnings.warn(
+            f"sweep {ctx.sweep_id}: no curves figure on its parent run ({type(err).__name__}: {err})", stacklevel=2
+        )
+        return None
