@@ -61,7 +61,7 @@ def test_run_with_a_memory_tracker_writes_no_store(tmp_path, spot_dirs, tiny_dra
     assert out["eval/score_final"] == tr.metrics["eval/score"][-1][1] == tr.last("eval/score_final")
     assert "learning_curve.png" in tr.artifacts and out["run_id"] == "memory"
     assert "time/iql_s" in tr.metrics and "time/reward_s" not in tr.metrics  # the Oracle trains no reward model
-    assert not (tmp_path / "mlruns").exists()
+    assert not (tmp_path / "mlruns").exists() and not (tmp_path / "spot_runs").exists()
 
 
 def test_fig2_in_distribution_is_the_training_segments_only():

@@ -102,22 +102,24 @@ def test_mlflow_tracker_batches_and_marks_failures(tmp_path):
 
 
 # --------------------------------------------------------------------------- store and queries
-def test_resolve_uri_for_writing_and_reading(tmp_path, monkeypatch):
+def test_resolve_uri_for_writing_and_reading(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     assert tracking.resolve_uri("http://h:5") == "http://h:5"
-    assert tracking.resolve_uri() == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"  # spot run's store
-    assert (tmp_path / "mlruns").is_dir()
+    new, old = tmp_path / "spot_runs" / "mlflow.db", tmp_path / "mlruns" / "mlflow.db"
+    assert tracking.resolve_uri() == f"sqlite:///{new}"  # spot run's store is spot sweep's
+    assert (tmp_path / "spot_runs").is_dir() and not (tmp_path / "mlruns").exists()
     with pytest.raises(SpotError, match="no MLflow store here"):
         tracking.resolve_uri(read=True)
-    (tmp_path / "mlruns" / "mlflow.db").touch()
-    assert tracking.resolve_uri(read=True) == f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
-    (tmp_path / "spot_runs").mkdir()
-    (tmp_path / "spot_runs" / "mlflow.db").touch()
-    with pytest.raises(SpotError, match="two MLflow stores here"):
-        tracking.resolve_uri(read=True)
-    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'spot_runs' / 'mlflow.db'}")
-    assert tracking.resolve_uri(read=True).endswith("spot_runs/mlflow.db")
+    old.parent.mkdir()
+    old.touch()  # a folder from before: spot run wrote ./mlruns/mlflow.db
+    assert tracking.resolve_uri(read=True) == f"sqlite:///{old}"
+    assert "note: reading" in capsys.readouterr().err
+    new.touch()  # both: the default store, and a note naming the other
+    assert tracking.resolve_uri(read=True) == f"sqlite:///{new}"
+    assert f"{old} (an older spot run's store) is not read" in capsys.readouterr().err
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{old}")
+    assert tracking.resolve_uri(read=True) == f"sqlite:///{old}"
     with pytest.raises(SpotError, match="no MLflow store at"):
         tracking.resolve_uri(f"sqlite:///{tmp_path / 'nope.db'}", read=True)
 

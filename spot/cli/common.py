@@ -17,7 +17,10 @@ SIZES = ("tiny", "small", "paper", "paper-fast")
 TABLES = (1, 2, 3, 4, 7, 8)
 FORMATS = ("md", "latex", "csv", "text")
 
-URI_HELP = "MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db or ./mlruns/mlflow.db)"
+URI_HELP = (
+    "MLflow tracking URI (default: $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db; "
+    "an older folder's ./mlruns/mlflow.db if that is all there is)"
+)
 
 
 class Formatter(argparse.HelpFormatter):

@@ -34,7 +34,7 @@ def _add_run(sub: Any) -> None:
     d.add_argument(
         "--tracking-uri",
         help="MLflow tracking URI, same as the override tracking.uri=URI (default: "
-        "tracking.uri, else $MLFLOW_TRACKING_URI, else ./mlruns/mlflow.db)",
+        "tracking.uri, else $MLFLOW_TRACKING_URI, else ./spot_runs/mlflow.db)",
     )
     d.add_argument(
         "--seeds",

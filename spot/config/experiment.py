@@ -246,7 +246,7 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class TrackingConfig:
-    uri: str = F("", "MLflow tracking URI; empty = local store ./mlruns in the working folder")
+    uri: str = F("", "MLflow tracking URI; empty = local store ./spot_runs/mlflow.db in the working folder")
     experiment: str = F("spot", "MLflow experiment name")
     record: str = F(
         "",

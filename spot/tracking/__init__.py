@@ -21,8 +21,9 @@
   this package is imported, unless the environment sets them), one-line errors for a request that
   got no answer, and the cap on ``failure_reason``.
 
-With no tracking URI a run's store is ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under
-``<cwd>/mlruns/artifacts`` (one process writes it; sweeps use a server, :mod:`spot.sweep.mlflow_server`).
+With no tracking URI every command's store is ``sqlite:///<cwd>/spot_runs/mlflow.db`` with artifacts
+under ``<cwd>/spot_runs/artifacts`` (``spot run`` writes it; sweeps serve it, :mod:`spot.sweep.mlflow_server`;
+an older folder's ``mlruns/mlflow.db`` is still read when it is the only one).
 """
 
 from spot.tracking.limits import TrackingUnreachable, failure_reason, set_http_deadlines, waiting_on
@@ -53,6 +54,7 @@ from spot.tracking.queries import (
 from spot.tracking.record import log_params, record_failure, start_run
 from spot.tracking.store import (
     LOCAL_STORES,
+    OLD_RUN_STORE,
     RUN_STORE,
     SWEEP_STORE,
     all_experiments,
@@ -92,6 +94,7 @@ __all__ = [
     "ui_command",
     "where_logged",
     "LOCAL_STORES",
+    "OLD_RUN_STORE",
     "PACKAGES",
     "RUN_STORE",
     "SWEEP_STORE",

@@ -1,14 +1,16 @@
 """Where runs go: the one tracking-URI resolver, experiments, and the local stores.
 
-``spot run`` writes to ``sqlite:///<cwd>/mlruns/mlflow.db`` (artifacts under
-``<cwd>/mlruns/artifacts``) when no URI is given; ``spot sweep`` serves
-``<cwd>/spot_runs/mlflow.db`` through a loopback server (:mod:`spot.sweep.mlflow_server`);
-``spot tables`` and ``spot figures`` read whichever one of the two exists.
+One default store per folder: ``<cwd>/spot_runs/mlflow.db`` (artifacts under
+``<cwd>/spot_runs/artifacts``) when no URI is given. ``spot run`` writes it directly, ``spot sweep``
+serves it through a loopback server (:mod:`spot.sweep.mlflow_server`), and ``spot tables``,
+``spot report``, ``spot figures``, ``spot eval`` and ``spot ui`` read it. A folder from before (where
+``spot run`` wrote ``./mlruns/mlflow.db``) is still read when it has no ``spot_runs/mlflow.db``.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 import urllib.error
 import urllib.request
 from collections.abc import Sequence
@@ -19,11 +21,14 @@ from spot import SpotError
 from spot.tracking.limits import waiting_on
 from spot.tracking.locking import prepare_store, sqlite_path
 
-RUN_STORE = Path("mlruns") / "mlflow.db"
-"""``spot run``'s default store, relative to the working folder."""
 SWEEP_STORE = Path("spot_runs") / "mlflow.db"
-"""``spot sweep``'s default store, relative to its working folder."""
-LOCAL_STORES = (SWEEP_STORE, RUN_STORE)
+"""The default store of every command (``spot run``, ``spot sweep``, the readers), relative to the
+working folder."""
+RUN_STORE = SWEEP_STORE
+"""``spot run``'s default store: the same one (an alias kept for importers)."""
+OLD_RUN_STORE = Path("mlruns") / "mlflow.db"
+"""Where ``spot run`` wrote before the stores were one; read when the default store is absent."""
+LOCAL_STORES = (SWEEP_STORE, OLD_RUN_STORE)
 SEARCH_EXPERIMENTS = 50  # experiments per search request (the API takes a bounded list)
 PAGE = 1000  # runs or experiments per page
 
@@ -34,12 +39,12 @@ def given_uri(uri: str | None = None) -> str:
 
 
 def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
-    """The tracking URI to use: ``uri``, else ``$MLFLOW_TRACKING_URI``, else a local store.
+    """The tracking URI to use: ``uri``, else ``$MLFLOW_TRACKING_URI``, else the local store.
 
-    Writing (``spot run``): the local store is ``./mlruns/mlflow.db`` (its folder is created).
-    Reading (``read=True``: tables, figures): the one of ``./spot_runs/mlflow.db`` (``spot sweep``)
-    and ``./mlruns/mlflow.db`` (``spot run``) that exists; with both present the choice is left to
-    the user. A SQLite store that is read must exist.
+    Writing (``spot run``): the local store is ``./spot_runs/mlflow.db`` (its folder is created).
+    Reading (``read=True``: tables, report, figures, eval, ui): ``./spot_runs/mlflow.db``; in a
+    folder from before without it, ``./mlruns/mlflow.db`` (with a one-line note); with both, the
+    default one, and a note naming the other. A SQLite store that is read must exist.
     """
     uri = given_uri(uri)
     if uri:
@@ -47,25 +52,31 @@ def resolve_uri(uri: str | None = None, *, read: bool = False) -> str:
     if not read:
         if uri:
             return uri
-        RUN_STORE.parent.mkdir(exist_ok=True)
-        return f"sqlite:///{RUN_STORE.resolve()}"
+        SWEEP_STORE.parent.mkdir(exist_ok=True)
+        return f"sqlite:///{SWEEP_STORE.resolve()}"
     if not uri:
-        found = [p.resolve() for p in LOCAL_STORES if p.exists()]
-        if not found:
-            raise SpotError(
-                f"no MLflow store here ({' or '.join(map(str, LOCAL_STORES))}); "
-                "pass --tracking-uri (or set MLFLOW_TRACKING_URI)"
-            )
-        if len(found) > 1:
-            raise SpotError(
-                f"two MLflow stores here ({', '.join(map(str, found))}); pick one with "
-                f"--tracking-uri sqlite:///{found[0]}"
-            )
-        return f"sqlite:///{found[0]}"
+        return f"sqlite:///{default_store()}"
     db = sqlite_path(uri)
     if db is not None and not db.exists():
         raise SpotError(f"no MLflow store at {db} (tracking URI {uri})")
     return uri
+
+
+def default_store() -> Path:
+    """The store a reading command uses with no URI given (:func:`resolve_uri`)."""
+    new, old = SWEEP_STORE.resolve(), OLD_RUN_STORE.resolve()
+    if not new.exists() and not old.exists():
+        raise SpotError(f"no MLflow store here ({SWEEP_STORE}); pass --tracking-uri (or set MLFLOW_TRACKING_URI)")
+    if not new.exists():
+        print(f"note: reading {old} (spot run's store before spot_runs/mlflow.db)", file=sys.stderr, flush=True)
+        return old
+    if old.exists():
+        print(
+            f"note: reading {new}; {old} (an older spot run's store) is not read: --tracking-uri sqlite:///{old}",
+            file=sys.stderr,
+            flush=True,
+        )
+    return new
 
 
 def check_reachable(uri: str, timeout: float = 10.0) -> None:
