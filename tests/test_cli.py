@@ -315,10 +315,11 @@ def test_sweep_dry_run_lists_trials_and_launches_nothing(tmp_path):
 
 def test_output_into_a_closed_pipe_stops_quietly(tmp_path):
     # `spot sweep FILE --dry-run | head`: the reader leaves early; no traceback, status 141. The sweep
-    # has 4000 trials so that its listing (~200 kB) overflows the pipe's buffer after head has left.
+    # has 3 x 3000 trials (under spec.MAX_RUNS) so that its listing (~150 kB) overflows the pipe's
+    # buffer after head has left.
     repo = Path(__file__).resolve().parents[1]
     sweep = yaml.safe_load((repo / "sweeps" / "quickstart.yaml").read_text())
-    sweep["seeds"] = list(range(4000))
+    sweep["seeds"] = list(range(3000))
     (tmp_path / "big.yaml").write_text(yaml.safe_dump(sweep))
     cmd = f"{sys.executable} -m spot.cli sweep {tmp_path / 'big.yaml'} --dry-run | head -c 1 > /dev/null"
     proc = subprocess.run(

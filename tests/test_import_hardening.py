@@ -247,8 +247,11 @@ def _after_scan(monkeypatch, change):
 
 
 def _grow(folder):
+    # past the cap (the largest artifact + 10 bytes) whatever that artifact's size: environment.json
+    # grows with the command line the test process carries
+    largest = max(p.stat().st_size for p in (folder / A).rglob("*") if p.is_file())
     with open(folder / A / "plots" / "curve.txt", "ab") as f:
-        f.write(b"y" * 7000)
+        f.write(b"y" * (largest + 100))
 
 
 def _swap(folder, make):
@@ -273,7 +276,7 @@ def test_a_record_changed_while_imported_leaves_no_run_and_imports_once_fixed(tm
     hold while copying, before the run is created; once the record is put right it imports."""
     folder = _record(tmp_path)
     largest = max(p.stat().st_size for p in (folder / A).rglob("*") if p.is_file())
-    monkeypatch.setattr(record_checks, "MAX_ARTIFACT_BYTES", largest + 10)  # _grow appends 7000 bytes
+    monkeypatch.setattr(record_checks, "MAX_ARTIFACT_BYTES", largest + 10)  # _grow appends more than that
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     scan = record_checks.scan_artifacts
     _after_scan(monkeypatch, change)
@@ -343,3 +346,15 @@ def test_a_valid_record_from_spots_recorder_imports_whole(tmp_path):
         record_checks.MAX_ARTIFACT_BYTES == 1 << 30
         and record_checks.MAX_ARTIFACTS_BYTES >= record_checks.MAX_ARTIFACT_BYTES
     )
+
+
+def test_a_record_of_a_very_long_command_line_imports(tmp_path, monkeypatch):
+    """spot's own recorder keeps a run's tags within MLflow's 8,000-character limit whatever the
+    command line: the command is cut (with a note) in the description and in mlflow.source.name."""
+    monkeypatch.setenv("SPOT_COMMAND", "spot run " + "x" * 20_000)
+    _record(tmp_path)
+    (done,) = recorded.import_records(tmp_path / "rec", f"sqlite:///{tmp_path / 'mlflow.db'}")
+    run = MlflowClient(f"sqlite:///{tmp_path / 'mlflow.db'}").get_run(done["run_id"])
+    assert len(run.data.tags["mlflow.source.name"]) <= 8000
+    assert run.data.tags["mlflow.source.name"].endswith("more characters)")
+    assert "more characters)" in run.data.tags["mlflow.note.content"]

@@ -160,6 +160,16 @@ def reproduce_command(cfg: config_lib.ExperimentConfig) -> str:
     return "spot run " + " ".join(_override_text(k, flat[k]) for k in keys)
 
 
+TAG_CHARS = 8000  # MLflow's limit on a tag value
+NOTE_COMMAND_CHARS = 2000  # of each command in the description, so that it stays under TAG_CHARS
+
+
+def _clip(text: str, keep: int = NOTE_COMMAND_CHARS) -> str:
+    """``text`` cut to ``keep`` characters with a note of what was cut (a command line can be long)."""
+    cut = len(text) - keep
+    return text if cut <= 0 else f"{text[:keep]} … ({cut} more characters)"
+
+
 def description(cfg: config_lib.ExperimentConfig, tags: Mapping[str, str], command: str) -> str:
     """The run's description (``mlflow.note.content``, Markdown)."""
     lines = [
@@ -173,8 +183,8 @@ def description(cfg: config_lib.ExperimentConfig, tags: Mapping[str, str], comma
             f"sweep **{tags.get('sweep_name', '?')}** (launch `{tags['sweep_id']}`)"
             + (f", trial {axes}" if axes else "")
         )
-    lines.append(f"command: `{command}`")
-    lines.append(f"reproduce this config: `{reproduce_command(cfg)}`")
+    lines.append(f"command: `{_clip(command)}`")
+    lines.append(f"reproduce this config: `{_clip(reproduce_command(cfg))}`")
     if tags.get("data_digest"):
         lines.append(f"dataset fingerprint (SHA-256 of its arrays): `{tags['data_digest']}`")
     return "\n\n".join(lines)
@@ -241,7 +251,7 @@ def mlflow_tags(cfg: config_lib.ExperimentConfig, tags: dict[str, str]) -> dict[
         command = f"spot sweep (a trial of sweep {tags['sweep_name']}; Ray worker)"  # a cluster's worker
     out = {
         "mlflow.note.content": description(cfg, tags, command),
-        "mlflow.source.name": command,
+        "mlflow.source.name": _clip(command, TAG_CHARS - 40),
         "mlflow.source.type": "LOCAL",
     }
     commit = commit_hash()
