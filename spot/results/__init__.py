@@ -1,5 +1,8 @@
 """Results: runs in, tables and claim verdicts out (``spot tables``, ``spot report``, ``spot results``).
 
+The Python entry (docs/python.md): :func:`load_runs` (runs as a DataFrame), :func:`table` (a paper
+table) and :func:`claims_report` (the claims report), in :mod:`~spot.results.api`.
+
 Read in this order:
 
 * :mod:`~spot.results.load`: the one run loader (an MLflow store, or results CSVs) and
@@ -15,3 +18,7 @@ Read in this order:
   paper's tables with its numbers beside ours;
 * :mod:`~spot.results.stats`: interval estimates and tests over seeds and datasets.
 """
+
+from spot.results.api import claims_report, load_runs, table
+
+__all__ = ["claims_report", "load_runs", "table"]

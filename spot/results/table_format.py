@@ -18,6 +18,9 @@ from spot.results import stats
 from spot.results.select import by_dataset, finished
 
 FORMATS = ("md", "latex", "csv", "text")
+MIN_RUNS = 2
+"""Fewest runs a cell needs to be bolded, and each arm per dataset to get a P(SPOT > method): one
+run has no spread, so neither a 'best' nor a probability of improvement means anything there."""
 METHOD_LABELS = {"oracle": "Oracle", "mr": "MR", "pt": "PT", "ipl": "IPL", "hpl": "HPL", "spot": "SPOT"}
 
 
@@ -36,7 +39,7 @@ def _cell_text(c: pd.Series, kind: str, fmt: str) -> str:
     parts = []
     if np.isfinite(c["mean"]):
         ours = _pm(c["mean"], c["std"], kind, pm)
-        if c["best"]:
+        if c["best"] and c["n"] >= MIN_RUNS:
             ours = f"\\textbf{{{ours}}}" if fmt == "latex" else f"**{ours}**"
         parts.append(f"{ours} ({int(c['n'])})")
         if np.isfinite(c.get("ci_low", np.nan)):
@@ -204,17 +207,20 @@ def aggregate(runs: pd.DataFrame, metric: str = "metrics.eval/score_final", refe
     for m, by in sorted(per.items()):
         strata = [by[d] for d in shared]
         iqm = stats.estimate(strata, stats.iqm, checks=0) if shared else None
-        poi = None
+        poi, note = None, ""
         if reference in per and m != reference and shared:
-            strata_poi = [*(per[reference][d] for d in shared), *strata]
-            poi = stats.estimate(strata_poi, stats.probability_of_improvement, checks=0)
+            ref = [per[reference][d] for d in shared]
+            if any(len(s) < MIN_RUNS for s in (*ref, *strata)):
+                note = f"– (n < {MIN_RUNS})"
+            else:
+                poi = stats.estimate([*ref, *strata], stats.probability_of_improvement, checks=0)
         out.append(
             {
                 "method": m,
                 "datasets": len(shared),
                 "runs": sum(map(len, strata)),
                 "iqm": iqm.text() if iqm else "",
-                f"P({reference} > method)": poi.text(2) if poi else "",
+                f"P({reference} > method)": poi.text(2) if poi else note,
             }
         )
     return pd.DataFrame(out)

@@ -4,8 +4,10 @@
   the keys that name a config and a (config, seed) run.
 * :mod:`spot.sweep.trial`: what runs in a trial's process (CPU slots, XLA settings, each seed's
   run, skipping seeds that already finished, recording failures).
-* :mod:`spot.sweep.launch`: the driver (:func:`run_sweep`, ``spot sweep FILE``): the launch's flow,
-  from the file to the summary, and resume.
+* :mod:`spot.sweep.launch`: the driver (``spot sweep FILE``): the launch's flow, from the file to
+  the summary, and resume.
+* :mod:`spot.sweep.api`: the Python entry (docs/python.md): :func:`run_sweep` from a file or a dict,
+  :func:`resolve` (a file or dict -> its validated :class:`Sweep`, launching nothing).
 * :mod:`spot.sweep.uris`: which tracking URIs and ``--tracking-host`` values a sweep takes.
 * :mod:`spot.sweep.tracking_store`: the launch's store (a server given by URI, or a SQLite store
   served by :mod:`spot.sweep.mlflow_server`), the watch on that server, closing the launch's runs.
@@ -34,9 +36,10 @@ FINISHED run. A trial that raises is marked FAILED with its ``failure_reason``, 
 and the summary lists it.
 """
 
-from spot.sweep.launch import DEFAULT_STORAGE, prebuild_datasets, run_sweep
+from spot.sweep.api import resolve, run_sweep
+from spot.sweep.launch import DEFAULT_STORAGE, prebuild_datasets
 from spot.sweep.signals import Interrupted
-from spot.sweep.spec import Sweep, Trial, config_key, load, run_key, tag_value
+from spot.sweep.spec import Sweep, Trial, config_key, load, load_dict, run_key, tag_value
 from spot.sweep.summary import Row, format_summary, paper_table, summarize
 from spot.sweep.trial import SweepContext, configure_process, cpu_slots, run_trial
 
@@ -52,8 +55,10 @@ __all__ = [
     "cpu_slots",
     "format_summary",
     "load",
+    "load_dict",
     "paper_table",
     "prebuild_datasets",
+    "resolve",
     "run_key",
     "run_sweep",
     "run_trial",

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from spot import SpotError
 from spot import config as config_lib
 
@@ -446,7 +448,32 @@ def load(path: str | Path, *, smoke: bool = False, progress: bool | None = None)
     """
     path = Path(path)
     where = f"sweep file '{path}'"
-    data = _read(path, where)
+    return _validated(_read(path, where), path, where, smoke, progress)
+
+
+def load_dict(data: Any, *, smoke: bool = False, progress: bool | None = None) -> Sweep:
+    """A sweep given as a mapping (a sweep file's content, ``name`` included), validated exactly as
+    :func:`load` validates a file: the mapping is written as YAML text and parsed back by the same
+    strict reader (in memory: nothing is written to disk). ``path`` is ``<name>.yaml``, not a file."""
+    try:  # what a file of this content would hold; a value YAML cannot hold is refused
+        text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+    except yaml.YAMLError as e:
+        raise SpotError(f"sweep (a dict): not writable as YAML ({str(e).splitlines()[0]})") from None
+    name = data.get("name") if isinstance(data, dict) else None
+    where = f"sweep '{name}' (a dict)"
+    if len(text.encode()) > config_lib.MAX_YAML_BYTES:
+        raise SpotError(f"{where}: larger than {config_lib.MAX_YAML_BYTES} bytes as YAML")
+    parsed = yaml.load(text, Loader=config_lib.StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    if not isinstance(parsed, dict):
+        raise SpotError(f"{where}: expected a mapping with keys {', '.join(SWEEP_KEYS)}")
+    _check_known(parsed, SWEEP_KEYS, where, "")
+    if "name" not in parsed:  # a file's default, its stem, has no counterpart here
+        raise _err(where, "name", "missing (the sweep's name: its MLflow experiment)")
+    return _validated(parsed, Path(f"{name}.yaml"), where, smoke, progress)
+
+
+def _validated(data: dict[str, Any], path: Path, where: str, smoke: bool, progress: bool | None) -> Sweep:
+    """:func:`load` and :func:`load_dict` after reading: the fields, the smoke block, the trials."""
     full = _fields({"name": path.stem, **data}, where)
     fields = _smoke_fields(data, full, where)  # checks the smoke block of every file
     if smoke and "smoke" not in data:
