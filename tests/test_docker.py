@@ -125,7 +125,8 @@ def test_dockerignore_keeps_the_source_and_drops_venv_runs_and_data():
 
 # --------------------------------------------------------------------------- MLflow as deployed
 def _interpolate(text: str, env: dict[str, str]) -> str:
-    """Compose's variable syntax: ${VAR}, ${VAR:-default}, ${VAR-default}, $$ for a literal $."""
+    """Compose's variable syntax: ${VAR}, ${VAR:-default}, ${VAR-default}, ${VAR:?error} and
+    ${VAR?error} (a ValueError with the error when unset or, with ':', empty), $$ for a literal $."""
 
     def sub(m: re.Match) -> str:
         if m.group(0) == "$$":
@@ -136,9 +137,41 @@ def _interpolate(text: str, env: dict[str, str]) -> str:
             return value if value else default
         if op == "-":
             return default if value is None else value
+        if op in (":?", "?") and (value is None or (op == ":?" and not value)):
+            raise ValueError(f"{name}: {default}")
         return value or ""
 
-    return re.sub(r"\$\$|\$\{(\w+)(?:(:?-)([^}]*))?\}", sub, text)
+    return re.sub(r"\$\$|\$\{(\w+)(?:(:?[-?])([^}]*))?\}", sub, text)
+
+
+SECRETS = {"POSTGRES_PASSWORD": "pg-secret", "MINIO_ROOT_PASSWORD": "minio-secret"}
+"""What docker/.env sets (docker/.env.example): the compose file has no default for them."""
+
+
+def test_compose_passwords_have_no_defaults():
+    """Issue 42: without a .env the stack came up with the passwords mlflow / minio12345."""
+    text = (DOCKER / "compose.mlflow.yaml").read_text()
+    assert "minio12345" not in text and "PASSWORD:-" not in text
+    for name in SECRETS:  # compose stops naming the variable and .env
+        with pytest.raises(ValueError, match=rf"{name}: set {name} in docker/.env"):
+            _interpolate(text, {k: v for k, v in SECRETS.items() if k != name})
+    filled = _interpolate(text, SECRETS)
+    service = yaml.safe_load(filled)["services"]
+    assert service["postgres"]["environment"]["POSTGRES_PASSWORD"] == "pg-secret"
+    assert "mlflow:pg-secret@postgres" in service["mlflow"]["command"]
+    assert service["mlflow"]["environment"]["AWS_SECRET_ACCESS_KEY"] == "minio-secret"
+    example = dict(ln.split("=", 1) for ln in (DOCKER / ".env.example").read_text().splitlines() if "=" in ln)
+    assert set(SECRETS) <= set(example)  # the example .env sets each one
+
+
+def test_kuberay_worker_ranges_are_autoscaled():
+    """minReplicas/maxReplicas act only with KubeRay's in-tree autoscaler on."""
+    for doc in _k8s_docs():
+        cluster = doc["spec"].get("rayClusterSpec", doc["spec"]) if doc["kind"] in ("RayCluster", "RayJob") else {}
+        ranged = [g for g in cluster.get("workerGroupSpecs", []) if "minReplicas" in g or "maxReplicas" in g]
+        if ranged:
+            assert cluster.get("enableInTreeAutoscaling") is True, doc["metadata"]["name"]
+            assert all(g["minReplicas"] <= g["replicas"] <= g["maxReplicas"] for g in ranged)
 
 
 def _split_options(argv: list[str]) -> list[tuple[str, str | None]]:
@@ -224,8 +257,8 @@ def test_compose_mlflow_command_answers_its_service_name(tmp_path):
     assert mlflow.__version__ == PINS["mlflow"]  # the version docker/mlflow/Dockerfile installs
     compose = yaml.safe_load((DOCKER / "compose.mlflow.yaml").read_text())
     service = compose["services"]["mlflow"]
-    argv = shlex.split(_interpolate(service["command"], {}))
-    env = {k: _interpolate(str(v), {}) for k, v in service["environment"].items()}
+    argv = shlex.split(_interpolate(service["command"], SECRETS))
+    env = {k: _interpolate(str(v), SECRETS) for k, v in service["environment"].items()}
     options = dict(_split_options(argv[2:]))
     assert (
         options["--backend-store-uri"].startswith("postgresql://")
