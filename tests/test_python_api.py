@@ -174,3 +174,23 @@ def test_table1_neither_bolds_nor_gives_p_for_a_single_run():
         {ln.split("|")[1].strip(): ln.split("|")[5].strip() for ln in text.splitlines() if ln.startswith("| pt ")}
     )
     assert summary == {"mr": "– (n < 2)", "pt": "– (n < 2)"}  # SPOT has one run: no P for any method
+
+
+@pytest.mark.parametrize("progress", [True, False])
+def test_each_policy_evaluation_prints_a_progress_line_unless_quiet(progress, capsys):
+    """Issue 42: `spot run` showed nothing during IQL, its longest stage."""
+    from types import SimpleNamespace
+
+    from spot import config
+    from spot.run import policy_stages
+
+    cfg = config.resolve({"method": "pt", "iql.steps": 3000}, {"seed": 4})
+    logged, seen = [], []
+    ctx = SimpleNamespace(
+        cfg=cfg, progress=progress, on_eval=seen.append, log=lambda metrics, step: logged.append((step, metrics))
+    )
+    res = {"score_mean": 41.26, "score_std": 2.04, "return_mean": 1.0, "episode_length_mean": 5.0}
+    policy_stages.log_evaluation(ctx, res, 2000)
+    err = capsys.readouterr().err
+    assert err == ("spot: pt seed 4: policy step 2,000/3,000: score 41.3 ± 2.0\n" if progress else "")
+    assert logged[0][0] == 2000 and seen == [{"step": 2000, "score": 41.26}]

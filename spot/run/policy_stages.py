@@ -5,6 +5,7 @@ evaluation helpers (:func:`eval_policy`: the policy program every evaluation use
 from __future__ import annotations
 
 import functools
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -78,6 +79,14 @@ def log_evaluation(ctx: Context, res: dict[str, Any], step: int) -> None:
     )
     if ctx.on_eval is not None:
         ctx.on_eval({"step": step, "score": float(res["score_mean"])})
+    if ctx.progress:  # the policy stage is a run's longest: one line per evaluation (not with --quiet)
+        cfg = ctx.cfg
+        print(
+            f"spot: {cfg.method} seed {cfg.seed}: policy step {step:,}/{cfg.iql.steps:,}: "
+            f"score {res['score_mean']:.1f} ± {res['score_std']:.1f}",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
