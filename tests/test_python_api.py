@@ -194,3 +194,21 @@ def test_each_policy_evaluation_prints_a_progress_line_unless_quiet(progress, ca
     err = capsys.readouterr().err
     assert err == ("spot: pt seed 4: policy step 2,000/3,000: score 41.3 ± 2.0\n" if progress else "")
     assert logged[0][0] == 2000 and seen == [{"step": 2000, "score": 41.26}]
+
+
+def test_spot_sweep_quiet_reaches_the_launch_and_its_dataset_builds(tmp_path, monkeypatch):
+    """Issue 42: `spot sweep` lacked the --quiet every other command has (no progress bars)."""
+    from spot.data import registry
+    from spot.sweep import launch
+
+    path = tmp_path / "api-test.yaml"
+    path.write_text(yaml.safe_dump(SWEEP, sort_keys=False))
+    seen: list[dict] = []
+    monkeypatch.setattr(launch, "run_sweep", lambda *a, **kw: seen.append(kw) or [])
+    assert cli.main(["sweep", str(path), "--quiet"]) in (0, None)
+    assert cli.main(["sweep", str(path)]) in (0, None)
+    assert [kw["quiet"] for kw in seen] == [True, False]
+    builds: list[bool] = []
+    monkeypatch.setattr(registry, "build", lambda name, size, seed, progress=True: builds.append(progress) or path)
+    launch.prebuild_datasets(sweep.resolve(SWEEP), progress=False)
+    assert builds == [False]  # one dataset: hopper-medium-replay, tiny, seed 0

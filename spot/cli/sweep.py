@@ -8,7 +8,7 @@ import sys
 from typing import Any
 
 from spot import SpotError
-from spot.cli.common import positive_int, subcommand
+from spot.cli.common import add_quiet, positive_int, subcommand
 
 
 def add(sub: Any) -> None:
@@ -43,6 +43,7 @@ def add(sub: Any) -> None:
         "other nodes reach it; unauthenticated, see docs/sweeps.md (default: 127.0.0.1)",
     )
     d.add_argument("--dry-run", action="store_true", help="list the trials (axes, seeds) and exit; launches nothing")
+    add_quiet(d)  # the datasets the driver builds, the configs' check; Tune's status table stays
     d.add_argument(
         "--status",
         action="store_true",
@@ -59,7 +60,7 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.status:
         return _sweep_status(args)
     if args.dry_run:
-        spec = sweep.load(args.file, smoke=args.smoke)
+        spec = sweep.load(args.file, smoke=args.smoke, progress=False if args.quiet else None)
         trials = spec.trials()
         print(
             f"sweep '{spec.experiment}' ({spec.path}): {len(trials)} trials, {len(spec.runs())} runs, "
@@ -80,6 +81,7 @@ def _sweep(args: argparse.Namespace) -> int:
             storage=args.storage,
             store=args.store,
             tracking_host=args.tracking_host,
+            quiet=args.quiet,
         )
     except sweep.Interrupted as e:
         print(f"interrupted: {e}", file=sys.stderr)

@@ -39,7 +39,7 @@ from spot.sweep.uris import check_tracking_host, check_tracking_uri
 DEFAULT_STORAGE = Path("spot_runs") / "ray"
 
 
-def prebuild_datasets(sweep: Sweep) -> list[Path]:
+def prebuild_datasets(sweep: Sweep, progress: bool = True) -> list[Path]:
     """Build every registry dataset the sweep's runs need, here on the driver, before trials start.
 
     A build uses all the driver's cores, where inside a trial it would be pinned to the trial's
@@ -58,7 +58,7 @@ def prebuild_datasets(sweep: Sweep) -> list[Path]:
     paths = []
     for name, size, seed in wanted:
         print(f"dataset {name} (size {size}, seed {seed}): building if not cached", flush=True)
-        paths.append(registry.build(name, size, seed))
+        paths.append(registry.build(name, size, seed, progress=progress))
     return paths
 
 
@@ -123,6 +123,7 @@ def _run_launch(
     max_concurrent: int | None,
     run_fn: RunFn | None,
     resume_command: str,
+    quiet: bool = False,
 ) -> tuple[Any, SweepContext, dict[str, str], bool]:
     """Ray, the parent run and the Tune experiment; returns ``(client, ctx, ray errors, interrupted)``.
 
@@ -146,7 +147,7 @@ def _run_launch(
     with on_sigterm(lambda: sigterm_cleanup(store, close, started_ray)):
         try:
             if run_fn is None:  # after Ray's processes are started: forking them once JAX runs here warns
-                prebuild_datasets(sweep)
+                prebuild_datasets(sweep, progress=not quiet)
             client, ctx = _open_launch(sweep, store, state, state_file, resume=resume, resume_command=resume_command)
             errors, interrupted = fit(
                 sweep,
@@ -200,6 +201,7 @@ def run_sweep(
     run_fn: RunFn | None = None,
     store: str | None = None,
     tracking_host: str | None = None,
+    quiet: bool = False,
 ) -> list[Row]:
     """Run a sweep file end to end (``spot sweep``); return the summary rows.
 
@@ -219,6 +221,7 @@ def run_sweep(
         default: the file's ``store:``, else ``$SPOT_STORE``, else none (local folders).
       tracking_host: with ``address`` and no server URI: bind the MLflow server spot starts to this
         address (e.g. ``0.0.0.0``) so that trials on other nodes reach it; default loopback.
+      quiet: no progress bars (``--quiet``: the datasets the driver builds, the configs' check).
     """
     from spot import tracking
 
@@ -226,7 +229,7 @@ def run_sweep(
         raise SpotError("--retry-errored goes with --resume")
     if max_concurrent is not None and (isinstance(max_concurrent, bool) or max_concurrent < 1):
         raise SpotError(f"--max-concurrent {max_concurrent}: expected a positive number of trials")
-    sweep = load(path, smoke=smoke)
+    sweep = load(path, smoke=smoke, progress=False if quiet else None)
     check_tracking_uri(tracking.given_uri(tracking_uri))  # before anything is written
     check_tracking_host(tracking_host, address or os.environ.get("RAY_ADDRESS"), tracking_uri)
     root = Path(workdir or Path.cwd()).resolve() / tracking.SWEEP_STORE.parent
@@ -245,6 +248,7 @@ def run_sweep(
             tracking_uri=tracking_uri,
             run_fn=run_fn,
             tracking_host=tracking_host,
+            quiet=quiet,
         )
 
 
@@ -342,6 +346,7 @@ def _launch(
     tracking_uri: str | None,
     run_fn: RunFn | None,
     tracking_host: str | None = None,
+    quiet: bool = False,
 ) -> list[Row]:
     """:func:`run_sweep` once the launch holds its lock."""
 
@@ -371,6 +376,7 @@ def _launch(
             max_concurrent=max_concurrent or sweep.max_concurrent,
             run_fn=run_fn,
             resume_command=command,
+            quiet=quiet,
         )
 
         def close(reason: str, deadline: float | None = None) -> None:  # Ray is down: the parent run, if open
