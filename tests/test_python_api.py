@@ -212,3 +212,12 @@ def test_spot_sweep_quiet_reaches_the_launch_and_its_dataset_builds(tmp_path, mo
     monkeypatch.setattr(registry, "build", lambda name, size, seed, progress=True: builds.append(progress) or path)
     launch.prebuild_datasets(sweep.resolve(SWEEP), progress=False)
     assert builds == [False]  # one dataset: hopper-medium-replay, tiny, seed 0
+
+
+def test_fig3_from_a_run_renders_transition_0_by_default():
+    """Issue 42: `spot figures fig3 --run-id` needed --index."""
+    from spot.cli import build_parser
+
+    args = build_parser().parse_args(["figures", "fig3", "--run-id", "0123456789abcdef"])
+    assert args.index == [0]
+    assert build_parser().parse_args(["figures", "fig3", "--run-id", "x", "--index", "3", "9"]).index == [3, 9]
