@@ -82,6 +82,8 @@ def _learned_reward(ctx: Context, labelled: Labelled, companion: Callable[[], An
     for name in names:
         ctx.tracker.log_series(f"reward/{name}", h["step"], h[name])
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s")})
+    if getattr(ctx.on_eval, "takes_reward_metrics", False):  # a sweep trial's: reported to Tune (spot.sweep.search)
+        ctx.on_eval({f"reward/{k}": float(h[k]) for k in ("best_eval_loss", "best_eval_acc")})
     if "steps" in h:
         ctx.log({"reward/steps": h["steps"]})
     save_model(
@@ -127,6 +129,8 @@ def hpl_reward(ctx: Context, labelled: Labelled) -> RewardModel:
     out, key = ctx.cached("reward", deps, compute)
     h = out["history"]
     ctx.log({f"reward/{k}": h[k] for k in ("best_step", "best_eval_loss", "best_eval_acc", "steps_per_s") if k in h})
+    if getattr(ctx.on_eval, "takes_reward_metrics", False):  # as learned_reward's
+        ctx.on_eval({f"reward/{k}": float(h[k]) for k in ("best_eval_loss", "best_eval_acc") if k in h})
     for k in ("vae_loss", "vae_recon", "vae_kl"):
         if k in h:
             ctx.tracker.log_series(f"hpl/{k}", h["vae_step"], h[k])

@@ -26,6 +26,7 @@ from typing import Any
 
 from spot import SpotError
 from spot import config as config_lib
+from spot.sweep import search as search_lib
 from spot.sweep.launch_record import launch_lock, launch_state, record_file, write_record
 from spot.sweep.parent import close_parent, open_parent
 from spot.sweep.signals import Interrupted, on_sigterm, say, sigterm_cleanup
@@ -87,6 +88,8 @@ def _open_launch(
         store.uri,
         sweep.axis_keys,
         fast_compile=sweep.fast_compile,
+        metric=sweep.metric,
+        stopper=search_lib.STOPPER_NAMES[sweep.scheduler.name] if sweep.scheduler else "",
     )
     if not resume:
         write_record(state_file, state)
@@ -306,8 +309,9 @@ def _announce(
     if resume and max_concurrent is not None:
         print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
     command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"
+    n_trials = sweep.search.num_samples if sweep.search else len(sweep.trials())
     print(
-        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {len(sweep.trials())} trials, {len(sweep.runs())} runs "
+        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {n_trials} trials, {n_trials * len(sweep.seeds)} runs "
         f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
         flush=True,
     )

@@ -26,6 +26,7 @@ import yaml
 
 from spot import SpotError
 from spot import config as config_lib
+from spot.sweep import search as search_lib
 
 SWEEP_KEYS = (
     "name",
@@ -40,6 +41,7 @@ SWEEP_KEYS = (
     "store",
     "fast_compile",
     "smoke",
+    *("metric", "mode", "search", "scheduler"),  # search and early stopping: spot.sweep.search
 )
 SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources", "fast_compile")
 SEED_MODES = ("trials", "sequential", "vmap")
@@ -112,7 +114,7 @@ class Sweep:
     resources: dict[str, float]
     max_concurrent: int | None
     table: int | None = None
-    """Paper table printed (ours beside the paper's) when the launch ends; see spot.tables."""
+    """Paper table printed (ours beside the paper's) when the launch ends; see spot.results.tables."""
     store: str | None = None
     """URI of the store every node shares datasets and stage entries through (spot.store); None:
     ``$SPOT_STORE``, else nothing shared."""
@@ -121,6 +123,10 @@ class Sweep:
     fast_compile: bool = False
     """Trials compile with XLA's optimisations off (``SPOT_FAST_COMPILE``, :mod:`spot.runtime`):
     for smoke launches, whose programs compile for longer than they run."""
+    metric: str | None = None  # what search: and scheduler: act on, and its mode (max, min)
+    mode: str | None = None
+    search: search_lib.Search | None = None  # a searcher's space instead of grid/zip (spot.sweep.search)
+    scheduler: search_lib.Scheduler | None = None  # early stopping on the metric
 
     @property
     def experiment(self) -> str:
@@ -129,7 +135,7 @@ class Sweep:
 
     @property
     def axis_keys(self) -> tuple[str, ...]:
-        return (*self.grid, *self.zip)
+        return (*self.grid, *self.zip, *(self.search.space if self.search else ()))
 
     def configs(self) -> list[dict[str, Any]]:
         """The axis values of every config: grid (first axis slowest) x zip rows."""
@@ -141,6 +147,8 @@ class Sweep:
     def trials(self) -> list[Trial]:
         """Expand configs x seeds. Seeds vary slowest, so an interrupted sweep has whole seed columns."""
         configs = self.configs()
+        if self.search is not None:  # the template each proposed config completes (spot.sweep.tune)
+            return [Trial({}, dict(self.base), self.seeds, self.seed_mode == "vmap")]
         if self.seed_mode in ("sequential", "vmap"):
             return [Trial(c, {**self.base, **c}, self.seeds, self.seed_mode == "vmap") for c in configs]
         return [Trial(c, {**self.base, **c}, (s,)) for s in self.seeds for c in configs]
@@ -152,6 +160,8 @@ class Sweep:
     def spec_hash(self) -> str:
         """Identifies the expanded trial list; a resumed launch must expand to the same list."""
         spec = {"trials": [t.to_config() for t in self.trials()], "resources": self.resources}
+        if self.metric is not None:  # (unchanged hashes for grid sweeps)
+            spec["search"] = [repr(self.search), repr(self.scheduler), self.metric, self.mode]
         return hashlib.sha256(json.dumps(spec, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -251,7 +261,7 @@ def _bool(value: Any, where: str, key: str) -> bool:
 
 
 def _table(value: Any, where: str) -> int | None:
-    from spot.tables import TABLES
+    from spot.results.tables import TABLES
 
     if value is not None and value not in TABLES:
         raise _err(where, "table", f"expected one of {', '.join(map(str, TABLES))}, got {value!r}")
@@ -481,7 +491,9 @@ def _validated(data: dict[str, Any], path: Path, where: str, smoke: bool, progre
     if not smoke:
         fields = full
     _check_axes(fields, where)
+    fields.update(search_lib.check(data, fields, where, RESERVED_KEYS))
     _check_size(fields, where)
     sweep = Sweep(path=path, smoke=smoke, **fields)
     _check_trials(sweep, where, progress)
+    search_lib.check_trials(sweep, where, _check_trial)  # the searched space's ends; a reward metric's method
     return sweep

@@ -65,6 +65,12 @@ def summarize(
         if "trial_key" in r.data.tags:
             by_key.setdefault(r.data.tags["trial_key"], []).append(r)
     rows = []
+    if sweep.search is not None:  # the configs the searcher proposed: the runs there are
+        for key, runs in by_key.items():
+            tags = runs[0].data.tags
+            axes = {k: tags.get(f"axis.{k}", "") for k in sweep.axis_keys}
+            rows.append(_row(axes, int(tags.get("seed", -1)), key, runs, (ray_errors or {}).get(key)))
+        return sorted(rows, key=lambda r: (r.trial_id, r.seed))
     for trial, seed in sweep.runs():
         key = run_key(trial.overrides, seed)
         rows.append(_row(trial.axes, seed, key, by_key.get(key, []), (ray_errors or {}).get(key)))

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import config as config_lib
+from spot.sweep.reports import Reports, StoppedEarly, evaluated, mark_stopped
 from spot.sweep.spec import config_key, run_key, tag_value
 
 RunFn = Callable[..., dict[str, Any]]
@@ -61,6 +62,8 @@ class SweepContext:
     tracking_uri: str
     axis_keys: tuple[str, ...]
     fast_compile: bool = False  # the sweep file's fast_compile: SPOT_FAST_COMPILE=1 in the trial processes
+    metric: str | None = None  # the metric of search:/scheduler: (reports without it are not sent to Tune)
+    stopper: str = ""  # who stops trials early (ASHA, median stopping): named in a stopped run's failure_reason
     created_at: float = field(default_factory=time.time)  # when the driver set the launch up (start-up's origin)
 
 
@@ -146,12 +149,15 @@ def configure_process(cpus: int, gpus: float) -> None:
 # --------------------------------------------------------------------------- the runs of a trial
 def _finished(run: Any, seed: int) -> dict[str, Any]:
     m = run.data.metrics
+    reward = {k: m[k] for k in ("reward/best_eval_acc", "reward/best_eval_loss") if k in m}
     return {
         "seed": seed,
         "run_id": run.info.run_id,
         "skipped": 1,
         "score_final": m.get("eval/score_final"),
         "score_best": m.get("eval/score_best"),
+        **({"eval/score": m["eval/score_final"]} if "eval/score_final" in m else {}),
+        **reward,
     }
 
 
@@ -167,12 +173,13 @@ def _run_seed(
     """Run one seed with ``run_fn``; a failure is recorded as a FAILED run and raised."""
 
     cfg = config_lib.resolve(overrides, {"seed": seed, "tracking.experiment": ctx.experiment_name})
-
-    def on_eval(m: dict[str, float]) -> None:
-        report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
-
     try:
-        out = run_fn(cfg, progress=False, parent_run_id=ctx.parent_run_id, extra_tags=tags, on_eval=on_eval)
+        out = run_fn(
+            cfg, progress=False, parent_run_id=ctx.parent_run_id, extra_tags=tags, on_eval=evaluated(seed, report)
+        )
+    except StoppedEarly as stop:
+        mark_stopped(client, ctx, [tags["attempt"]], stop)
+        raise
     except Exception as e:
         _record_failure(client, ctx, cfg, tags, e, seed)
         raise
@@ -231,18 +238,17 @@ def _run_vmapped(
 
     seeds = list(pending)
     cfgs = [config_lib.resolve(overrides, {"seed": s, "tracking.experiment": ctx.experiment_name}) for s in seeds]
-
-    def on_eval(seed: int) -> Callable[[dict[str, float]], None]:
-        return lambda m: report({"seed": seed, "score": m["score"], "iql_step": m["step"]})
-
     try:
         outs = run_fn(
             cfgs,
             progress=False,
             parent_run_id=ctx.parent_run_id,
             extra_tags=[pending[s] for s in seeds],
-            on_eval=[on_eval(s) for s in seeds],
+            on_eval=[evaluated(s, report) for s in seeds],
         )
+    except StoppedEarly as stop:
+        mark_stopped(client, ctx, [pending[s]["attempt"] for s in seeds], stop)
+        raise
     except Exception as e:
         for cfg, seed in zip(cfgs, seeds, strict=True):
             _record_failure(client, ctx, cfg, pending[seed], e, seed)
@@ -349,6 +355,13 @@ def run_trial(
 
 
 # --------------------------------------------------------------------------- the trainable
+def trial_overrides(config: dict[str, Any]) -> dict[str, Any]:
+    """A Tune trial config's overrides: the trial's, with a searcher's proposed values (``search``,
+    as plain Python values: HyperOpt proposes numpy scalars) over them."""
+    searched = {k: v.item() if hasattr(v, "item") else v for k, v in config.get("search", {}).items()}
+    return {**config["trial"]["overrides"], **searched}
+
+
 _PROCESS: dict[str, Any] = {"settings": None, "last_end": None}  # this process's trial settings, last trial's end
 
 
@@ -447,15 +460,18 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
                 if "jax" in sys.modules:  # (a run_fn given by a test may not use jax at all)
                     phases.listen_to_compiles()
             clock.add("startup", startup)
-            finals = run_trial(
-                config["trial"]["overrides"],
-                config["trial"]["seeds"],
-                ctx,
-                trial_id=context.get_trial_id(),
-                report=tune.report,
-                run_fn=run_fn,
-                vmap=bool(config["trial"].get("vmap", False)),
-            )
+            try:
+                finals = run_trial(
+                    trial_overrides(config),
+                    list(config["trial"]["seeds"]),
+                    ctx,
+                    trial_id=context.get_trial_id(),
+                    report=Reports(tune.report, ctx.metric, ctx.stopper),
+                    run_fn=run_fn,
+                    vmap=bool(config["trial"].get("vmap", False)),
+                )
+            except StoppedEarly:  # its runs are closed (KILLED); Ray ends a stopped trial's thread so
+                raise SystemExit(0) from None
             cpu_s, spent = _cpu_s() - cpu0, clock.read()
             values = {f"time/trial_{k}_s": v for k, v in spent.items()}
             values.update(

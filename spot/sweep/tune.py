@@ -16,10 +16,11 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError
+from spot.sweep import search as search_lib
 from spot.sweep.spec import Sweep, run_key
 from spot.sweep.summary import log_fit_cpu
 from spot.sweep.tracking_store import watching_server
-from spot.sweep.trial import RunFn, SweepContext, _trainable
+from spot.sweep.trial import RunFn, SweepContext, _trainable, trial_overrides
 from spot.sweep.uris import LOOPBACK
 
 
@@ -54,6 +55,8 @@ def init_ray(address: str | None) -> bool:
     env_vars = {
         "RAY_CHDIR_TO_TRIAL_DIR": "0",  # trials keep the driver's working dir (relative paths)
         "MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT": "true",
+        # a reused actor waits this long for a trial stopped early to close its runs (Ray's default: 2 s)
+        "TUNE_FUNCTION_THREAD_TIMEOUT_S": os.environ.get("TUNE_FUNCTION_THREAD_TIMEOUT_S", "60"),
     }  # no "View run" lines in the progress view
     from spot import store as store_lib
     from spot.tracking import limits
@@ -153,10 +156,35 @@ def _trial_dirname(trial: Any) -> str:
 def _trial_name(trial: Any) -> str:
     """A readable trial name for Tune's output: ``method=spot,seed=0`` (axes, then seeds)."""
     cfg = trial.config.get("trial", {}) if isinstance(trial.config, dict) else {}
-    parts = [f"{k}={v}" for k, v in cfg.get("axes", {}).items()]
+    searched = trial.config.get("search", {}) if isinstance(trial.config, dict) else {}
+    parts = [
+        f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in {**cfg.get("axes", {}), **searched}.items()
+    ]
     seeds = cfg.get("seeds", [])
     parts.append(f"seed={seeds[0]}" if len(seeds) == 1 else f"seeds={','.join(map(str, seeds))}")
     return ",".join(parts)
+
+
+def _param_space(sweep: Sweep) -> dict[str, Any]:
+    """Tune's param space: the grid of trials, or (``search:``) the template trial and the searched
+    keys' domains under ``search`` (:func:`spot.sweep.trial._trainable` merges them)."""
+    from ray import tune
+
+    if sweep.search is None:
+        return {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
+    return {"trial": sweep.trials()[0].to_config(), "search": search_lib.space(sweep.search)}
+
+
+def _search_config(sweep: Sweep) -> dict[str, Any]:
+    """The TuneConfig fields of ``search:`` and ``scheduler:`` (none for a plain grid)."""
+    if sweep.metric is None:
+        return {}
+    out: dict[str, Any] = {"metric": sweep.metric, "mode": sweep.mode}
+    if sweep.search is not None:
+        out.update(search_alg=search_lib.searcher(sweep.search), num_samples=sweep.search.num_samples)
+    if sweep.scheduler is not None:
+        out["scheduler"] = search_lib.scheduler(sweep.scheduler)
+    return out
 
 
 def _tuner(
@@ -165,7 +193,7 @@ def _tuner(
     """A new Tune experiment over the sweep's trials, or the restored one with ``resume``."""
     from ray import tune
 
-    param_space = {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
+    param_space = _param_space(sweep)
     if resume and tune.Tuner.can_restore(str(exp_dir)):
         died, raised = _errored_trials(exp_dir)
         if died and not retry_errored:
@@ -186,8 +214,20 @@ def _tuner(
             restart_errored=retry_errored or died > 0,
         )
     reporter = _Reporter(
-        parameter_columns={**{f"trial/axes/{k}": k for k in sweep.axis_keys}, "trial/seeds": "seeds"},
-        metric_columns={"iql_step": "step", "score": "score", "score_final": "final", "seed": "seed"},
+        parameter_columns={
+            **{
+                f"{'search' if sweep.search and k in sweep.search.space else 'trial/axes'}/{k}": k
+                for k in sweep.axis_keys
+            },
+            "trial/seeds": "seeds",
+        },
+        metric_columns={
+            "iql_step": "step",
+            "score": "score",
+            "score_final": "final",
+            "seed": "seed",
+            **({sweep.metric: sweep.metric} if sweep.metric in search_lib.OFFLINE_SAFE else {}),
+        },
         max_report_frequency=30,
         sort_by_metric=False,
     )
@@ -195,6 +235,7 @@ def _tuner(
         trainable,
         param_space=param_space,
         tune_config=tune.TuneConfig(
+            **_search_config(sweep),
             max_concurrent_trials=max_concurrent,
             reuse_actors=True,  # the trials ask for the same resources: the next trial reuses an actor's process
             trial_dirname_creator=_trial_dirname,
@@ -261,7 +302,7 @@ def _trial_errors(exp_dir: Path) -> tuple[dict[str, str], bool]:
         if error is not None:
             lines = [ln for ln in str(error).splitlines() if ln.strip()]
             for seed in trial.config["trial"]["seeds"]:
-                errors[run_key(trial.config["trial"]["overrides"], seed)] = lines[-1] if lines else repr(error)
+                errors[run_key(trial_overrides(trial.config), seed)] = lines[-1] if lines else repr(error)
     return errors, any(t.status not in ("TERMINATED", "ERROR") for t in trials)
 
 
@@ -302,6 +343,10 @@ def fit(
         _tuner(
             sweep, trainable, exp_dir, resume=resume, retry_errored=retry_errored, max_concurrent=max_concurrent
         ).fit()
+    if sweep.scheduler is not None and not died():  # before the launch closes what is left as orphans
+        from spot.sweep.reports import close_stopped
+
+        close_stopped(MlflowClient(ctx.tracking_uri), ctx, _analysis_trials(exp_dir))
     with contextlib.suppress(Exception):  # a measurement: never the reason a launch fails
         if not died():
             log_fit_cpu(MlflowClient(ctx.tracking_uri), ctx.parent_run_id, cpu)
