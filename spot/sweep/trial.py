@@ -149,16 +149,21 @@ def configure_process(cpus: int, gpus: float) -> None:
 # --------------------------------------------------------------------------- the runs of a trial
 def _finished(run: Any, seed: int) -> dict[str, Any]:
     m = run.data.metrics
-    reward = {k: m[k] for k in ("reward/best_eval_acc", "reward/best_eval_loss") if k in m}
     return {
         "seed": seed,
         "run_id": run.info.run_id,
         "skipped": 1,
         "score_final": m.get("eval/score_final"),
         "score_best": m.get("eval/score_best"),
-        **({"eval/score": m["eval/score_final"]} if "eval/score_final" in m else {}),
-        **reward,
     }
+
+
+def _finished_metrics(run: Any) -> dict[str, float]:
+    """What a search or scheduler reads of a run found FINISHED (a resumed launch reports it):
+    its final score as ``eval/score`` and its reward model's held-out metrics."""
+    m = run.data.metrics
+    out = {k: m[k] for k in ("reward/best_eval_acc", "reward/best_eval_loss") if k in m}
+    return {**out, "eval/score": m["eval/score_final"]} if "eval/score_final" in m else out
 
 
 def _run_seed(
@@ -315,7 +320,7 @@ def run_trial(
         done = tracking.finished_run(client, ctx.experiment_id, {"sweep_id": ctx.sweep_id, "trial_key": key})
         if done is not None:
             finals.append(_finished(done, seed))
-            report(finals[-1])
+            report({**finals[-1], **(_finished_metrics(done) if ctx.metric else {})})
         else:
             pending[seed] = _seed_tags(overrides, key, ctx, trial_id)
     if pending and run_fn is None:
