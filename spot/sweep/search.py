@@ -234,16 +234,15 @@ def check(data: dict[str, Any], fields: dict[str, Any], where: str, reserved: tu
     return {"metric": metric, "mode": mode, "search": found, "scheduler": sched}
 
 
-def check_trials(sweep: Any, where: str, check_trial: Any) -> None:
+def check_trials(sweep: Any, where: str, check_trial: Any, trial_cls: Any) -> None:
     """Resolve the configs at the ends of the searched space (``check_trial``:
-    :func:`spot.sweep.spec._check_trial`), and refuse a reward-model metric for a trial whose
-    method trains no reward model."""
-    from spot.sweep.spec import Trial
-
+    :func:`spot.sweep.spec._check_trial`; ``trial_cls``: :class:`spot.sweep.spec.Trial`, passed in
+    so that this module does not import the one that imports it), and refuse a reward-model metric
+    for a trial whose method trains no reward model."""
     trials = list(sweep.trials())
     if sweep.search is not None:
         trials = [
-            Trial(e, {**sweep.base, **e}, sweep.seeds, sweep.seed_mode == "vmap") for e in endpoints(sweep.search)
+            trial_cls(e, {**sweep.base, **e}, sweep.seeds, sweep.seed_mode == "vmap") for e in endpoints(sweep.search)
         ]
     for trial in trials:
         cfg = check_trial(trial, where)

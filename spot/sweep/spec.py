@@ -495,5 +495,5 @@ def _validated(data: dict[str, Any], path: Path, where: str, smoke: bool, progre
     _check_size(fields, where)
     sweep = Sweep(path=path, smoke=smoke, **fields)
     _check_trials(sweep, where, progress)
-    search_lib.check_trials(sweep, where, _check_trial)  # the searched space's ends; a reward metric's method
+    search_lib.check_trials(sweep, where, _check_trial, Trial)  # the searched space's ends; a reward metric's method
     return sweep
