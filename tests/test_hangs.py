@@ -467,3 +467,35 @@ def test_kill_9_of_the_sweeps_server_stops_the_trials_closes_the_runs_and_resume
     runs = client.search_runs([client.get_experiment_by_name("served").experiment_id])
     finished = [r.data.tags["trial_key"] for r in runs if "trial_key" in r.data.tags and r.info.status == "FINISHED"]
     assert len(finished) == 2 and len(set(finished)) == 2
+
+
+def test_a_server_that_stops_answering_mid_command_is_one_error_line(monkeypatch, capsys):
+    """An MLflow call deep inside a command (after the run opened) that gets no answer ends the
+    command with one `error:` line naming the server, exit 2, not MLflow's traceback."""
+    import requests
+    from mlflow.exceptions import MlflowException
+
+    from spot import cli
+
+    def stalled(args):
+        try:
+            raise requests.exceptions.ReadTimeout("HTTPConnectionPool(host='127.0.0.1', port=9): read timeout=3")
+        except requests.exceptions.ReadTimeout as e:
+            raise MlflowException("API request to http://127.0.0.1:9/api/2.0/mlflow/runs/log-batch failed") from e
+
+    monkeypatch.setattr(cli, "_parse", lambda argv: type("A", (), {"fn": staticmethod(stalled)})())
+    assert cli.main(["config", "keys"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: tracking server http://127.0.0.1:9 did not answer")
+    assert "no answer within 3 s" in err[0] and "/api/2.0/mlflow/runs/log-batch" in err[0]
+
+
+def test_other_errors_mid_command_still_raise(monkeypatch):
+    from spot import cli
+
+    def broken(args):
+        raise ValueError("a bug, not a server")
+
+    monkeypatch.setattr(cli, "_parse", lambda argv: type("A", (), {"fn": staticmethod(broken)})())
+    with pytest.raises(ValueError, match="a bug"):
+        cli.main(["config", "keys"])

@@ -115,4 +115,11 @@ def main(argv: list[str] | None = None) -> int:
         # `spot ... | head`: the reader left; stop quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the final flush must not raise again
         return 141  # 128 + SIGPIPE, the shell's status for a command killed by a closed pipe
+    except Exception as e:  # a tracking server that stopped answering mid-run: one line, not MLflow's traceback
+        from spot.tracking import limits
+
+        if (gone := limits.unreachable(e)) is None:
+            raise
+        print(f"error: {gone}", file=sys.stderr)
+        return 2
     return rc or 0
