@@ -3,12 +3,15 @@
 import json
 import re
 import shlex
+from pathlib import Path
 from urllib.parse import parse_qs, urlparse
 
 import pytest
 from mlflow.tracking import MlflowClient
 
 from spot import tracking
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_sweep_link_opens_the_runs_table_filtered_to_the_sweep():
@@ -82,7 +85,11 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
     )
     assert f"#/experiments/{exp_id}/runs/{run_id}" in printed
     assert f"#/experiments/{exp_id}/runs?workflowType=machine_learning" in printed
-    assert run.info.status == "FINISHED" and tags["mlflow.runName"] == "oracle-drawer-open-s0"
+    assert run.info.status == "FINISHED" and tags["mlflow.runName"] == "oracle drawer-open s0"  # by what varies
+    # an ML experiment (MLflow's model-training workspace); the paper's score beside the run's own
+    assert client.get_experiment(exp_id).tags["mlflow.experimentKind"] == "custom_model_development"
+    assert tags["variant"] == "spot" and tags["method"] == "oracle" and tags["seed"] == "0"
+    assert "eval/score_paper" not in run.data.metrics  # the paper's Table 1 has no Oracle on drawer-open
 
     # source and version
     assert tags["mlflow.source.name"] == shlex.join(["spot", *argv]) and tags["mlflow.source.type"] == "LOCAL"
@@ -119,3 +126,22 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
         assert f"mlflow=={env['packages']['mlflow']}\n" in f.read()
     assert not any(k.startswith(("mr.", "pt.", "hpl.", "ipl.")) for k in run.data.params)
     assert not any(k.startswith("cache/") for k in run.data.metrics)
+
+
+def test_the_papers_table1_score_is_logged_beside_the_runs_own(tmp_path):
+    """``eval/score_paper``: the paper's Table 1 mean of the run's (method, dataset), read here from
+    the CSV row itself; a cell the paper lacks logs nothing."""
+    from spot.tracking import naming
+
+    rows = [line.split(",") for line in (ROOT / "spot" / "paper_tables.csv").read_text().splitlines()[1:]]
+    pt_hopper = [r for r in rows if r[:3] == ["1", "hopper-medium-replay", "pt"] and r[3] == ""]
+    assert naming.paper_score("pt", "hopper-medium-replay-v2") == float(pt_hopper[0][4])
+    assert naming.paper_score("oracle", "drawer-open") is None and naming.paper_score("pt", "nope") is None
+    tracker = tracking.MemoryTracker()
+    naming.log_paper_score(tracker, "pt", "hopper-medium-replay")
+    assert tracker.metrics["eval/score_paper"] == [(0, float(pt_hopper[0][4]))]
+    # run names by what varies: a sweep trial's axes (λ for the shaping weight), else the dataset
+    tags = {"axis.method": "spot", "axis.shaping.weight": "0.5", "axis.labels.num_queries": "100"}
+    assert naming.run_name("spot", "hopper-medium-replay", 1, tags) == "spot λ=0.5 num_queries=100 s1"
+    assert naming.run_name("pt", "walker2d-medium-replay", 0, {"axis.data.name": "walker2d"}) == "pt walker2d s0"
+    assert naming.run_name("pt", "walker2d-medium-replay", 2, {}) == "pt walker2d-medium-replay s2"

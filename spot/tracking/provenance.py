@@ -106,6 +106,7 @@ def run_tags(
         "label_source": cfg.labels.source if cfg.reward.kind != "none" else "none",
         "seed": str(cfg.seed),
         "budget": cfg.budget,
+        "variant": cfg.variant,
         "git_commit": git_commit(),
     }
     tags.update({f"version.{k}": v for k, v in package_versions().items()})

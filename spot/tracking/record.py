@@ -21,6 +21,7 @@ from spot import config as config_lib
 from spot import phases
 from spot.tracking.limits import failure_reason, waiting_on
 from spot.tracking.locking import prepare_store
+from spot.tracking.naming import default_name, log_paper_score, run_name
 from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.provenance import active_params, log_run_files, mlflow_tags, run_tags, start_tags
 from spot.tracking.queries import client_uri, first_run
@@ -172,7 +173,8 @@ def record_failure(
     if parent_run_id:
         all_tags["mlflow.parentRunId"] = parent_run_id
     with waiting_on(client_uri(client), "recording a failed run"):
-        run = create_run(client, experiment_id, f"{cfg.method}-{cfg.data.name}-s{cfg.seed}", all_tags, cfg)
+        name = run_name(cfg.method, all_tags["dataset"], cfg.seed, all_tags)
+        run = create_run(client, experiment_id, name, all_tags, cfg)
         log_params(client, run.info.run_id, cfg, lookup_tags(all_tags))
         client.set_terminated(run.info.run_id, "FAILED")
     return run.info.run_id
@@ -206,7 +208,7 @@ def start_run(
     close_dead_runs(client, [exp_id])  # runs left RUNNING by dead processes of this host
     digest = dataset.fingerprint() if dataset is not None else None
     tags = {**start_tags(cfg, card, extra_tags, parent_run_id, digest), **process_tags()}
-    name = run_name or f"{cfg.method}-{tags['dataset']}-s{cfg.seed}"
+    name = run_name or default_name(cfg, tags)
     run = create_run(client, exp_id, name, tags, cfg)
     tracker = MlflowTracker(client, run.info.run_id)
     monitor = SystemMetrics(run.info.run_id, uri).start() if system_metrics else None
@@ -215,6 +217,7 @@ def start_run(
         if digest:
             log_dataset_input(client, run.info.run_id, dataset, card, cfg, digest)
         log_run_files(tracker, cfg, card)
+        log_paper_score(tracker, cfg.method, tags["dataset"])
         yield tracker
     except BaseException as e:
         if monitor is not None:

@@ -43,6 +43,7 @@ from spot import SpotError
 from spot import config as config_lib
 from spot.tracking import record_checks as checks
 from spot.tracking.limits import failure_reason
+from spot.tracking.naming import default_name, log_paper_score
 from spot.tracking.provenance import active_params, log_run_files, start_tags
 from spot.tracking.record_checks import ARTIFACTS_DIR, FORMAT, METRICS_FILE, RECORD_FILE, now_ms
 from spot.tracking.trackers import finite_metrics, json_safe
@@ -141,7 +142,7 @@ def start_record(
         "format": FORMAT,
         "record_id": record_id,
         "experiment": cfg.tracking.experiment,
-        "run_name": run_name or f"{cfg.method}-{tags['dataset']}-s{cfg.seed}",
+        "run_name": run_name or default_name(cfg, tags),
         "status": "RUNNING",
         "start_time": now_ms(),
         "end_time": None,
@@ -151,6 +152,7 @@ def start_record(
     tracker = RecordTracker(root / record_id, head)
     try:
         log_run_files(tracker, cfg, card)
+        log_paper_score(tracker, cfg.method, tags["dataset"])
         yield tracker
     except BaseException as e:
         tracker.head["tags"]["failure_reason"] = failure_reason(e)

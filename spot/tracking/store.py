@@ -20,6 +20,7 @@ from typing import Any
 from spot import SpotError
 from spot.tracking.limits import waiting_on
 from spot.tracking.locking import prepare_store, sqlite_path
+from spot.tracking.naming import EXPERIMENT_KIND, EXPERIMENT_KIND_TAG
 
 SWEEP_STORE = Path("spot_runs") / "mlflow.db"
 """The default store of every command (``spot run``, ``spot sweep``, the readers), relative to the
@@ -144,7 +145,9 @@ def reader(uri: str | None = None) -> Any:
 
 
 def experiment_id(name: str, uri: str) -> str:
-    """Get or create the experiment (with an explicit artifact location for local stores)."""
+    """Get or create the experiment (with an explicit artifact location for local stores), tagged as
+    an ML experiment (:data:`spot.tracking.naming.EXPERIMENT_KIND`: MLflow's UI opens it in its
+    model-training workspace)."""
     from mlflow.tracking import MlflowClient
 
     check_server(uri)  # an http(s) server that does not answer: a clear error, not minutes of retries
@@ -154,12 +157,17 @@ def experiment_id(name: str, uri: str) -> str:
     with waiting_on(uri, f"looking up experiment {name!r}"):
         exp = client.get_experiment_by_name(name)
     if exp is not None:
+        if EXPERIMENT_KIND_TAG not in exp.tags:  # made before spot set it: an ML experiment all the same
+            with waiting_on(uri, f"tagging experiment {name!r}"):
+                client.set_experiment_tag(exp.experiment_id, EXPERIMENT_KIND_TAG, EXPERIMENT_KIND)
         return exp.experiment_id
     db = sqlite_path(uri)
     location = (db.parent / "artifacts").resolve().as_uri() if db is not None else None
     with waiting_on(uri, f"creating experiment {name!r}"):
         try:
-            return client.create_experiment(name, artifact_location=location)
+            return client.create_experiment(
+                name, artifact_location=location, tags={EXPERIMENT_KIND_TAG: EXPERIMENT_KIND}
+            )
         except Exception:  # noqa: BLE001 - created concurrently by another process
             exp = client.get_experiment_by_name(name)
             if exp is None:
