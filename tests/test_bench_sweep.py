@@ -162,10 +162,10 @@ def test_bench_sweep_needs_a_file():
     assert out.returncode == 2 and out.stderr.strip().startswith("error: spot bench sweep needs the sweep file")
 
 
-def test_bench_seeds_go_with_iql_and_pt_only():
+def test_bench_seeds_go_with_iql_pt_and_eval_only():
     out = run_cli("bench", "cvae", "--small", "--seeds", "2")
     assert out.returncode == 2 and out.stderr.strip() == (
-        "error: spot bench cvae: --seeds (seeds as a vmap axis) goes with iql and pt"
+        "error: spot bench cvae: --seeds (seeds as a vmap axis) goes with iql, pt and eval"
     )
 
 
