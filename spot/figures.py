@@ -46,6 +46,7 @@ from matplotlib.figure import Figure
 
 from spot import SpotError, tracking
 from spot.results import table_format, tables
+from spot.results.figures_curves import image_format  # noqa: F401 (spot.figures.image_format: the CLI checks --out with it)
 
 FIG2_ARTIFACT = "extrapolation_error.json"
 FIG4_ARTIFACT = "subgoal_projection.png"
@@ -218,17 +219,6 @@ def plot_fig2(bins: pd.DataFrame, path: str | Path, *, ddof: int = 1, reference:
 
 
 # --------------------------------------------------------------------------- Fig. 4
-def image_format(path: str | Path) -> str:
-    """The output format named by ``path``'s extension; SpotError if matplotlib cannot write it."""
-    from matplotlib.backend_bases import FigureCanvasBase
-
-    fmt = Path(path).suffix.lower().lstrip(".")
-    formats = FigureCanvasBase.get_supported_filetypes()
-    if fmt not in formats:
-        raise SpotError(f"--out {path}: unknown figure format {fmt!r}; use one of .{', .'.join(sorted(formats))}")
-    return fmt
-
-
 def save_image(png: str | Path, out: str | Path, dpi: int = 110) -> Path:
     """Write the PNG ``png`` to ``out`` in the format of its extension: a copy for ``.png``, else the
     image at its pixel size in a figure of that format (a raster inside a PDF or SVG)."""

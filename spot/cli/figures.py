@@ -195,8 +195,8 @@ def _runs(args: argparse.Namespace, curves: bool) -> Any:
 
 
 def _results_figure(args: argparse.Namespace) -> None:
-    from spot.figures import image_format
     from spot.results import figures_curves as fc
+    from spot.results.figures_curves import image_format
     from spot.results.table_format import check_out
 
     image_format(args.out)  # an unknown extension or folder fails before any work
@@ -214,8 +214,8 @@ def _results_figure(args: argparse.Namespace) -> None:
 
 def _claims_figure(args: argparse.Namespace) -> None:
     from spot.cli.results import report_inputs
-    from spot.figures import image_format
     from spot.results import figures_curves, figures_report, report
+    from spot.results.figures_curves import image_format
     from spot.results.table_format import check_out
 
     image_format(args.out)

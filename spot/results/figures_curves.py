@@ -40,10 +40,19 @@ COLUMNS = 3  # panels (datasets) per row of the curves figure
 N_RESAMPLES = 2000  # per step and group: a band to look at, not a verdict (the report's CIs use 20000)
 
 
+def image_format(path: str | Path) -> str:
+    """The output format named by ``path``'s extension; SpotError if matplotlib cannot write it."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    fmt = Path(path).suffix.lower().lstrip(".")
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if fmt not in formats:
+        raise SpotError(f"--out {path}: unknown figure format {fmt!r}; use one of .{', .'.join(sorted(formats))}")
+    return fmt
+
+
 def save(fig: Figure, path: str | Path, dpi: int = 120) -> Path:
     """Write ``fig`` to ``path`` in the format its extension names; nothing is left on failure."""
-    from spot.figures import image_format
-
     path = Path(path)
     fmt = image_format(path)
     folder = path.parent if str(path.parent) else Path(".")
