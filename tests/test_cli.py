@@ -271,10 +271,7 @@ def test_run_takes_tracking_uri_and_says_where_it_logged(tmp_path, monkeypatch, 
     run_id = out.split()[1].rstrip(":")
     exp_id = MlflowClient(uri).get_experiment_by_name("cli").experiment_id
     assert f"logged to {uri} (experiment id {exp_id}, run {run_id})" in out
-    assert (
-        f"open the runs with: MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri {uri} "
-        f"--artifacts-destination {tmp_path / 'artifacts'} --workers 1"
-    ) in out
+    assert f"open the runs with: spot ui --tracking-uri {uri}" in out
     assert f"then: http://127.0.0.1:5000/#/experiments/{exp_id}/runs/{run_id}" in out
     assert f"runs table: http://127.0.0.1:5000/#/experiments/{exp_id}/runs?workflowType=machine_learning" in out
 

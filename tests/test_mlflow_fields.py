@@ -22,8 +22,14 @@ def test_sweep_link_opens_the_runs_table_filtered_to_the_sweep():
     assert route == "/experiments/7/runs"
     q = parse_qs(query)
     assert q["workflowType"] == ["machine_learning"]
-    assert q["searchFilter"] == ["tags.`sweep_id` = 'quickstart-20261125-081500-ab12'"]
-    assert "workflowType=machine_learning" in url and "searchFilter=tags.%60sweep_id%60%20%3D%20%27quickstart" in url
+    assert q["viewStateShareKey"] == ["spot-quickstart-20261125-081500-ab12"]  # the view share_sweep_view writes
+    assert "searchFilter" not in q  # (the UI ignores a shared view when the link has a filter of its own)
+    view = tracking.ui.sweep_view("p1", ("method", "shaping.weight"))
+    assert view["searchFilter"] == "tags.`mlflow.parentRunId` = 'p1'"
+    assert (
+        "tags.`axis.shaping.weight`" in view["selectedColumns"] and "tags.`axis.method`" not in view["selectedColumns"]
+    )
+    assert "metrics.`eval/score_final`" in view["selectedColumns"] and "tags.`seed`" in view["selectedColumns"]
     assert " " not in url and "'" not in url  # URL-encoded
     assert tracking.runs_url("3", base="http://mlflow:5000/").startswith(
         "http://mlflow:5000/#/experiments/3/runs?workflowType=machine_learning"
@@ -31,11 +37,13 @@ def test_sweep_link_opens_the_runs_table_filtered_to_the_sweep():
 
 
 def test_ui_command_is_the_lean_one():
-    cmd = tracking.ui_command("sqlite:////w/spot_runs/mlflow.db", "/w/spot runs/artifacts")
-    words = shlex.split(cmd)
-    assert words[0] == "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false" and words[1:3] == ["mlflow", "ui"]
-    assert words[words.index("--workers") + 1] == "1"
-    assert words[words.index("--backend-store-uri") + 1] == "sqlite:////w/spot_runs/mlflow.db"
+    assert (
+        tracking.ui_command("sqlite:////w/spot runs/mlflow.db")
+        == "spot ui --tracking-uri 'sqlite:////w/spot runs/mlflow.db'"
+    )
+    words = shlex.split(tracking.ui.server_command("sqlite:////w/spot_runs/mlflow.db", "/w/spot runs/artifacts", 5000))
+    assert words[0] == "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false" and words[1:3] == ["mlflow", "server"]
+    assert words[words.index("--workers") + 1] == "1" and words[words.index("--host") + 1] == "127.0.0.1"
     assert words[words.index("--artifacts-destination") + 1] == "/w/spot runs/artifacts"  # quoted
 
 
@@ -80,9 +88,7 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
 
     # `spot run` says where it logged, how to open it and links to the run and the runs table
     assert f"logged to {uri} (experiment id {exp_id}, run {run_id})" in printed
-    assert (
-        "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false mlflow ui --backend-store-uri" in printed and "--workers 1" in printed
-    )
+    assert f"open the runs with: spot ui --tracking-uri {uri}" in printed
     assert f"#/experiments/{exp_id}/runs/{run_id}" in printed
     assert f"#/experiments/{exp_id}/runs?workflowType=machine_learning" in printed
     assert run.info.status == "FINISHED" and tags["mlflow.runName"] == "oracle drawer-open s0"  # by what varies

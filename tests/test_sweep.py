@@ -269,12 +269,11 @@ def test_resume_leaves_exactly_one_finished_run_per_config_and_seed(killed_and_r
     # The summary lists every (config, seed) with its status, the failure reason included.
     lines = [ln for ln in out.stdout.splitlines() if ln.startswith(("drawer-open", killed_and_resumed["broken"]))]
     assert len(lines) == 4 and sum("FINISHED" in ln for ln in lines) == 2 and sum("FAILED" in ln for ln in lines) == 2
-    assert "2/4 runs finished" in out.stdout and "mlflow ui --backend-store-uri sqlite:///" in out.stdout
-    assert "MLFLOW_SERVER_ENABLE_JOB_EXECUTION=false" in out.stdout and "--workers 1" in out.stdout  # the lean UI
+    assert "2/4 runs finished" in out.stdout and "spot ui --tracking-uri sqlite:///" in out.stdout
     link = next(ln for ln in out.stdout.splitlines() if ln.startswith("then open the sweep's runs: "))
     from urllib.parse import unquote
 
-    assert "workflowType=machine_learning" in link and "searchFilter=tags.`sweep_id` = 'killtest" in unquote(link)
+    assert "workflowType=machine_learning" in link and "viewStateShareKey=spot-killtest" in unquote(link)
     # The first launch's server died with its driver (PR_SET_PDEATHSIG).
     assert not MlflowServer("sqlite:///x", Path("/tmp"), port=killed_and_resumed["first_port"]).healthy()
 

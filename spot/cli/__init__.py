@@ -7,7 +7,7 @@ dataset build seed, ``data.build_seed``; ``--seed`` is its old name), ``--quiet`
 bars) wherever a command draws them.
 
 One module per command group, each with its parsers beside their handlers: :mod:`.data`,
-:mod:`.labels`, :mod:`.run` (run, eval), :mod:`.bench`, :mod:`.sweep`, :mod:`.config_cmd`,
+:mod:`.labels`, :mod:`.run` (run, eval), :mod:`.bench`, :mod:`.sweep`, :mod:`.ui`, :mod:`.config_cmd`,
 :mod:`.results` (tables, results, report), :mod:`.figures`; :mod:`.common` holds what they share.
 Building the parser imports no numpy, pandas, SciPy, JAX, MLflow or Ray (``spot --help`` answers
 at once); a handler imports what it needs when it runs.
@@ -22,7 +22,7 @@ import shlex
 import sys
 
 from spot import NonFiniteError, SpotError
-from spot.cli import bench, config_cmd, data, figures, labels, results, run, sweep
+from spot.cli import bench, config_cmd, data, figures, labels, results, run, sweep, ui
 from spot.cli.common import Formatter
 
 __all__ = ["build_parser", "main"]
@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=_version())
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     # in the order `spot --help` lists them
-    for group in (data, labels, run, bench, sweep, config_cmd, results, figures):
+    for group in (data, labels, run, bench, sweep, ui, config_cmd, results, figures):
         group.add(sub)
     return p
 

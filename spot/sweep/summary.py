@@ -61,9 +61,14 @@ def summarize(
     from spot import tracking
 
     by_key: dict[str, list[Any]] = {}
+    parents = []
     for r in tracking.search_runs(client, [experiment_id], tracking.tag_filter({"sweep_id": sweep_id})):
         if "trial_key" in r.data.tags:
             by_key.setdefault(r.data.tags["trial_key"], []).append(r)
+        else:
+            parents.append(r.info.run_id)
+    if parents:
+        share_view(client, experiment_id, sweep_id, parents[0], sweep.axis_keys)
     rows = []
     if sweep.search is not None:  # the configs the searcher proposed: the runs there are
         for key, runs in by_key.items():
@@ -75,6 +80,19 @@ def summarize(
         key = run_key(trial.overrides, seed)
         rows.append(_row(trial.axes, seed, key, by_key.get(key, []), (ray_errors or {}).get(key)))
     return rows
+
+
+def share_view(client: Any, experiment_id: str, sweep_id: str, parent_run_id: str, axis_keys: tuple[str, ...]) -> None:
+    """The view the printed link opens (:func:`spot.tracking.ui.share_sweep_view`: the trials' runs
+    with their method, dataset, seed, axes and scores as columns); a store that refuses the
+    experiment tag leaves the link on MLflow's own view, with a note."""
+    from spot import tracking
+    from spot.sweep.signals import say
+
+    try:
+        tracking.ui.share_sweep_view(client, experiment_id, sweep_id, parent_run_id, axis_keys)
+    except Exception as e:  # noqa: BLE001 - the summary matters more than the link's columns
+        say(f"note: the sweep's view of the runs table was not saved ({type(e).__name__}: {e})")
 
 
 def text_table(header: list[str], body: list[list[str]]) -> str:

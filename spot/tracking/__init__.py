@@ -13,7 +13,7 @@
   orphan closing, artifacts (used by sweeps, tables and figures).
 * :mod:`spot.tracking.models`: a run's trained models as data-only artifacts with a JSON header
   (``models/<name>.npz`` + ``.json``), saved and loaded again (``spot eval``, ``spot figures``).
-* :mod:`spot.tracking.ui`: the lean ``mlflow ui`` command and links that open the runs table.
+* :mod:`spot.tracking.ui`: the ``spot ui`` command and links that open the runs table (a sweep's shared view).
 * :mod:`spot.tracking.recorded`: runs recorded as files where no MLflow store is at hand
   (``tracking.record``), imported into one later (``spot results import``);
   :mod:`spot.tracking.record_checks` checks a record whole before it is imported.
