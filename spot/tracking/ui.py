@@ -101,8 +101,9 @@ def sweep_url(experiment_id: str, sweep_id: str, base: str = DEFAULT_URL) -> str
 
 
 def run_url(experiment_id: str, run_id: str, base: str = DEFAULT_URL) -> str:
-    """One run's page."""
-    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs/{run_id}"
+    """One run's page, in the UI's model-training workspace (``workflowType``: the UI otherwise keeps
+    the workspace last chosen in the browser, which may be GenAI)."""
+    return f"{base.rstrip('/')}/#/experiments/{experiment_id}/runs/{run_id}?workflowType=machine_learning"
 
 
 def where_logged(tracking_uri: str, experiment_id: str, run_id: str) -> list[str]:
