@@ -4,4 +4,5 @@ import sys
 
 from spot.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":  # importing the module (tests import every spot module) runs nothing
+    sys.exit(main())
