@@ -22,6 +22,7 @@ import pytest
 from spot import SpotError
 from spot.sweep import reports, spec
 from spot.sweep.trial import trial_overrides
+from tests.test_sweep import _finished_child_runs
 
 GOOD = """
 name: srch
@@ -277,21 +278,6 @@ def test_searcher_proposes_and_asha_stops_a_trial(tmp_path, spot_dirs):
     assert "KILLED" in out.stdout and "iql.temperature" in out.stdout, log
 
 
-def _finished_runs(db: Path) -> int:
-    import sqlite3
-
-    if not db.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
-            return con.execute(
-                "select count(*) from runs r join tags t on r.run_uuid = t.run_uuid "
-                "where t.key = 'trial_key' and r.status = 'FINISHED'"
-            ).fetchone()[0]
-    except sqlite3.OperationalError:  # tables not created yet
-        return 0
-
-
 @pytest.mark.slow
 def test_resume_continues_the_searcher(tmp_path, spot_dirs):
     """SIGKILL a search launch after its first finished run, then --resume: the searcher's state
@@ -314,7 +300,7 @@ def test_resume_continues_the_searcher(tmp_path, spot_dirs):
             cmd, cwd=tmp_path, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
         )
         deadline = time.monotonic() + 600
-        while _finished_runs(db) < 1:
+        while _finished_child_runs(db) < 1:
             assert proc.poll() is None, (tmp_path / "launch.log").read_text()[-3000:]
             assert time.monotonic() < deadline, (tmp_path / "launch.log").read_text()[-3000:]
             time.sleep(0.5)
