@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# The paired subgoal controls (issue 41 item 4) and the like-for-like Oracle arm, as plain
+# `spot run`s taken from one queue by WORKERS processes. Resumable: a finished item leaves a
+# marker in $LAB/done and is skipped next time; an item that was running when the script was
+# stopped runs again from the start (its stages come back from the stage cache).
+#   LAB=/work/lab/paired SPOT_DATA_DIR=... SPOT_CACHE_DIR=... nohup nice -n 19 \
+#     bash experiments/lab-hopper-full-replay/paired.sh > $LAB/paired.log 2>&1 &
+# Export: spot results export --experiment lab_hopper_fr_pf_paired --tracking-uri sqlite:///$LAB/mlflow.db \
+#   --out experiments/lab-hopper-full-replay/results/lab_hopper_fr_pf_paired.csv
+set -uo pipefail
+LAB=${LAB:?set LAB to a folder outside the work tree}
+WORKERS=${WORKERS:-2}
+SPOT=${SPOT:-spot}
+mkdir -p "$LAB/done" "$LAB/claim" "$LAB/logs"
+rm -rf "$LAB/claim"/*   # claims of a stopped launch: those items run again
+BASE=(budget=lab data.size=paper-fast data.name=hopper-full-replay variant=paper
+      tracking.experiment=lab_hopper_fr_pf_paired "tracking.uri=sqlite:///$LAB/mlflow.db")
+queue=()
+for s in 5 6 7 8 9; do
+  queue+=("spot-s$s|method=spot seed=$s" "random-s$s|method=spot subgoal.source=random seed=$s"
+          "constant-s$s|method=spot shaping.kind=constant seed=$s")
+  case $s in 6) queue+=("oracle_pt-s0|method=oracle relabel.normalize=pt seed=0");;
+             7) queue+=("oracle_pt-s1|method=oracle relabel.normalize=pt seed=1");;
+             8) queue+=("oracle_pt-s2|method=oracle relabel.normalize=pt seed=2");; esac
+done
+worker() {
+  for item in "${queue[@]}"; do
+    name=${item%%|*}; args=${item#*|}
+    [ -e "$LAB/done/$name" ] && continue
+    mkdir "$LAB/claim/$name" 2>/dev/null || continue
+    echo "$(date -u +%FT%TZ) worker $1 start $name"
+    # shellcheck disable=SC2086
+    if $SPOT run --quiet "${BASE[@]}" $args > "$LAB/logs/$name.log" 2>&1; then
+      touch "$LAB/done/$name"; echo "$(date -u +%FT%TZ) worker $1 done $name"
+    else echo "$(date -u +%FT%TZ) worker $1 FAILED $name (rc $?, $LAB/logs/$name.log)"; fi
+  done
+}
+for w in $(seq 1 "$WORKERS"); do worker "$w" & sleep 5; done
+wait
+echo "$(date -u +%FT%TZ) queue empty: $(ls "$LAB/done" | wc -l) of ${#queue[@]} items done"
