@@ -60,14 +60,10 @@ def _sweep(args: argparse.Namespace) -> int:
     if args.status:
         return _sweep_status(args)
     if args.dry_run:
-        spec = sweep.load(args.file, smoke=args.smoke, progress=False if args.quiet else None)
-        trials = spec.trials()
-        print(
-            f"sweep '{spec.experiment}' ({spec.path}): {len(trials)} trials, {len(spec.runs())} runs, "
-            f"seed_mode {spec.seed_mode}, resources per trial {spec.resources}"
-        )
-        for i, t in enumerate(trials):
-            print(f"  {i:4d}  {t.label}  seeds={list(t.seeds)}")
+        from spot.sweep import dryrun
+
+        for line in dryrun.lines(sweep.load(args.file, smoke=args.smoke, progress=False if args.quiet else None)):
+            print(line)  # a grid's trials, or a search's searcher, space and counts; a scheduler's limits
         return 0
     try:
         rows = sweep.run_sweep(

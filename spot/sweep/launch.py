@@ -309,9 +309,9 @@ def _announce(
     if resume and max_concurrent is not None:
         print("note: --max-concurrent is ignored on --resume (the restored launch keeps its setting)")
     command = f"spot sweep {path}{' --smoke' if smoke else ''} --resume"
-    n_trials = sweep.search.num_samples if sweep.search else len(sweep.trials())
+    n_trials, n_runs = search_lib.counts(sweep)
     print(
-        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {n_trials} trials, {n_trials * len(sweep.seeds)} runs "
+        f"sweep '{sweep.experiment}' ({state['sweep_id']}): {n_trials} trials, {n_runs} runs "
         f"(seed_mode {sweep.seed_mode}, {sweep.resources['cpu']:g} CPU / {sweep.resources['gpu']:g} GPU per trial)",
         flush=True,
     )

@@ -10,6 +10,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from spot.sweep import search as search_lib
 from spot.sweep.spec import Sweep, tag_value
 from spot.sweep.summary import Row
 from spot.sweep.trial import SweepContext
@@ -71,6 +72,7 @@ def _parent_params(sweep: Sweep) -> list[Any]:
         **{f"grid.{k}": v for k, v in sweep.grid.items()},
         **{f"zip.{k}": v for k, v in sweep.zip.items()},
         **{f"base.{k}": v for k, v in sweep.base.items()},
+        **search_lib.parent_params(sweep),  # metric, searcher, space, scheduler; a search's trials and runs
     }
     return [Param(k, tag_value(v)[:6000]) for k, v in params.items()]
 

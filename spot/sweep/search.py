@@ -14,6 +14,8 @@ Format: docs/sweeps.md, "Search and early stopping".
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -38,6 +40,17 @@ SCHEDULER_KEYS = {
 MAX_SAMPLES = 10_000
 """Most configs a searcher may propose (the grid's limit, spot.sweep.spec.MAX_RUNS)."""
 STOPPER_NAMES = {"asha": "ASHA", "median": "median stopping"}
+SEARCHER_NAMES = {
+    "optuna": "Optuna's TPE (ray.tune.search.optuna.OptunaSearch)",
+    "hyperopt": "HyperOpt's TPE (ray.tune.search.hyperopt.HyperOptSearch)",
+}
+SCHEDULER_CLASSES = {"asha": "ray.tune.schedulers.ASHAScheduler", "median": "ray.tune.schedulers.MedianStoppingRule"}
+SCHEDULER_DEFAULTS = {
+    "asha": {"grace_period": 1, "reduction_factor": 2, "max_t": 1000},
+    "median": {"grace_period": 1, "min_samples_required": 3},
+}
+"""The options spot gives a scheduler the file leaves out (time: Tune's ``training_iteration``)."""
+SMOKE_SEARCH_KEYS = ("num_samples",)
 
 
 @dataclass(frozen=True)
@@ -133,14 +146,22 @@ def check_scheduler(block: Any, where: str) -> Scheduler:
     if name not in SCHEDULERS:
         raise _err(where, "scheduler.name", f"expected one of {', '.join(SCHEDULERS)}, got {name!r}")
     _known(block, SCHEDULER_KEYS[name], where, "scheduler")
-    options = {
-        k: _int(v, where, f"scheduler.{k}", 2 if k == "reduction_factor" else 1)
-        for k, v in block.items()
-        if k != "name"
+    return Scheduler(name, _scheduler_values(name, block, {}, where, "scheduler"))
+
+
+def _scheduler_values(name: str, block: dict[str, Any], under: dict[str, int], where: str, key: str) -> dict[str, int]:
+    """``block``'s options but ``name``, checked, over ``under``; the ``max_t`` it runs with (given or
+    spot's default) at least its ``grace_period``. Errors name ``<key>.<option>``."""
+    given = {
+        k: _int(v, where, f"{key}.{k}", 2 if k == "reduction_factor" else 1) for k, v in block.items() if k != "name"
     }
-    if "max_t" in options and options["max_t"] < options.get("grace_period", 1):
-        raise _err(where, "scheduler.max_t", f"expected at least grace_period ({options['grace_period']})")
-    return Scheduler(name, options)
+    options = {**under, **given}
+    ran = {**SCHEDULER_DEFAULTS[name], **options}
+    if "max_t" in ran and ran["max_t"] < ran["grace_period"]:
+        if "max_t" in given or "grace_period" not in given:
+            raise _err(where, f"{key}.max_t", f"expected at least grace_period ({ran['grace_period']})")
+        raise _err(where, f"{key}.grace_period", f"expected at most max_t ({ran['max_t']})")
+    return options
 
 
 def check_objective(data: dict[str, Any], where: str) -> tuple[str | None, str | None]:
@@ -168,6 +189,42 @@ def endpoints(search: Search) -> list[dict[str, Any]]:
     for key, (kind, args) in search.space.items():
         values = args[1:] if kind == "choice" else [args[1] - 1 if kind == "randint" else args[1]]
         out.extend({**first, key: v} for v in values)
+    return out
+
+
+def domain_text(kind: str, args: list[Any]) -> str:
+    """A searched key's domain as the file gives it: ``loguniform [0.5, 10]``, ``choice ["a", "b"]``."""
+    return f"{kind} {json.dumps(args)}"
+
+
+def counts(sweep: Any) -> tuple[int, int]:
+    """``(trials, runs)`` a launch of ``sweep`` (:class:`spot.sweep.spec.Sweep`) makes: a searcher's
+    ``num_samples`` trials, each running every seed; else the grid's trials and (config, seed) runs."""
+    if sweep.search is not None:
+        return sweep.search.num_samples, sweep.search.num_samples * len(sweep.seeds)
+    return len(sweep.trials()), len(sweep.runs())
+
+
+def parent_params(sweep: Any) -> dict[str, Any]:
+    """The search setup as params of the launch's parent run: ``sweep.metric``/``sweep.mode``,
+    ``search.algorithm|num_samples|seed``, ``search.space.<key>`` (its domain), ``scheduler.name``
+    and every option the scheduler runs with (spot's defaults included), and for a search sweep the
+    ``sweep.trials``/``sweep.runs`` it makes (the trial list holds only the template the searcher
+    completes). Empty for a grid sweep without a scheduler."""
+    out: dict[str, Any] = {}
+    if sweep.metric is not None:
+        out.update({"sweep.metric": sweep.metric, "sweep.mode": sweep.mode})
+    if sweep.search is not None:
+        found = sweep.search
+        out.update(dict(zip(("sweep.trials", "sweep.runs"), counts(sweep), strict=True)))
+        out.update(
+            {"search.algorithm": found.algorithm, "search.num_samples": found.num_samples, "search.seed": found.seed}
+        )
+        out.update({f"search.space.{k}": domain_text(kind, args) for k, (kind, args) in found.space.items()})
+    if sweep.scheduler is not None:
+        out["scheduler.name"] = sweep.scheduler.name
+        out.update({f"scheduler.{k}": v for k, v in scheduler_options(sweep.scheduler).items()})
+        out["scheduler.time_attr"] = "training_iteration"
     return out
 
 
@@ -200,23 +257,33 @@ def searcher(search: Search) -> Any:
         ) from None
 
 
+def scheduler_options(sched: Scheduler) -> dict[str, int]:
+    """Every option the scheduler runs with: the file's, else spot's :data:`SCHEDULER_DEFAULTS`."""
+    return {**SCHEDULER_DEFAULTS[sched.name], **sched.options}
+
+
 def scheduler(sched: Scheduler) -> Any:
     from ray.tune import schedulers
 
+    opts = scheduler_options(sched)
     if sched.name == "asha":
-        opts = {"grace_period": 1, "reduction_factor": 2, "max_t": 1000, **sched.options}
         return schedulers.ASHAScheduler(time_attr="training_iteration", **opts)
-    opts = {"grace_period": 1, "min_samples_required": 3, **sched.options}
     return schedulers.MedianStoppingRule(time_attr="training_iteration", **opts)
 
 
 # --------------------------------------------------------------------------- the sweep file's checks
-def check(data: dict[str, Any], fields: dict[str, Any], where: str, reserved: tuple[str, ...]) -> dict[str, Any]:
+def check(
+    data: dict[str, Any], fields: dict[str, Any], where: str, reserved: tuple[str, ...], smoke: bool = False
+) -> dict[str, Any]:
     """The sweep's ``metric``, ``mode``, ``search`` and ``scheduler`` fields, checked against the
-    rest of the file (``fields``: its validated fields)."""
+    rest of the file (``fields``: its validated fields); with ``smoke``, the ``smoke:`` block's
+    ``search``/``scheduler`` applied (:func:`apply_smoke`; checked either way)."""
     metric, mode = check_objective(data, where)
     found = check_search(data["search"], where, reserved) if "search" in data else None
     sched = check_scheduler(data["scheduler"], where) if "scheduler" in data else None
+    smoked = apply_smoke(data.get("smoke", {}), found, sched, where)
+    if smoke:
+        found, sched = smoked
     if found is not None:
         for section in ("grid", "zip"):
             if fields[section]:
@@ -232,6 +299,39 @@ def check(data: dict[str, Any], fields: dict[str, Any], where: str, reserved: tu
                 "(every seed of a proposed config in its trial)",
             )
     return {"metric": metric, "mode": mode, "search": found, "scheduler": sched}
+
+
+def apply_smoke(
+    block: Any, found: Search | None, sched: Scheduler | None, where: str
+) -> tuple[Search | None, Scheduler | None]:
+    """The smoke block's ``search: {num_samples: N}`` (at most the file's) and ``scheduler:`` (any of
+    the file's scheduler's options but ``name``, e.g. a lower ``max_t`` or ``grace_period``) applied
+    to the file's search and scheduler. Errors name ``smoke.search.<key>`` / ``smoke.scheduler.<key>``."""
+    if not isinstance(block, dict):  # refused by spot.sweep.spec before this
+        return found, sched
+    if "search" in block:
+        if found is None:
+            raise _err(where, "smoke.search", "the file has no 'search:' block for it to shrink")
+        part = _known(block["search"], SMOKE_SEARCH_KEYS, where, "smoke.search")
+        if "num_samples" in part:
+            n = part["num_samples"]
+            if not isinstance(n, int) or isinstance(n, bool) or not 1 <= n <= found.num_samples:
+                raise _err(
+                    where,
+                    "smoke.search.num_samples",
+                    f"expected an integer from 1 to search.num_samples ({found.num_samples}), "
+                    f"got {config_lib.shown(n)}",
+                )
+            found = dataclasses.replace(found, num_samples=n)
+    if "scheduler" in block:
+        if sched is None:
+            raise _err(where, "smoke.scheduler", "the file has no 'scheduler:' block for it to shorten")
+        part = block["scheduler"]
+        if isinstance(part, dict) and "name" in part:
+            raise _err(where, "smoke.scheduler.name", f"a smoke launch keeps the file's scheduler ({sched.name})")
+        part = _known(part, tuple(k for k in SCHEDULER_KEYS[sched.name] if k != "name"), where, "smoke.scheduler")
+        sched = Scheduler(sched.name, _scheduler_values(sched.name, part, sched.options, where, "smoke.scheduler"))
+    return found, sched
 
 
 def check_trials(sweep: Any, where: str, check_trial: Any, trial_cls: Any) -> None:

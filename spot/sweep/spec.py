@@ -43,7 +43,7 @@ SWEEP_KEYS = (
     "smoke",
     *("metric", "mode", "search", "scheduler"),  # search and early stopping: spot.sweep.search
 )
-SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources", "fast_compile")
+SMOKE_KEYS = ("base", "grid", "zip", "seeds", "max_concurrent", "resources", "fast_compile", "search", "scheduler")
 SEED_MODES = ("trials", "sequential", "vmap")
 RESOURCE_KEYS = ("cpu", "gpu")
 # Set by the sweep itself: seeds come from `seeds:`, the tracking store and experiment from the launch.
@@ -491,7 +491,7 @@ def _validated(data: dict[str, Any], path: Path, where: str, smoke: bool, progre
     if not smoke:
         fields = full
     _check_axes(fields, where)
-    fields.update(search_lib.check(data, fields, where, RESERVED_KEYS))
+    fields.update(search_lib.check(data, fields, where, RESERVED_KEYS, smoke))
     _check_size(fields, where)
     sweep = Sweep(path=path, smoke=smoke, **fields)
     _check_trials(sweep, where, progress)
