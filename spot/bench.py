@@ -360,11 +360,12 @@ def _env_steps_per_s(
     return results, {n: steps[n] / wall[n] for n in modes}, {n: steps[n] / cpu[n] for n in modes}
 
 
-def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[str, Any]:
+def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1, stepper: str = "mujoco") -> dict[str, Any]:
     """Env steps per second of an evaluation on Hopper, ``seeds`` runs of ``episodes`` episodes:
     ``batched``: all episodes stepped together, the policy one jitted call per env step for all
     of them (:func:`spot.evaluation.evaluate_runs` with :func:`spot.run.policy_stages.eval_policy`, as runs and
-    vmapped trials evaluate); ``sequential``: one episode after another
+    vmapped trials evaluate), the env stepped by ``stepper`` (``eval.stepper``; ``batched_gymnasium``:
+    the same in gymnasium's envs, when ``stepper`` is ``mujoco``); ``sequential``: one episode after another
     (:func:`spot.evaluation.evaluate_sequential`), the same program on one observation per step;
     ``seq_eager``: one after another, ``iql.act`` run op by op (not jitted: spot's policy call
     before issue 40); ``before``: together, ``iql.act`` op by op (spot's evaluation before issue
@@ -373,7 +374,7 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
     batched and the sequential returns and lengths are equal."""
     import jax
 
-    from spot import evaluation
+    from spot import evaluation, mujoco_step
     from spot.policy import iql
     from spot.run import policy_stages
 
@@ -393,12 +394,16 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
             for p, b in zip(one, base, strict=True)
         ]
 
-    def together(policy: Any) -> Any:
-        return lambda: evaluation.evaluate_runs(policy, name, episodes, base, max_steps=max_steps)
+    def together(policy: Any, how: str = "gymnasium") -> Any:
+        return lambda: evaluation.evaluate_runs(policy, name, episodes, base, max_steps=max_steps, stepper=how)
 
+    batched = policy_stages.eval_policy(actors, cfg, runs=True)
+    used = evaluation.stepper_used(name, stepper)
+    threads = f", physics on up to {mujoco_step.default_threads()} thread(s)" if used == "mujoco" else ""
     res, wall, cpu = _env_steps_per_s(
         {
-            "batched": together(policy_stages.eval_policy(actors, cfg, runs=True)),
+            "batched": together(batched, stepper),
+            **({"batched_gymnasium": together(batched)} if used != "gymnasium" else {}),
             "sequential": alone(lambda p: policy_stages.eval_policy(p, cfg)),
             "seq_eager": alone(eager),
             "before": together(lambda obs: np.stack([eager(p)(o) for p, o in zip(one, obs, strict=True)])),
@@ -410,12 +415,14 @@ def bench_eval(small: bool = False, episodes: int = 10, seeds: int = 1) -> dict[
     return {
         "what": f"evaluation env steps, Hopper, {seeds} run(s) x {episodes} episodes, actor {cfg.hidden}"
         f"{', 30 steps (--small)' if small else ''}; {repeats} timed round(s), env steps per second",
+        "stepper": f"{used} (batched{threads}; sequential: gymnasium)",
         "env_steps": sum(int(r["lengths"].sum()) for r in res["batched"]),
         **{f"{mode}_steps_s": rate for mode, rate in wall.items()},
         "ratio": wall["batched"] / wall["sequential"],
         "ratio_cpu": cpu["batched"] / cpu["sequential"],
         "ratio_vs_seq_eager": wall["batched"] / wall["seq_eager"],
         "ratio_vs_before": wall["batched"] / wall["before"],
+        **({"ratio_vs_batched_gymnasium": wall["batched"] / wall["batched_gymnasium"]} if used != "gymnasium" else {}),
         "same_episodes": same,
         "peak_rss_mb": peak_rss_mb(),
     }

@@ -15,6 +15,12 @@ episode's seed, which makes its episode that of a new env (tested per family). O
 the env last evaluated are kept, at most :data:`MAX_LIVE` of its family (least recently used go),
 and at most that many are alive at once: more episodes than that (robosuite's 30-episode final
 evaluations) run in waves of that many.
+
+The locomotion envs skip gymnasium's ``step`` by default (``eval.stepper: mujoco``,
+:func:`stepper_used`): :class:`spot.mujoco_step.LocomotionBatch` steps all of an evaluation's
+episodes on their own ``MjData`` and computes their observations, rewards and terminations at once,
+the same numbers to the last digit as their gymnasium envs (tests/test_eval_mujoco_step.py); no env
+is kept for them. :func:`evaluate_sequential`, the reference, always runs the gymnasium envs.
 """
 
 from __future__ import annotations
@@ -29,6 +35,9 @@ import numpy as np
 from spot import SpotError
 from spot.envs import env_spec, make_env, normalized_score
 
+STEPPERS = ("mujoco", "gymnasium")
+"""``eval.stepper``: MuJoCo stepped directly where :mod:`spot.mujoco_step` reproduces the env, or
+always the gymnasium env's own ``step``."""
 MAX_LIVE = {"robosuite": 10, "metaworld": 32, "locomotion": 32}
 """Most envs of a family alive at once: an evaluation with more episodes runs them in waves."""
 _PoolKey = tuple[str, str, tuple, int, int]  # family, env id, make kwargs, seed, copy
@@ -112,9 +121,9 @@ def _wave_envs(name: str, env_seeds: list[int]) -> list[gym.Env]:
 
 
 def _run_wave(policy_fn: Callable[[np.ndarray], Any], name: str, env_seeds: np.ndarray, horizon: int) -> tuple:
-    """Step the episodes seeded ``env_seeds [R, n]`` together, one ``policy_fn`` call per step on
-    all ``R·n`` observations ``[R, n, obs_dim]`` (an ended episode's row holds its last observation;
-    its action is not used); ``(returns, lengths, successes)``, each ``[R, n]``."""
+    """Step the episodes seeded ``env_seeds [R, n]`` together in gymnasium envs, one ``policy_fn``
+    call per step on all ``R·n`` observations ``[R, n, obs_dim]`` (an ended episode's row holds its
+    last observation; its action is not used); ``(returns, lengths, successes)``, each ``[R, n]``."""
     flat = [int(s) for s in env_seeds.reshape(-1)]
     envs = _wave_envs(name, flat)
     returns, lengths = np.zeros(len(flat)), np.zeros(len(flat), dtype=np.int64)
@@ -135,8 +144,47 @@ def _run_wave(policy_fn: Callable[[np.ndarray], Any], name: str, env_seeds: np.n
     return tuple(a.reshape(env_seeds.shape) for a in (returns, lengths, successes))
 
 
+def _run_wave_mujoco(policy_fn: Callable[[np.ndarray], Any], name: str, env_seeds: np.ndarray, horizon: int) -> tuple:
+    """:func:`_run_wave` with MuJoCo stepped directly (:class:`spot.mujoco_step.LocomotionBatch`):
+    the same episodes, each env step of all running episodes computed at once."""
+    from spot.mujoco_step import LocomotionBatch
+
+    flat = [int(s) for s in env_seeds.reshape(-1)]
+    batch = LocomotionBatch(name, len(flat))
+    returns, lengths = np.zeros(len(flat)), np.zeros(len(flat), dtype=np.int64)
+    running = np.ones(len(flat), dtype=bool)
+    obs = batch.reset(flat).astype(np.float32)
+    for _ in range(horizon):
+        if not running.any():
+            break
+        actions = _actions(policy_fn, obs.reshape(*env_seeds.shape, -1), batch.action_space, name)
+        idx = np.flatnonzero(running)
+        o, rewards, terminated = batch.step(idx, actions.reshape(len(flat), -1)[idx])
+        obs[idx] = o
+        returns[idx] += rewards
+        lengths[idx] += 1
+        running[idx] = ~terminated
+    return tuple(a.reshape(env_seeds.shape) for a in (returns, lengths, np.zeros(len(flat), dtype=bool)))
+
+
+def stepper_used(name: str, stepper: str) -> str:
+    """The stepper an evaluation of ``name`` with ``eval.stepper = stepper`` runs on: ``"mujoco"``
+    (MuJoCo stepped directly, :mod:`spot.mujoco_step`) for the locomotion envs when asked, else
+    ``"gymnasium"`` (the env's own ``step``)."""
+    from spot import mujoco_step
+
+    if stepper not in STEPPERS:
+        raise SpotError(f"eval.stepper: expected one of {', '.join(STEPPERS)}, got '{stepper}'")
+    return "mujoco" if stepper == "mujoco" and mujoco_step.supports(name) else "gymnasium"
+
+
 def evaluate_runs(
-    policy_fn: Callable[[np.ndarray], Any], name: str, episodes: int, seeds: list[int], max_steps: int = 0
+    policy_fn: Callable[[np.ndarray], Any],
+    name: str,
+    episodes: int,
+    seeds: list[int],
+    max_steps: int = 0,
+    stepper: str = "mujoco",
 ) -> list[dict[str, Any]]:
     """Evaluate the policies of several runs (the seeds of a vmapped trial) in ``episodes`` episodes
     each, all episodes stepped together: one ``policy_fn`` call per env step.
@@ -154,6 +202,9 @@ def evaluate_runs(
       seeds: each run's base seed (``R`` runs).
       max_steps: cut every episode after this many steps (``eval.max_steps``: smoke checks); 0 =
         the env's horizon.
+      stepper: ``eval.stepper`` (:func:`stepper_used`): ``"mujoco"`` steps the locomotion envs'
+        MuJoCo directly (:mod:`spot.mujoco_step`; every episode in one wave, no env kept), the same
+        numbers as their gymnasium envs; other envs, and ``"gymnasium"``, run the gymnasium envs.
 
     Returns:
       one result per run, as :func:`evaluate`'s.
@@ -161,14 +212,16 @@ def evaluate_runs(
     horizon, runs = _horizon(name, episodes, max_steps), len(seeds)
     if not seeds:
         raise SpotError("evaluate: expected at least one run's seed")
+    direct = stepper_used(name, stepper) == "mujoco"
     out = [np.zeros((runs, episodes)), np.zeros((runs, episodes), dtype=np.int64), np.zeros((runs, episodes), bool)]
-    wave = max(1, MAX_LIVE[env_spec(name).family] // runs)
+    wave = episodes if direct else max(1, MAX_LIVE[env_spec(name).family] // runs)
+    run_wave = _run_wave_mujoco if direct else _run_wave
     this_env = _pool_key(name, seeds[0])[:3]
     _evict(lambda k: k[:3] != this_env, 0)  # a reused process moving on to another env frees the last one's
     try:
         for start in range(0, episodes, wave):
             ids = np.arange(start, min(start + wave, episodes))
-            for whole, part in zip(out, _run_wave(policy_fn, name, np.add.outer(seeds, ids), horizon), strict=True):
+            for whole, part in zip(out, run_wave(policy_fn, name, np.add.outer(seeds, ids), horizon), strict=True):
                 whole[:, ids] = part
     except BaseException:
         clear_env_pool()  # an env left mid-episode by an error is not kept
@@ -177,7 +230,12 @@ def evaluate_runs(
 
 
 def evaluate(
-    policy_fn: Callable[[np.ndarray], Any], name: str, episodes: int, seed: int, max_steps: int = 0
+    policy_fn: Callable[[np.ndarray], Any],
+    name: str,
+    episodes: int,
+    seed: int,
+    max_steps: int = 0,
+    stepper: str = "mujoco",
 ) -> dict[str, Any]:
     """Run ``episodes`` episodes of ``policy_fn`` together and score them (:func:`evaluate_runs`
     for one run).
@@ -192,13 +250,15 @@ def evaluate(
       seed: base seed.
       max_steps: cut every episode after this many steps (``eval.max_steps``: smoke checks); 0 =
         the env's horizon.
+      stepper: ``eval.stepper``, as in :func:`evaluate_runs`.
 
     Returns:
       ``score_mean``, ``score_std`` (normalised, see :func:`spot.envs.normalized_score`), ``return_mean``,
       ``return_std``, ``success_rate`` (NaN for locomotion), ``episode_length_mean``, and the
       per-episode arrays ``scores``, ``returns``, ``lengths``.
     """
-    return evaluate_runs(lambda obs: np.asarray(policy_fn(obs[0]))[None], name, episodes, [seed], max_steps)[0]
+    runs = evaluate_runs(lambda obs: np.asarray(policy_fn(obs[0]))[None], name, episodes, [seed], max_steps, stepper)
+    return runs[0]
 
 
 def evaluate_sequential(

@@ -213,11 +213,11 @@ def test_a_kept_env_gives_the_episode_of_a_new_env(name, act_dim, max_steps):
         pytest.importorskip("robosuite")
     policy = _noisy_policy(act_dim, 0)
     evaluation.clear_env_pool()
-    fresh = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
+    fresh = evaluate(policy, name, 2, seed=3, max_steps=max_steps, stepper="gymnasium")  # kept gymnasium envs
     assert len(evaluation._POOL) == 2
-    evaluate(_noisy_policy(act_dim, 1), name, 3, seed=2, max_steps=max_steps)  # the envs of seeds 3, 4 move on
+    evaluate(_noisy_policy(act_dim, 1), name, 3, seed=2, max_steps=max_steps, stepper="gymnasium")  # seeds 3, 4 move on
     assert len(evaluation._POOL) == 3  # seeds 2, 3, 4
-    kept = evaluate(policy, name, 2, seed=3, max_steps=max_steps)
+    kept = evaluate(policy, name, 2, seed=3, max_steps=max_steps, stepper="gymnasium")
     for k in ("returns", "lengths", "scores"):
         np.testing.assert_array_equal(kept[k], fresh[k])
     if max_steps:
@@ -231,20 +231,20 @@ def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
 
     evaluation.clear_env_pool()
     policy = _noisy_policy(3, 0)
-    together = evaluate(policy, "hopper-medium-expert", 5, seed=0)
+    together = evaluate(policy, "hopper-medium-expert", 5, seed=0, stepper="gymnasium")  # kept gymnasium envs
     monkeypatch.setitem(evaluation.MAX_LIVE, "locomotion", 2)
     evaluation.clear_env_pool()
     built = []
     make = envs.make_env
     monkeypatch.setattr(evaluation, "make_env", lambda n, s: built.append(s) or make(n, s))
-    waves = evaluate(policy, "hopper-medium-expert", 5, seed=0)
+    waves = evaluate(policy, "hopper-medium-expert", 5, seed=0, stepper="gymnasium")
     assert built == [0, 1, 2, 3, 4] and len(evaluation._POOL) == 2  # waves of 2, 2, 1; at most 2 alive or kept
     # the policy computes each row alone: waves of other sizes give the same episodes
     np.testing.assert_array_equal(waves["returns"], together["returns"])
-    again = evaluate(policy, "hopper-medium-expert", 1, seed=4)
+    again = evaluate(policy, "hopper-medium-expert", 1, seed=4, stepper="gymnasium")
     assert built == [0, 1, 2, 3, 4] and again["returns"][0] == together["returns"][4]  # seed 4's env was kept
     with pytest.raises(SpotError, match="max_steps must be >= 0"):
         evaluate(policy, "hopper-medium-expert", 1, seed=0, max_steps=-1)
-    evaluate(_noisy_policy(6, 0), "walker2d-medium-replay", 1, seed=0, max_steps=5)  # another env
+    evaluate(_noisy_policy(6, 0), "walker2d-medium-replay", 1, seed=0, max_steps=5, stepper="gymnasium")  # another env
     assert [k[1] for k in evaluation._POOL] == ["Walker2d-v5"]  # the Hopper envs were closed
     evaluation.clear_env_pool()

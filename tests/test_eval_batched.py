@@ -82,7 +82,7 @@ def test_a_vmapped_trials_seeds_evaluated_together_equal_each_seed_alone(iql_cfg
     assert together[0]["returns"].tolist() != together[2]["returns"].tolist()  # same envs, other policy
     # waves: at most 5 envs alive, so 1 episode per run at a time; the same numbers
     monkeypatch.setitem(evaluation.MAX_LIVE, "locomotion", 5)
-    waves = evaluation.evaluate_runs(policy, HOPPER, 3, eval_seeds)
+    waves = evaluation.evaluate_runs(policy, HOPPER, 3, eval_seeds, stepper="gymnasium")  # kept gymnasium envs
     for s, res in enumerate(waves):
         assert res["returns"].tolist() == together[s]["returns"][:3].tolist()
         assert res["lengths"].tolist() == together[s]["lengths"][:3].tolist()

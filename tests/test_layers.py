@@ -32,7 +32,7 @@ LAYERS = [
     ),
     (1, "data", ["spot.data"]),
     (2, "config", ["spot.config"]),
-    (3, "envs", ["spot.envs", "spot.evaluation"]),
+    (3, "envs", ["spot.envs", "spot.evaluation", "spot.mujoco_step"]),
     (4, "reward", ["spot.reward"]),
     (4, "subgoal", ["spot.subgoal"]),
     (4, "policy", ["spot.policy"]),

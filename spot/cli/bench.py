@@ -18,7 +18,8 @@ def add(sub: Any) -> None:
         "bench",
         "throughput, compile time and peak memory of a stage (paper sizes)",
         "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
-        "spot bench sac --env hopper --size paper-fast\nspot bench eval\nspot bench sweep sweeps/quickstart.yaml",
+        "spot bench sac --env hopper --size paper-fast\nspot bench eval\nspot bench eval --stepper gymnasium\n"
+        "spot bench sweep sweeps/quickstart.yaml",
     )
     d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "eval", "sweep"), help="a stage, or a sweep")
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
@@ -26,6 +27,11 @@ def add(sub: Any) -> None:
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
     d.add_argument("--seeds", type=positive_int, default=1, help="iql, pt: seeds as a vmap axis; eval: runs")
     d.add_argument("--episodes", type=positive_int, help="eval: episodes per run, batched vs sequential (default 10)")
+    d.add_argument(
+        "--stepper",
+        choices=("mujoco", "gymnasium"),
+        help="eval: how the batched episodes step (eval.stepper; default mujoco)",
+    )
     d.add_argument("--order", default=IQLConfig.order, choices=IQL_ORDERS, help="iql: update order (iql.order)")
     d.add_argument("--dtype", default="float32", choices=("float32", "bfloat16"), help="pt: compute dtype")
     d.add_argument("--mode", default="chunked", choices=("chunked", "sliding"), help="relabel: mode")
@@ -36,12 +42,14 @@ def add(sub: Any) -> None:
 
 def _bench(args: argparse.Namespace) -> int | None:
     from spot import bench
+    from spot.config import EvalConfig
 
     for flag, value in (("--env", args.env), ("--size", args.size)):
         if value and args.what != "sac":
             raise SpotError(f"spot bench {args.what}: {flag} goes with 'spot bench sac'")
-    if args.episodes and args.what != "eval":
-        raise SpotError(f"spot bench {args.what}: --episodes goes with 'spot bench eval'")
+    for flag, value in (("--episodes", args.episodes), ("--stepper", args.stepper)):
+        if value and args.what != "eval":
+            raise SpotError(f"spot bench {args.what}: {flag} goes with 'spot bench eval'")
     if args.what == "sweep":
         if not args.file:
             raise SpotError("spot bench sweep needs the sweep file: spot bench sweep FILE [--smoke]")
@@ -55,6 +63,7 @@ def _bench(args: argparse.Namespace) -> int | None:
         kwargs["dtype"], kwargs["seeds"] = args.dtype, args.seeds
     if args.what == "eval":
         kwargs["seeds"], kwargs["episodes"] = args.seeds, args.episodes or 10
+        kwargs["stepper"] = args.stepper or EvalConfig.stepper
     if args.seeds != 1 and args.what not in ("iql", "pt", "eval"):
         raise SpotError(f"spot bench {args.what}: --seeds (seeds as a vmap axis) goes with iql, pt and eval")
     if args.what == "relabel":

@@ -242,6 +242,13 @@ class EvalConfig:
         "not comparable with a full one's",
         range=(0, None),
     )
+    stepper: str = F(
+        "mujoco",
+        "how locomotion evaluation episodes step: 'mujoco' drives MuJoCo directly, all episodes' "
+        "observations and rewards computed at once (spot.mujoco_step; the same returns, to the last digit, as "
+        "gymnasium's env), 'gymnasium' the env's own step; other envs always run in gymnasium",
+        choices=("mujoco", "gymnasium"),
+    )
 
 
 @dataclass(frozen=True)

@@ -273,6 +273,7 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
                 policy_stages.eval_episodes(cfg, step),
                 [policy_stages.eval_seed(ctx.cfg) for ctx in ctxs],
                 max_steps=cfg.eval.max_steps,
+                stepper=cfg.eval.stepper,
             )
         for s, (ctx, res) in enumerate(zip(ctxs, results, strict=True)):
             policy_stages.log_evaluation(ctx, res, step)

@@ -197,6 +197,7 @@ def evaluate_run(run_id: str, tracking_uri: str | None = None, episodes: int | N
         n,
         seed=int(head["eval_seed"]),
         max_steps=_logged_max_steps(run_id, tracking_uri, cfg.eval.max_steps),  # as the run evaluated it
+        stepper=cfg.eval.stepper,  # either gives the same numbers
     )
     logged = tracking.reader(tracking_uri).get_run(run_id).data.metrics.get("eval/score_final")
     return {

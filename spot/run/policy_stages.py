@@ -104,6 +104,7 @@ def _evaluate_fn(ctx: Context) -> Callable[[Any, int], dict[str, float]]:
                 eval_episodes(cfg, step),
                 seed=eval_seed(cfg),
                 max_steps=cfg.eval.max_steps,
+                stepper=cfg.eval.stepper,
             )
         log_evaluation(ctx, res, step)
         return res
