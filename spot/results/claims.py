@@ -14,10 +14,14 @@ another file):
 * ``claims``: the claims, in report order (:class:`Claim`, :func:`_claim`).
 * ``tables``: per paper table number, the runs ``spot tables --table N STUDY_DIR`` reads:
   ``{results: [...], experiments: [...]}``.
+* ``amend``: changes to claims this file's chain already has (:func:`_amended`): each entry names
+  a claim by ``id`` and ``comparison`` and gives the keys that replace its own (its ``set``, its
+  ``metrics``, ``paired``...), so that a study can mark the rows of a file it extends.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
@@ -29,7 +33,7 @@ from spot.results import select
 
 DEFAULT = "paper_claims.yaml"  # inside this package: the paper's six claims and the two controls
 STUDY_FILE = "claims.yaml"  # what `spot report STUDY_DIR` reads
-TOP_KEYS = ("extends", "results", "sets", "filters", "claims", "tables")
+TOP_KEYS = ("extends", "results", "sets", "filters", "claims", "tables", "amend")
 TESTS = ("difference", "runner-up", "queries", "dose-response")
 CLAIM_KEYS = (
     "id",
@@ -49,10 +53,32 @@ CLAIM_KEYS = (
     "others",
     "runner_label",
     "digits",
+    "paired",
+    "note",
 )
 STATS = {"last": "metrics.eval/score_final", "best": "metrics.eval/score_best"}
 OOD_METRIC = "metrics.diag/extrapolation_error_ood"
 METRICS = {**STATS, "ood": OOD_METRIC}  # the short names a claim's `metrics` may use
+# `lastK` (K >= 2): each run's mean of its last K periodic evaluations, from its exported curve
+LAST_K = re.compile(r"last([0-9]+)")
+
+
+def last_k(stat: str) -> int | None:
+    """K of a ``lastK`` statistic (the mean of a run's last K evaluations), else ``None``."""
+    m = LAST_K.fullmatch(stat)
+    return int(m.group(1)) if m else None
+
+
+def metric_column(stat: str) -> str:
+    """The runs' column a statistic reads: a short name's metric, ``lastK``'s derived column
+    (:func:`spot.results.compare.with_last_k`), else ``metrics.<name>``."""
+    k = last_k(stat)
+    if k is not None:
+        return f"{CURVE_MEAN}{k}"
+    return METRICS.get(stat, f"metrics.{stat}")
+
+
+CURVE_MEAN = "curve.eval/score.mean_last"  # + K: the derived column of `lastK`
 
 
 @dataclass(frozen=True)
@@ -91,6 +117,8 @@ class Claim:
     others: int | None = None  # runner-up: how many other arms the design has
     runner_label: str = ""  # runner-up: the runner-up's name, ``{KEY}`` replaced by its value
     digits: int | None = None  # decimals of the effect (default: 3 for ood, else 1)
+    paired: bool = False  # seed-matched by design: the paired verdict is the row's (report: Paired verdicts)
+    note: str = ""  # a line for the report's notes (what an arm is and why)
 
 
 @dataclass
@@ -179,8 +207,33 @@ def _merged(path: Path, seen: tuple[Path, ...]) -> dict[str, Any]:
     claims = data.get("claims", [])
     if not isinstance(claims, list):
         raise SpotError(f"{where}: claims: expected a list of claims")
-    out["claims"] = [*out["claims"], *claims]
+    out["claims"] = _amended([*out["claims"], *claims], data.get("amend", []), f"{where}: amend")
     return out
+
+
+def _amended(claims: list[Any], amend: Any, where: str) -> list[Any]:
+    """``claims`` (raw mappings) with each ``amend`` entry's keys replacing those of every claim of
+    its ``id`` and ``comparison``; an entry that matches no claim is an error."""
+    if not isinstance(amend, list):
+        raise SpotError(f"{where}: expected a list of {{id, comparison, KEY: VALUE...}}")
+    for i, entry in enumerate(amend):
+        at = f"{where}[{i}]"
+        if not isinstance(entry, Mapping) or "id" not in entry or "comparison" not in entry or len(entry) < 3:
+            raise SpotError(f"{at}: expected {{id, comparison}} of a claim and the keys that replace its own")
+        unknown = [k for k in entry if k not in CLAIM_KEYS]
+        if unknown:
+            raise SpotError(f"{at}: unknown key {unknown[0]!r}; a claim takes {', '.join(CLAIM_KEYS)}")
+        key = (str(entry["id"]), str(entry["comparison"]))
+        hits = [
+            j
+            for j, c in enumerate(claims)
+            if isinstance(c, Mapping) and (str(c.get("id")), str(c.get("comparison"))) == key
+        ]
+        if not hits:
+            raise SpotError(f"{at}: no claim has id {key[0]!r} and comparison {key[1]!r}")
+        for j in hits:
+            claims[j] = {**claims[j], **entry}
+    return claims
 
 
 def _strings(value: Any, where: str) -> list[str]:
@@ -262,8 +315,17 @@ def _claim(spec: Any, named: Mapping[str, Any], sets: Mapping[str, ExperimentSet
         labels=(labels[0], labels[1]),
         metrics=_metrics(spec, where, dose),
         variant=variant,
+        paired=_flag(spec, "paired", where),
+        note=_text(spec, "note", where, ""),
         **_runner_up(spec, where, test),
     )
+
+
+def _flag(spec: Mapping[str, Any], key: str, where: str) -> bool:
+    value = spec.get(key, False)
+    if not isinstance(value, bool):
+        raise SpotError(f"{where}: {key}: expected true or false")
+    return value
 
 
 def _among(spec: Mapping[str, Any], variant: str | None, named: Mapping[str, Any], where: str) -> select.Filter:
@@ -285,6 +347,9 @@ def _metrics(spec: Mapping[str, Any], where: str, dose: bool) -> tuple[str, ...]
     metrics = tuple(_strings(spec.get("metrics", ["last"] if dose else ["last", "best"]), f"{where}: metrics"))
     if dose and metrics != ("last",):
         raise SpotError(f"{where}: metrics: the dose-response section reads the final score only (last)")
+    bad = [m for m in metrics if (k := last_k(m)) is not None and k < 2]
+    if bad:
+        raise SpotError(f"{where}: metrics: {bad[0]!r}; lastK takes K of 2 or more (last is the final evaluation)")
     return metrics
 
 

@@ -30,7 +30,7 @@ import pandas as pd
 
 from spot.results import stats
 from spot.results.load import CURVE_COLUMN, parse_curve
-from spot.results.select import Filter, by_dataset, dataset_column, finished
+from spot.results.select import RUN_KEY, Filter, by_dataset, dataset_column, finished
 
 MIN_SEEDS = 3  # a verdict needs at least this many finished runs per arm and dataset (effect and CI shown below it)
 HIGH_MODE = 50.0  # on the local Hopper data the runs are bimodal: ~20 or 55-91 normalised
@@ -100,6 +100,7 @@ class Row:
     plan_unit: str = "runs"  # what ``plan`` and ``sizes`` count (claim 4: "seeds", each a SPOT and a PT run)
     listed: tuple[str, str] | None = None  # (label, experiments) of a labelled set, listed under the tables
     digits: int = 1  # decimals of the effect and means
+    by_design: bool = False  # the claim pairs seeds by design (``paired: true``): the paired verdict is its own
 
     @property
     def paired_verdict(self) -> str:
@@ -164,6 +165,43 @@ def mixed_data(
     return out
 
 
+def mixed_config(
+    done: pd.DataFrame, arms: tuple[Filter, Filter], shared: Sequence[str], labels: tuple[str, str]
+) -> list[str]:
+    """A note per arm and compared dataset whose runs logged one param with different values (not
+    ``seed``, not ``tracking.*``; keys that only some runs logged are left aside, as keys added to the
+    package later): the arm mixes configs, e.g. runs launched before and after a variant changed."""
+    keys = [c for c in done if c.startswith("params.") and c != "params.seed" and not c.startswith("params.tracking.")]
+    key, out = dataset_column(done), []
+    for name in shared:
+        for select, label in zip(arms, labels, strict=True):
+            arm = done[select(done) & (done[key].astype(str) == name)]
+            differ = [c for c in keys if arm[c].notna().all() and arm[c].astype(str).nunique() > 1]
+            if not differ:
+                continue
+            what = "; ".join(
+                f"{c[len('params.') :]}: "
+                + ", ".join(f"{n} at {v}" for v, n in arm[c].astype(str).value_counts().sort_index().items())
+                for c in differ[:3]
+            )
+            more = f", and {len(differ) - 3} more keys" if len(differ) > 3 else ""
+            out.append(f"{name}: the {label} runs differ in {what}{more}; the arm mixes configs")
+    return out
+
+
+def mean_last(runs: pd.DataFrame, k: int) -> pd.Series:
+    """Per run, the mean of its last ``k`` periodic evaluations (step > 0) from its exported curve
+    (:data:`~spot.results.load.CURVE_COLUMN`); nan for a run with fewer, or without the column."""
+    if CURVE_COLUMN not in runs:
+        return pd.Series(np.nan, index=runs.index, dtype=np.float64)
+    out = []
+    for run_id, text in zip(runs["run_id"], runs[CURVE_COLUMN], strict=True):
+        steps, values = parse_curve(text, f"run {run_id}")
+        values = values[steps > 0][np.argsort(steps[steps > 0], kind="stable")]
+        out.append(float(values[-k:].mean()) if len(values) >= k else np.nan)
+    return pd.Series(out, index=runs.index, dtype=np.float64)
+
+
 def digest_spread(runs: pd.DataFrame) -> list[str]:
     """The same note for a set of runs without arms (claim 4's cells, the dose section): per dataset
     with more than one data digest, how many runs are on each."""
@@ -175,6 +213,50 @@ def digest_spread(runs: pd.DataFrame) -> list[str]:
         if len(counts) > 1:
             who = ", ".join(f"{n} on {d[:12]}" for d, n in counts.items())
             out.append(f"{name}: the runs span {len(counts)} data digests ({who}); they may not share their data")
+    return out
+
+
+def left_out(runs: pd.DataFrame) -> list[dict[str, str]]:
+    """The runs of ``runs`` that :func:`~spot.results.select.finished` drops, each with why: not
+    FINISHED (its status, how long it ran, its failure reason where logged, and whether a finished
+    run of its config and seed counts instead), or a finished run replaced by a later re-run."""
+    if runs.empty:
+        return []
+    kept = finished(runs)
+    cols = [c for c in RUN_KEY if c in runs]
+    counts = {
+        tuple(map(str, r)): run_id for r, run_id in zip(kept[cols].itertuples(index=False), kept["run_id"], strict=True)
+    }
+    order = runs.sort_values(["experiment", "start_time"] if "start_time" in runs else ["experiment"], kind="stable")
+    out = []
+    for idx, r in order.iterrows():
+        if idx in kept.index:
+            continue
+        instead = counts.get(tuple(str(r[c]) for c in cols))
+        if r["status"] == "FINISHED":
+            why = f"replaced by the later re-run `{instead}` of the same config and seed"
+        else:
+            ran = pd.Timestamp(r.get("end_time", pd.NaT)) - pd.Timestamp(r.get("start_time", pd.NaT))
+            why = str(r["status"]) + (f" after {ran.total_seconds():,.0f} s" if pd.notna(ran) else "")
+            reason = r.get("tags.failure_reason")
+            why += f" ({reason})" if isinstance(reason, str) and reason else ""
+            why += "; not finished, never counted"
+            why += (
+                f"; `{instead}` of the same config and seed counts"
+                if instead
+                else "; no finished run of its config and seed"
+            )
+        seed = "" if pd.isna(r["seed"]) else str(r["seed"])
+        out.append(
+            {
+                "run": str(r["run_id"]),
+                "experiment": str(r["experiment"]),
+                "method": str(r["method"]),
+                "dataset": str(r[dataset_column(runs)]),
+                "seed": seed,
+                "why": why,
+            }
+        )
     return out
 
 
@@ -224,7 +306,7 @@ def compare(df: pd.DataFrame, x: Filter, y: Filter, metric: str, row: Row, label
         row.notes.append(f"{name} left out: only {labels[0] if name in xs else labels[1]} has finished runs")
     if not shared:
         return row
-    row.notes += mixed_data(done, (x, y), shared, labels)
+    row.notes += mixed_data(done, (x, y), shared, labels) + mixed_config(done, (x, y), shared, labels)
     sx, sy = [xs[d] for d in shared], [ys[d] for d in shared]
     row.effect = stats.estimate([*sx, *sy], stats.mean_difference)
     row.poi = stats.estimate([*sx, *sy], stats.probability_of_improvement, checks=0)  # no verdict is read from it

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from spot import SpotError
 from spot.results import figures_curves, stats
 from spot.results.compare import Row
-from spot.results.report import TITLES, Report, format_report
+from spot.results.report import Report, format_report, title
 
 COLOURS = {stats.SUPPORTED: "tab:green", stats.NOT_SUPPORTED: "tab:red"}
 EFFECT_GID = "effect"  # the gid of each plotted effect (tests read the points back by it)
@@ -59,7 +59,7 @@ def draw_claims(rows: Sequence[Row]) -> Figure:
         ax.set_yticks(range(len(mine)), [f"{r.claim}: {r.comparison} ({r.experiment})"[:60] for r in mine], fontsize=7)
         ax.set_ylim(len(mine) - 0.5, -0.5)
         ax.set_xlabel("effect x − y (mean over datasets), 95% CI", fontsize=8)
-        ax.set_title(TITLES.get(stat, stat).replace("`", ""), fontsize=8)
+        ax.set_title(title(stat).replace("`", ""), fontsize=8)
         ax.grid(axis="x", alpha=0.3)
     fig.suptitle("claims: green supported, red not supported, grey otherwise", fontsize=8)
     return fig

@@ -5,9 +5,11 @@ runs), picks the runs its test looks at (every test but ``queries`` at their dat
 queries), and fills one :class:`~spot.results.compare.Row` per claim and metric (tests in
 :mod:`spot.results.compare` and :mod:`spot.results.designs`); ``dose-response`` entries give the
 sections of :mod:`spot.results.dose`. :func:`format_report` writes, in this order: one table per
-statistic (last evaluation, best evaluation, the OOD error, then any other metric), the high-mode
-counts, the seed-matched differences, the runs a verdict would need, the dose-and-response
-sections, the labelled experiment sets and the notes. Both the last evaluation
+statistic (last evaluation, the mean of each run's last K evaluations where a claim asks for
+``lastK``, best evaluation, the OOD error, then any other metric), the high-mode counts, the paired
+verdicts of claims paired by design (``paired: true``), the seed-matched differences of the other
+rows, the runs a verdict would need, the dose-and-response sections, the runs of the sets read that
+no row counts (and why), the labelled experiment sets and the notes. Both the last evaluation
 (``eval/score_final``) and the best (``eval/score_best``) are reported, in separate tables,
 because the paper does not say which it reports; verdicts are read from the last.
 """
@@ -21,11 +23,12 @@ import numpy as np
 import pandas as pd
 
 from spot.results import stats
-from spot.results.claims import METRICS, ClaimsFile
-from spot.results.compare import ALPHA, HIGH_MODE, MIN_SEEDS, POWER, Row, compare
+from spot.results.claims import Claim, ClaimsFile, last_k, metric_column
+from spot.results.compare import ALPHA, HIGH_MODE, MIN_SEEDS, POWER, Row, compare, left_out, mean_last
 from spot.results.designs import queries, runner_up
 from spot.results.dose import Dose, dose_response, format_dose
-from spot.results.select import experiment_set, most_queries
+from spot.results.load import CURVE_COLUMN
+from spot.results.select import experiment_set, finished, most_queries
 
 TITLES = {
     "last": "Last evaluation (`eval/score_final`): verdicts",
@@ -34,30 +37,66 @@ TITLES = {
 }
 
 
+def title(stat: str) -> str:
+    """A statistic's table title (its metric name in backticks when it has none of its own)."""
+    k = last_k(stat)
+    if k is not None:
+        return (
+            f"Mean of the last {k} evaluations (each run's last {k} points of `{CURVE_COLUMN}`), "
+            "beside the last evaluation"
+        )
+    return TITLES.get(stat, f"`{stat}`")
+
+
 @dataclass
 class Report:
-    """The rows of a claims file's comparisons and its dose-and-response sections."""
+    """The rows of a claims file's comparisons, its dose-and-response sections, and the runs of the
+    sets it read that no row counts (:func:`spot.results.compare.left_out`)."""
 
     rows: list[Row] = field(default_factory=list)
     doses: list[Dose] = field(default_factory=list)
+    left_out: list[dict[str, str]] = field(default_factory=list)
 
 
 def _stat_order(claims: ClaimsFile) -> list[str]:
-    """The statistics in report order: last, best, ood, then other metrics as first named."""
-    named = [m for c in claims.claims if c.test != "dose-response" for m in c.metrics]
-    return [s for s in TITLES if s in named] + list(dict.fromkeys(m for m in named if m not in TITLES))
+    """The statistics in report order: last, the lastK means, best, ood, then other metrics as first named."""
+    named = list(dict.fromkeys(m for c in claims.claims if c.test != "dose-response" for m in c.metrics))
+    means = [m for m in named if last_k(m) is not None]
+    first = [s for s in ("last",) if s in named] + means + [s for s in TITLES if s != "last" and s in named]
+    return first + [m for m in named if m not in first]
+
+
+def _with_last_k(runs: pd.DataFrame, claims: ClaimsFile) -> pd.DataFrame:
+    """``runs`` with the derived column of every ``lastK`` statistic the claims name."""
+    ks = sorted({k for c in claims.claims for m in c.metrics if (k := last_k(m)) is not None})
+    return runs.assign(**{metric_column(f"last{k}"): mean_last(runs, k) for k in ks}) if ks else runs
+
+
+def _short_curves(sub: pd.DataFrame, claim: Claim, stat: str) -> list[str]:
+    """A note for a ``lastK`` row: the finished runs of its arms whose curve has fewer than K evaluations."""
+    k = last_k(stat)
+    done = finished(sub)
+    if k is None or done.empty:
+        return []
+    arms = done[claim.x(done) | claim.y(done)]
+    short = int(arms[metric_column(stat)].isna().sum())
+    if not short:
+        return []
+    return [f"{short} finished run(s) have fewer than {k} evaluations in `{CURVE_COLUMN}`: left out of `{stat}`"]
 
 
 def build(runs: pd.DataFrame, claims: ClaimsFile, high: float = HIGH_MODE) -> Report:
     """Every claim's rows, statistic by statistic (each in the file's claim order), and the dose
     sections; ``high`` is the score that counts an evaluation as in the high mode."""
+    runs = _with_last_k(runs, claims)
     chosen = {}  # each claim's set, read once
     for claim in claims.claims:
         if claim.sets not in chosen:
             alternatives = claims.alternatives(claim)
             i, sub = experiment_set(runs, [s.experiments for s in alternatives])
             chosen[claim.sets] = (alternatives[i], sub, *most_queries(sub))
-    report = Report()
+    read = pd.concat([sub for _, sub, _, _ in chosen.values()]) if chosen else runs.iloc[0:0]
+    report = Report(left_out=left_out(read[~read.index.duplicated()]))
     for stat in _stat_order(claims):
         for claim in claims.claims:
             if claim.test == "dose-response" or stat not in claim.metrics:
@@ -65,10 +104,12 @@ def build(runs: pd.DataFrame, claims: ClaimsFile, high: float = HIGH_MODE) -> Re
             expset, sub, at_most, note = chosen[claim.sets]
             sub, note = (sub, None) if claim.test == "queries" else (at_most, note)
             row = Row(claim.id, claim.text, claim.comparison, expset.shown, stat, high_mode=high)
-            row.notes += [note] if note else []
+            row.notes += ([note] if note else []) + ([claim.note] if claim.note else [])
+            row.notes += _short_curves(sub, claim, stat)
             row.listed = (expset.label, expset.names) if expset.label else None
             row.digits = claim.digits if claim.digits is not None else 3 if stat == "ood" else 1
-            metric = METRICS.get(stat, f"metrics.{stat}")
+            row.by_design = claim.paired
+            metric = metric_column(stat)
             if claim.test == "queries":
                 report.rows.append(queries(sub, claim, metric, row))
             elif claim.test == "runner-up":
@@ -116,10 +157,66 @@ def format_high(rows: Sequence[Row]) -> list[str]:
     return [*lines, ""]
 
 
+def _by_seed(r: Row) -> str:
+    """Each seed's x − y, per dataset where the row has several."""
+    many = len(r.pairs) > 1
+    return "; ".join(
+        (f"{name}: " if many else "") + ", ".join(f"s{s} {d:+.{r.digits}f}" for s, d in zip(seeds, diffs, strict=True))
+        for name, (seeds, diffs) in r.pairs.items()
+    )
+
+
+def _n_pairs(r: Row) -> int:
+    return sum(len(d) for _, d in r.pairs.values())
+
+
+def _sign_flip(r: Row) -> str:
+    """The sign-flip p with how it was found: every sign assignment, or a seeded draw of them."""
+    n = _n_pairs(r)
+    if not np.isfinite(r.paired_p):
+        return "–"
+    how = f"exact: all 2^{n} = {2**n:,}" if stats.sign_flip_exact(n) else f"{stats.N_RESAMPLES:,} random"
+    return f"{r.paired_p:.3g} ({how} assignments)"
+
+
+def format_by_design(rows: Sequence[Row]) -> list[str]:
+    """Lines of the paired-verdict section: the rows of claims paired by design (``paired: true``)."""
+    sel = [r for r in rows if r.by_design]
+    if not sel:
+        return []
+    lines = [
+        "### Paired verdicts (seed-matched by design)",
+        "",
+        "The claims file marks these comparisons `paired: true`: both arms were run at the same seeds "
+        "to be compared seed by seed, so their verdict is the paired one (the unpaired verdict above "
+        "stands beside it). Runs of one seed start from the same PRNG keys and share that seed's reward "
+        "model. Per seed both arms ran: x − y; n pairs; their mean (per dataset, averaged over datasets) "
+        "with its 95% CI (stratified bootstrap over seeds); the two-sided sign-flip p over the sign "
+        "assignments of the n differences (under no difference each is as likely to carry either sign); "
+        f"*supported* (*not supported*) where p < {ALPHA:g} and the mean is above (below) 0, else "
+        f"*inconclusive*, and *too few seeds* below {MIN_SEEDS} pairs on a dataset. Seeds that only one "
+        "arm ran are left out.",
+        "",
+        "| # | claim | comparison | statistic | pairs | x − y by seed | mean x − y [95% CI] | sign-flip p | verdict |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sel:
+        if r.paired is None:
+            verdict = "no runs" if r.effect is None else r.paired_verdict
+            lines.append(f"| {r.claim} | {r.text} | {r.comparison} | {r.stat} | 0 | – | – | – | {verdict} |")
+            continue
+        lines.append(
+            f"| {r.claim} | {r.text} | {r.comparison} | {r.stat} | {_n_pairs(r)} | {_by_seed(r)} "
+            f"| {r.paired.text(r.digits)} | {_sign_flip(r)} | {r.paired_verdict} |"
+        )
+    return [*lines, ""]
+
+
 def format_paired(rows: Sequence[Row]) -> list[str]:
-    """Lines of the seed-matched section: per row with pairs, each seed's x − y, their mean over
-    datasets with its CI, and the reading it gives (not the verdict: that stays the unpaired one)."""
-    sel = [r for r in rows if r.paired is not None]
+    """Lines of the seed-matched section: per row with pairs (not paired by design), each seed's x − y,
+    their mean over datasets with its CI, and the reading it gives (not the verdict: that stays the
+    unpaired one)."""
+    sel = [r for r in rows if r.paired is not None and not r.by_design]
     if not sel:
         return []
     lines = [
@@ -137,17 +234,31 @@ def format_paired(rows: Sequence[Row]) -> list[str]:
     ]
     for r in sel:
         assert r.paired is not None
-        many = len(r.pairs) > 1
-        by_seed = "; ".join(
-            (f"{name}: " if many else "")
-            + ", ".join(f"s{s} {d:+.{r.digits}f}" for s, d in zip(seeds, diffs, strict=True))
-            for name, (seeds, diffs) in r.pairs.items()
-        )
-        n = sum(len(d) for _, d in r.pairs.values())
         lines.append(
-            f"| {r.claim} | {r.comparison} | {r.stat} | {by_seed} | {r.paired.text(r.digits)} | {n} "
+            f"| {r.claim} | {r.comparison} | {r.stat} | {_by_seed(r)} | {r.paired.text(r.digits)} | {_n_pairs(r)} "
             f"| {r.paired_p:.3g} | {r.paired_verdict} |"
         )
+    return [*lines, ""]
+
+
+def format_left_out(left: Sequence[dict[str, str]]) -> list[str]:
+    """Lines of the section listing the runs of the sets read that no row counts, and why."""
+    if not left:
+        return []
+    lines = [
+        "### Runs left out",
+        "",
+        "Runs of the experiment sets read above that no row counts (`spot.results.select.finished`): "
+        "runs that did not finish (FAILED, KILLED, still RUNNING) and finished runs replaced by a later "
+        "re-run of the same config, dataset and seed.",
+        "",
+        "| run | experiment | method | dataset | seed | why |",
+        "|---|---|---|---|---|---|",
+    ]
+    lines += [
+        f"| `{r['run']}` | {r['experiment']} | {r['method']} | {r['dataset']} | {r['seed']} | {r['why']} |"
+        for r in left
+    ]
     return [*lines, ""]
 
 
@@ -181,7 +292,9 @@ def format_plan(rows: Sequence[Row]) -> list[str]:
     """Lines of the planning section: per comparison with a permutation test, the pooled sd, the
     smallest effect its runs find with :data:`POWER`, and the runs the observed effect would need
     (:func:`spot.results.stats.power_plan`)."""
-    sel = [r for r in rows if r.plan is not None and r.effect is not None and r.stat != "best"]
+    sel = [
+        r for r in rows if r.plan is not None and r.effect is not None and r.stat != "best" and last_k(r.stat) is None
+    ]
     if not sel:
         return []
     lines = [
@@ -222,7 +335,7 @@ def format_rows(rows: Sequence[Row]) -> list[str]:
     for stat in dict.fromkeys(r.stat for r in rows):
         sel = [r for r in rows if r.stat == stat]
         parts += [
-            f"### {TITLES.get(stat, f'`{stat}`')}",
+            f"### {title(stat)}",
             "",
             "| # | claim | comparison | experiment | effect [95% CI] | P(x > y) [95% CI] | means x / y | n | perm. p "
             "| verdict |",
@@ -233,21 +346,25 @@ def format_rows(rows: Sequence[Row]) -> list[str]:
             poi = r.poi.text(2) if r.poi else "–"
             means = f"{r.means[0]:.{r.digits}f} / {r.means[1]:.{r.digits}f}" if r.means else "–"
             perm = f"{r.perm_p:.2g}" if np.isfinite(r.perm_p) else "–"
+            verdict = r.verdict
+            if r.by_design and r.effect is not None:
+                verdict += f" (unpaired; paired by design: {r.paired_verdict}, below)"
             parts.append(
                 f"| {r.claim} | {r.text} | {r.comparison} | {r.experiment} | {eff} | {poi} | {means} | {_n(r)} "
-                f"| {perm} | {r.verdict} |"
+                f"| {perm} | {verdict} |"
             )
         parts.append("")
     return parts
 
 
 def format_report(report: Report) -> str:
-    """The report as Markdown: the verdict tables, the high-mode counts, the seed-matched
-    differences, the runs a verdict would need, the dose-and-response sections, the labelled
-    experiment sets, then the notes."""
+    """The report as Markdown: the verdict tables, the high-mode counts, the paired verdicts, the
+    seed-matched differences, the runs a verdict would need, the dose-and-response sections, the
+    runs left out, the labelled experiment sets, then the notes."""
     rows = report.rows
-    parts = format_rows(rows) + format_high(rows) + format_paired(rows) + format_plan(rows)
+    parts = format_rows(rows) + format_high(rows) + format_by_design(rows) + format_paired(rows) + format_plan(rows)
     parts += [line for dose in report.doses for line in format_dose(dose)]
+    parts += format_left_out(report.left_out)
     sets = sorted({r.listed for r in rows if r.listed})
     if sets:
         parts += ["Experiment sets:", *[f"- {label}: {names}" for label, names in sets], ""]

@@ -396,6 +396,13 @@ def sign_flip_p(strata: Sequence[Sequence[float]], *, n_resamples: int = N_RESAM
     return float(res.pvalue)
 
 
+def sign_flip_exact(n: int, n_resamples: int = N_RESAMPLES) -> bool:
+    """Whether :func:`sign_flip_p` enumerates every one of the 2^n sign assignments of ``n``
+    differences (SciPy's ``permutation_test`` does while they number at most ``n_resamples``);
+    otherwise it draws ``n_resamples`` of them."""
+    return n >= 1 and 2**n <= n_resamples
+
+
 def spearman(u: np.ndarray, v: np.ndarray, axis: int = -1) -> np.ndarray:
     """Spearman's ρ along ``axis``, vectorised: Pearson's correlation of the average ranks (ties share
     their mean rank, as :func:`scipy.stats.spearmanr` does); nan where u or v is constant."""
