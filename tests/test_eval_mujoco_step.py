@@ -6,6 +6,7 @@ The reference is gymnasium's own env (``spot.envs.make_env`` / ``spot.evaluation
 not this module's formulas: the checks hold only if the stepper reproduces gymnasium's reset noise,
 physics, reward, health check and observation bit for bit."""
 
+import json
 import re
 import threading
 
@@ -198,3 +199,39 @@ def test_spot_bench_eval_names_its_stepper(capsys):
     assert "stepper            gymnasium" in out and "batched_gymnasium_steps_s" not in out
     assert cli.main(["bench", "iql", "--stepper", "mujoco"]) == 2
     assert "--stepper goes with 'spot bench eval'" in capsys.readouterr().err
+
+
+def test_a_runs_scores_are_the_same_with_either_stepper(tmp_path, spot_dirs, monkeypatch):
+    """A tiny Oracle run on Hopper, evaluated to the env's own horizon: every logged evaluation
+    (eval/score, eval/return, eval/length at each evaluation step) and the final score are the same,
+    to the last digit, with ``eval.stepper`` mujoco and gymnasium."""
+    from spot.data import registry
+    from spot.run import pipeline
+
+    registry.build("hopper-medium-expert", "tiny", 0, progress=False)
+    monkeypatch.setenv("SPOT_CACHE_DIR", str(tmp_path / "stage-cache"))
+    logged = {}
+    for stepper in ("mujoco", "gymnasium"):
+        cfg = config.load(
+            None,
+            [
+                "method=oracle",
+                "budget=tiny",
+                "data.name=hopper-medium-expert",
+                "iql.steps=200",
+                "eval.every=100",
+                "eval.episodes=3",
+                "eval.max_steps=0",
+                f"eval.stepper={stepper}",
+                f"tracking.record={tmp_path / stepper}",
+            ],
+        )
+        out = pipeline.run(cfg, progress=False)
+        (metrics,) = (tmp_path / stepper).glob("*/metrics.jsonl")  # the run's recorded metric history
+        history = [json.loads(line) for line in metrics.read_text().splitlines()]
+        evals = sorted((m["key"], m["step"], m["value"]) for m in history if m["key"].startswith("eval/"))
+        logged[stepper] = (evals, {k: v for k, v in out.items() if k.startswith("eval/")})
+    assert logged["mujoco"] == logged["gymnasium"]
+    evals, final = logged["mujoco"]
+    assert {(k, step) for k, step, _ in evals} >= {(f"eval/{k}", s) for k in ("score", "return") for s in (0, 100, 200)}
+    assert "eval/score_final" in final
