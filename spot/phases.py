@@ -18,7 +18,11 @@ The phases (:data:`PHASES`):
   ``/jax/core/compile/jaxpr_trace_duration``, ``.../jaxpr_to_mlir_module_duration`` and
   ``.../backend_compile_duration``; the last one wraps the persistent cache's lookup). The spans
   nest (a jitted function traced inside another's trace), so their union is counted, and the
-  time is taken from the phase in which the compilation happened;
+  time is taken from the phase in which the compilation happened. The clock also counts the
+  programs (``Clock.compiles``: one backend span each) and those loaded from the persistent cache
+  (``Clock.cache_hits``: ``/jax/compilation_cache/cache_hits``), which a trial logs as
+  ``trial/compiles`` and ``trial/compile_cache_hits`` (:mod:`spot.compiles` counts the same outside
+  a trial);
 * ``train``: the stages' own work (labels, reward model, relabelling, subgoals, CVAE, shaping, IQL
   updates), everything in a run not in another phase;
 * ``evaluate``: policy evaluations in the environment;
@@ -39,8 +43,9 @@ PHASES = ("startup", "data", "compile", "train", "evaluate", "tracking", "other"
 COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_trace_duration",
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
-    "/jax/core/compile/backend_compile_duration",
+    "/jax/core/compile/backend_compile_duration",  # last: one per program (Clock.compiles)
 )
+CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
 
 
 def _add_span(spans: list[list[float]], start: float, end: float) -> float:
@@ -69,6 +74,8 @@ class Clock:
         self.read_wall = 0.0
         self.start_wall = time.time()
         self.spans: list[list[float]] = []  # compile spans (wall clock), merged
+        self.compiles = 0  # programs handed to XLA (compiled, or loaded from the persistent cache)
+        self.cache_hits = 0  # of which the persistent compilation cache had (spot.compiles)
 
     def _switch(self) -> float:
         now = time.perf_counter()
@@ -115,15 +122,24 @@ def _on_span(event: str, start: float, end: float, **_: Any) -> None:
     clock = _ACTIVE
     if clock is not None and event in COMPILE_EVENTS and threading.get_ident() == clock.thread:
         clock.compiled(start, end)
+        clock.compiles += event == COMPILE_EVENTS[-1]
+
+
+def _on_event(event: str, **_: Any) -> None:
+    clock = _ACTIVE
+    if clock is not None and event == CACHE_HIT_EVENT and threading.get_ident() == clock.thread:
+        clock.cache_hits += 1
 
 
 def listen_to_compiles() -> None:
-    """Register the compile-span listener with ``jax.monitoring`` (once per process; imports jax)."""
+    """Register the compile-span and cache-hit listeners with ``jax.monitoring`` (once per process;
+    imports jax)."""
     global _LISTENING
     if not _LISTENING:
         import jax.monitoring
 
         jax.monitoring.register_event_time_span_listener(_on_span)
+        jax.monitoring.register_event_listener(_on_event)
         _LISTENING = True
 
 

@@ -61,7 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from spot import SpotError, loop
+from spot import SpotError, loop, padding
 from spot.config import IPLConfig, IQLConfig
 from spot.nets import Params
 from spot.policy import iql
@@ -350,7 +350,7 @@ def sampled_update(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tupl
     ``fold_in(key, state.step)``."""
 
     def step(
-        state: IQLState, replay_data: Transitions | None, feedback: FeedbackPairs, key: jax.Array
+        state: IQLState, replay_data: Any, feedback: FeedbackPairs, key: jax.Array
     ) -> tuple[IQLState, dict[str, jax.Array]]:
         if ipl_cfg.use_replay and replay_data is None:
             raise SpotError("ipl.use_replay is on but no replay data was given")
@@ -359,8 +359,8 @@ def sampled_update(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tupl
         dropout_key = jax.random.fold_in(step_key, 1) if iql_cfg.actor_dropout > 0 else None
         replay = None
         if ipl_cfg.use_replay:
-            idx = jax.random.randint(replay_key, (iql_cfg.batch_size,), 0, replay_data.obs.shape[0])
-            replay = jax.tree.map(lambda x: x[idx], replay_data)
+            idx = jax.random.randint(replay_key, (iql_cfg.batch_size,), 0, padding.count(replay_data))
+            replay = padding.take(replay_data, idx)
         return update(state, sample_feedback(fb_key, feedback, ipl_cfg), replay, iql_cfg, ipl_cfg, dropout_key)
 
     return step
@@ -371,8 +371,9 @@ def make_train_chunk(iql_cfg: IQLConfig, ipl_cfg: IPLConfig) -> Callable[..., tu
     """Jitted ``train_chunk(state, n, replay_data, feedback, key) -> (state, metrics)``.
 
     Runs ``n <= iql_cfg.chunk`` updates of :func:`sampled_update`, so one key can serve a whole run.
-    ``replay_data`` is the whole dataset as :class:`iql.Transitions` (``None`` allowed when
-    ``use_replay`` is off), ``feedback`` all training pairs. Metrics are means over the ``n``
+    ``replay_data`` is the whole dataset as :class:`iql.Transitions`, or :class:`spot.padding.Rows`
+    of them (one program for every dataset of a bucket; ``None`` allowed when ``use_replay`` is
+    off), ``feedback`` all training pairs. Metrics are means over the ``n``
     updates (:func:`spot.loop.make_chunk`, ``"mean"``). ``state`` is donated. Kept per config.
     """
     return loop.make_chunk(sampled_update(iql_cfg, ipl_cfg), iql_cfg.chunk, "mean")

@@ -64,7 +64,7 @@ import jax.numpy as jnp
 import optax
 from flax.training.train_state import TrainState
 
-from spot import NonFiniteError, SpotError, loop
+from spot import NonFiniteError, SpotError, loop, padding
 from spot.batches import Transitions
 from spot.config import IQL_ORDERS, IQLConfig
 from spot.nets import MLP, Params, create_train_state, orthogonal_init
@@ -350,13 +350,15 @@ def update(
 
 def sampled_update(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array], tuple[IQLState, dict]]:
     """``update(state, data, key)``: :func:`update` on ``cfg.batch_size`` rows of the whole dataset
-    ``data`` drawn with ``fold_in(key, state.step)``, so one key can serve a whole run."""
+    ``data`` drawn with ``fold_in(key, state.step)``, so one key can serve a whole run. ``data``:
+    :class:`Transitions`, or :class:`spot.padding.Rows` of them (padded to a bucket, rows drawn
+    from the real ones: the same draws, and one program for every dataset of a bucket)."""
 
-    def step(state: IQLState, data: Transitions, key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
+    def step(state: IQLState, data: Any, key: jax.Array) -> tuple[IQLState, dict[str, jax.Array]]:
         step_key = jax.random.fold_in(key, state.step)
-        idx = jax.random.randint(step_key, (cfg.batch_size,), 0, data.rew.shape[0])
+        idx = jax.random.randint(step_key, (cfg.batch_size,), 0, padding.count(data))
         dropout_key = jax.random.fold_in(step_key, 1) if cfg.actor_dropout > 0 else None
-        return update(state, jax.tree.map(lambda x: x[idx], data), cfg, dropout_key)
+        return update(state, padding.take(data, idx), cfg, dropout_key)
 
     return step
 
@@ -365,21 +367,27 @@ def sampled_update(cfg: IQLConfig) -> Callable[[IQLState, Transitions, jax.Array
 def make_train_chunk(cfg: IQLConfig) -> Callable[..., tuple[IQLState, dict]]:
     """Jitted ``train_chunk(state, n, data, key) -> (state, metrics)``: ``n`` updates (at most
     ``cfg.chunk`` in a run) of :func:`sampled_update`, metrics averaged over them in the loop carry
-    (:func:`spot.loop.make_chunk`, ``"sum"``). ``state`` is donated: do not reuse it. Kept per config.
+    (:func:`spot.loop.make_chunk`, ``"sum"``). ``state`` is donated: do not reuse it. Kept per config;
+    compiled once per observation and action size when ``data`` is :func:`spot.padding.padded`.
     """
     return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum")
 
 
 @functools.lru_cache(maxsize=16)
-def make_vmapped_train_chunk(cfg: IQLConfig, per_seed_rewards: bool = False) -> Callable[..., tuple[IQLState, dict]]:
+def make_vmapped_train_chunk(
+    cfg: IQLConfig, per_seed_rewards: bool = False, padded: bool = False
+) -> Callable[..., tuple[IQLState, dict]]:
     """Like :func:`make_train_chunk` for ``S`` seeds in one program.
 
     The returned ``fn(states, n, data, keys)`` takes states stacked over a leading seed axis
     (``init_state(keys, ...)`` with keys ``[S]``), the shared ``n`` and ``data`` and keys ``[S]``;
     metrics come back with shape ``[S]``. With ``per_seed_rewards``, ``data.rew`` is ``[S, N]``
-    (each seed's own reward model or shaping) and the other fields are shared.
+    (each seed's own reward model or shaping) and the other fields are shared. ``padded``: ``data``
+    is :class:`spot.padding.Rows` of the transitions (its ``count`` shared by the seeds).
     """
     data_axes = Transitions(None, None, 0, None, None) if per_seed_rewards else None
+    if padded and data_axes is not None:
+        data_axes = padding.Rows(data_axes, None)
     return loop.make_chunk(sampled_update(cfg), cfg.chunk, "sum", vmap_axes=(0, data_axes, 0))
 
 

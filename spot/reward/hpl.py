@@ -68,7 +68,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from spot import SpotError, loop
+from spot import SpotError, loop, padding
 from spot.config import HPLConfig
 from spot.nets import Params
 from spot.reward.hpl_nets import (
@@ -122,10 +122,12 @@ class LabelledPairs(NamedTuple):
 
 
 # --------------------------------------------------------------------------- phase 1: VAE
-def sample_segments(key: jax.Array, data: Unlabelled, batch: int, length: int) -> tuple[jax.Array, jax.Array]:
+def sample_segments(key: jax.Array, data: Any, batch: int, length: int) -> tuple[jax.Array, jax.Array]:
     """``batch`` segments of ``length`` steps from uniform start rows, right-padded (zeros) at their
-    episode's end: ``x [B, L, D]``, ``valid [B, L]`` float32."""
-    start = randint(key, (batch,), data.x.shape[0])
+    episode's end: ``x [B, L, D]``, ``valid [B, L]`` float32. ``data``: :class:`Unlabelled`, or
+    :class:`spot.padding.Rows` of it (starts drawn from the real rows: the same draws)."""
+    start = randint(key, (batch,), padding.count(data))
+    data = padding.rows_of(data)
     idx = start[:, None] + jnp.arange(length)  # [B, L]
     valid = idx < data.episode_end[start][:, None]
     x = data.x[jnp.where(valid, idx, start[:, None])] * valid[..., None]
@@ -147,12 +149,12 @@ def vae_objective(
     )
 
 
-def make_vae_update(cfg: HPLConfig) -> Callable[[HPLState, Unlabelled, jax.Array], tuple[HPLState, dict]]:
+def make_vae_update(cfg: HPLConfig) -> Callable[[HPLState, Any, jax.Array], tuple[HPLState, dict]]:
     """``update(state, data, key) -> (state, {loss, recon, kl})``: one VAE step on ``vae_batch``
     segments drawn with ``fold_in(key, state.step)``; ``state.params`` = encoder, prior and decoder."""
     tx = optax.adam(cfg.lr)
 
-    def update(state: HPLState, data: Unlabelled, key: jax.Array) -> tuple[HPLState, dict]:
+    def update(state: HPLState, data: Any, key: jax.Array) -> tuple[HPLState, dict]:
         seg_key, loss_key = jax.random.split(jax.random.fold_in(key, state.step))
         x, valid = sample_segments(seg_key, data, cfg.vae_batch, cfg.seq_len)
         (loss, info), grads = jax.value_and_grad(vae_objective, has_aux=True)(state.params, cfg, x, valid, loss_key)
@@ -221,16 +223,17 @@ def reward_objective(
 
 def make_reward_update(cfg: HPLConfig, batch_size: int) -> Callable:
     """``update(state, pairs, prior_params, x_all [N, D], key) -> (state, {loss, bce, reg, acc})``:
-    one reward step on ``batch_size`` distinct pairs; ``state.params`` = the reward net's."""
+    one reward step on ``batch_size`` distinct pairs; ``state.params`` = the reward net's. ``x_all``
+    may be :class:`spot.padding.Rows` (the regulariser's rows drawn from the real ones)."""
     tx = optax.adam(cfg.lr)
 
     def update(
-        state: HPLState, pairs: LabelledPairs, prior_params: Params, x_all: jax.Array, key: jax.Array
+        state: HPLState, pairs: LabelledPairs, prior_params: Params, x_all: Any, key: jax.Array
     ) -> tuple[HPLState, dict]:
         batch_key, extra_key, loss_key = jax.random.split(jax.random.fold_in(key, state.step), 3)
         idx = jnp.argsort(random_bits(batch_key, pairs.label.shape))[:batch_size]  # distinct pairs
         mb = jax.tree.map(lambda a: a[idx], pairs)
-        extra_x = x_all[randint(extra_key, (cfg.extra_batch,), x_all.shape[0])]
+        extra_x = padding.take(x_all, randint(extra_key, (cfg.extra_batch,), padding.count(x_all)))
         (loss, info), grads = jax.value_and_grad(reward_objective, has_aux=True)(
             state.params, prior_params, cfg, mb, extra_x, loss_key
         )
@@ -311,17 +314,19 @@ def _labelled(params: Params, cfg: HPLConfig, pairs: PrefPairs) -> LabelledPairs
     return LabelledPairs(**fields)
 
 
-def unlabelled(ds: Any) -> Unlabelled:
+def unlabelled(ds: Any, padded: bool = False) -> Any:
     """The dataset's (:class:`spot.data.dataset.Dataset`, qlearning view) transitions as device arrays for segment /
-    transition sampling."""
+    transition sampling: :class:`Unlabelled`, or with ``padded`` :class:`spot.padding.Rows` of it
+    (rows padded to a bucket: one program for every dataset of a bucket, the same draws)."""
     starts, ends = ds.episode_bounds()
     x = np.concatenate([ds.observations, ds.actions], axis=-1).astype(np.float32)
-    return Unlabelled(jnp.asarray(x), jnp.asarray(np.repeat(ends, ends - starts).astype(np.int32)))
+    data = Unlabelled(x, np.repeat(ends, ends - starts).astype(np.int32))
+    return jax.device_put(padding.padded(data) if padded else data)
 
 
 # --------------------------------------------------------------------------- driver
 def _train_vae(
-    cfg: HPLConfig, params: Params, data: Unlabelled, key: jax.Array, progress: bool
+    cfg: HPLConfig, params: Params, data: Any, key: jax.Array, progress: bool
 ) -> tuple[Params, dict[str, Any]]:
     """Phase 1: the encoder, prior and decoder for exactly ``cfg.vae_steps`` steps."""
     t0 = time.perf_counter()
@@ -355,7 +360,7 @@ def _train_reward(
     params: Params,
     train_pairs: PrefPairs,
     eval_pairs: PrefPairs | None,
-    x_all: jax.Array,
+    x_all: Any,
     key: jax.Array,
     eval_key: jax.Array,
     progress: bool,
@@ -446,12 +451,12 @@ def train_hpl(
     eval_pairs = _checked_pairs(eval_batch, cfg, ds, "eval preference batch") if eval_on == "eval" else None
     init_key, vae_key, reward_key, eval_key = jax.random.split(key, 4)
     del key
-    data = unlabelled(ds)
+    data = unlabelled(ds, padded=True)  # one program per env (spot.padding)
     params = init_params(init_key, cfg, ds.obs_dim, ds.act_dim)
     vae_params, vae_history = _train_vae(cfg, params, data, vae_key, progress)
     params.update(vae_params)
     params["reward"], history = _train_reward(
-        cfg, params, train_pairs, eval_pairs, data.x, reward_key, eval_key, progress
+        cfg, params, train_pairs, eval_pairs, padding.part(data, lambda u: u.x), reward_key, eval_key, progress
     )
     history.update(vae_history, eval_on=eval_on)
     vae_loop_s, reward_loop_s = history.pop("vae_loop_s"), history.pop("reward_loop_s")

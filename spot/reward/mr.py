@@ -15,6 +15,8 @@ exposes the same ``forward -> (r_hat, w, logit)`` interface as :mod:`spot.reward
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import flax.linen as nn
@@ -33,8 +35,14 @@ def make_model(cfg: MRConfig) -> MLP:
     return MLP(hidden=tuple(cfg.hidden), out_dim=1, activation=nn.relu, output_kernel_init=OUTPUT_INIT)
 
 
+@functools.lru_cache(maxsize=16)
+def _init_program(cfg: MRConfig, obs_dim: int, act_dim: int) -> Callable[[jax.Array], Params]:
+    """The jitted init, kept per config and sizes (compiled once per process, as PT's)."""
+    return jit_init(make_model(cfg), jnp.zeros((1, obs_dim + act_dim), jnp.float32))
+
+
 def init_params(key: jax.Array, cfg: MRConfig, obs_dim: int, act_dim: int) -> Params:
-    return jit_init(make_model(cfg), jnp.zeros((1, obs_dim + act_dim), jnp.float32))(key)
+    return _init_program(cfg, obs_dim, act_dim)(key)
 
 
 def per_step_reward(params: Params, obs: jax.Array, act: jax.Array, cfg: MRConfig) -> jax.Array:

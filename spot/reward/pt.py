@@ -35,6 +35,8 @@ learning rate by default linear from 0 to ``PTConfig.lr`` over ``warmup_steps``,
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import flax.linen as nn
@@ -166,7 +168,10 @@ def make_model(cfg: PTConfig) -> PreferenceTransformer:
     )
 
 
-def init_params(key: jax.Array, cfg: PTConfig, obs_dim: int, act_dim: int) -> Params:
+@functools.lru_cache(maxsize=16)
+def _init_program(cfg: PTConfig, obs_dim: int, act_dim: int) -> Callable[[jax.Array], Params]:
+    """The jitted init, kept per config and sizes: a later run in the process (a reused sweep
+    trial, another dataset of the env) neither traces nor compiles it again."""
     length = 2
     return jit_init(
         make_model(cfg),
@@ -174,7 +179,11 @@ def init_params(key: jax.Array, cfg: PTConfig, obs_dim: int, act_dim: int) -> Pa
         jnp.zeros((1, length, act_dim)),
         jnp.ones((1, length), jnp.int32),
         jnp.ones((1, length)),
-    )(key)
+    )
+
+
+def init_params(key: jax.Array, cfg: PTConfig, obs_dim: int, act_dim: int) -> Params:
+    return _init_program(cfg, obs_dim, act_dim)(key)
 
 
 def forward(

@@ -21,7 +21,9 @@ relabelled by the reward model. Trajectories are the episodes of the ``qlearning
   prior, per transition.
 
 Every mode runs one jitted program with fixed shapes (the last batch is padded), compiled once
-per model, window and batch size in a process (jit's own cache).
+per model, window and batch size in a process (jit's own cache). The dataset's arrays it indexes
+are padded to a bucket of rows (:mod:`spot.padding`; the padding is never read), so the datasets
+of an environment share the program.
 
 :func:`normalize_rewards` then rescales by the spread of the per-episode returns of the *new*
 rewards: ``pt``: ``r * 1000 / (R_max - R_min) + 0.5`` (PT repo ``train_offline.py`` for
@@ -41,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from spot import SpotError, loop
+from spot import SpotError, loop, padding
 from spot.config import HPLConfig, MRConfig, PTConfig, RelabelConfig
 from spot.data.dataset import Dataset
 from spot.nets import Params
@@ -92,8 +94,10 @@ def _run_batched(
     n = inputs[0].shape[0]
     n_batches = max(math.ceil(n / batch), 1)
     padded = [np.concatenate([x, np.zeros((n_batches * batch - n, *x.shape[1:]), x.dtype)]) for x in inputs]
-    obs_all = jax.device_put(np.asarray(ds.observations, np.float32))
-    act_all = jax.device_put(np.asarray(ds.actions, np.float32))
+    # rows padded to a bucket (never read: every index is a real row): one program per env
+    obs_all, act_all = jax.device_put(
+        padding.pad_rows((np.asarray(ds.observations, np.float32), np.asarray(ds.actions, np.float32)))
+    )
     compile_s = loop.compile_seconds(program, params, obs_all, act_all, *(x[:batch] for x in padded))
     outputs = []
     for i in tqdm(range(n_batches), desc=desc, disable=not progress, leave=False):
@@ -238,8 +242,9 @@ def relabel_hpl(
     Returns:
       ``[N]`` float32 (not normalised; see ``relabel.normalize``, HPL's is ``wiserl``).
     """
-    x_all = jnp.asarray(np.concatenate([ds.observations, ds.actions], axis=-1).astype(np.float32))
-    n = x_all.shape[0]
+    x = np.concatenate([ds.observations, ds.actions], axis=-1).astype(np.float32)
+    n = x.shape[0]
+    x_all = jnp.asarray(padding.pad_rows(x))  # a bucket of rows (spot.padding); rows < n are read
     n_batches = max(-(-n // batch_size), 1)
     rows = np.minimum(np.arange(n_batches * batch_size), n - 1).astype(np.int32).reshape(n_batches, batch_size)
     sub = {"prior": params["prior"], "reward": params["reward"]}

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from spot import config as config_lib
-from spot import phases
+from spot import padding, phases
 from spot.config import ExperimentConfig
 from spot.run.context import Context, Labelled, Policy, Shaped
 
@@ -149,7 +149,8 @@ def iql_policy(ctx: Context, shaped: Shaped, labelled: Labelled | None) -> Polic
 
     from spot.policy import iql
 
-    data = jax.device_put(policy_transitions(ctx.cfg, ctx.ds, shaped.reward))
+    # padded to a bucket of rows: one compiled chunk for every dataset of the env (spot.padding)
+    data = jax.device_put(padding.padded(policy_transitions(ctx.cfg, ctx.ds, shaped.reward)))
     init_key, _ = jax.random.split(ctx.keys["policy"])
     state = iql.init_state(init_key, ctx.ds.obs_dim, ctx.ds.act_dim, ctx.cfg.iql)
     return _train_policy(ctx, state, iql.make_train_chunk(ctx.cfg.iql), lambda key: (data, key))
@@ -162,7 +163,7 @@ def ipl_policy(ctx: Context, shaped: Shaped, labelled: Labelled) -> Policy:
     from spot.policy import ipl
 
     cfg = ctx.cfg
-    data = jax.device_put(policy_transitions(cfg, ctx.ds, shaped.reward))
+    data = jax.device_put(padding.padded(policy_transitions(cfg, ctx.ds, shaped.reward)))  # spot.padding
     init_key, _ = jax.random.split(ctx.keys["policy"])
     from spot.reward.train import clip_actions
 

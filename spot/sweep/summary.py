@@ -217,6 +217,11 @@ def format_breakdown(
 
     out = ["where the trials' time went (seconds):", line(header), "  ".join("-" * w for w in widths), *map(line, body)]
     out.append("cpu%: the trial process's CPU seconds over the trial function's wall time times the CPUs it had")
+    if "trial/compiles" in total:  # spot.phases counts the programs each trial handed to XLA
+        out.append(
+            f"programs: {total['trial/compiles']:.0f} compiled or loaded, "
+            f"{total.get('trial/compile_cache_hits', 0.0):.0f} of them from the persistent compilation cache"
+        )
     if fit and fit.get("sweep/fit_wall_s"):
         out.append(
             f"sweep: {fit['sweep/fit_wall_s']:.0f} s in Tune, {fit['sweep/fit_cpu_s']:.0f} CPU-seconds of the "

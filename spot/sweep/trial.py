@@ -487,6 +487,7 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
                 }
             )
             values["trial/cpu_util"] = cpu_s / max(clock.read_wall * values["time/trial_cpus"], 1e-9)
+            values.update({"trial/compiles": clock.compiles, "trial/compile_cache_hits": clock.cache_hits})
             device = phases.devices() if "jax" in sys.modules else "jax not used"
             tags = {"trial_device": device, "trial_process": "reused" if reused else "new"}
         _log_breakdown(ctx, finals, values, tags)
