@@ -47,6 +47,7 @@ LAYERS = [
             "spot.tables",
             "spot.figures",
             "spot.bench",
+            "spot.bench_programs",
             "spot.results",
             "spot.report",
             "spot.stats",

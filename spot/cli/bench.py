@@ -19,9 +19,13 @@ def add(sub: Any) -> None:
         "throughput, compile time and peak memory of a stage (paper sizes)",
         "spot bench iql --small\nspot bench iql --seeds 5 --order sequential\nspot bench pt --small --seeds 2\n"
         "spot bench sac --env hopper --size paper-fast\nspot bench eval\nspot bench eval --stepper gymnasium\n"
-        "spot bench sweep sweeps/quickstart.yaml",
+        "spot bench programs\nspot bench sweep sweeps/quickstart.yaml",
     )
-    d.add_argument("what", choices=("iql", "pt", "relabel", "cvae", "sac", "eval", "sweep"), help="a stage, or a sweep")
+    d.add_argument(
+        "what",
+        choices=("iql", "pt", "relabel", "cvae", "sac", "eval", "programs", "sweep"),
+        help="a stage, a sweep, or programs: each stage's per-step overhead at tiny sizes against its FLOPs",
+    )
     d.add_argument("file", nargs="?", help="sweep: the sweep file (runs it; prints each trial's time by phase)")
     d.add_argument("--smoke", action="store_true", help="sweep: the file's smoke block")
     d.add_argument("--small", action="store_true", help="small sizes: a quick check in seconds")
@@ -56,6 +60,13 @@ def _bench(args: argparse.Namespace) -> int | None:
         return bench.bench_sweep(args.file, smoke=args.smoke)
     if args.file or args.smoke:
         raise SpotError(f"spot bench {args.what}: a sweep file and --smoke go with 'spot bench sweep'")
+    if args.what == "programs":
+        from spot import bench_programs
+
+        if args.seeds != 1:
+            raise SpotError("spot bench programs: --seeds does not go with it (the paper row's widths: 3 and 12)")
+        print(bench_programs.format_programs(bench_programs.bench_programs(small=args.small)))
+        return None
     kwargs = {"small": args.small}
     if args.what == "iql":
         kwargs["seeds"], kwargs["order"] = args.seeds, args.order

@@ -24,7 +24,7 @@ from spot import NonFiniteError, SpotError, loop
 from spot.config import RewardConfig
 from spot.nets import Params
 from spot.reward.models import RewardModel
-from spot.reward.train import _checked_pairs, _history, training_steps
+from spot.reward.train import BestRule, _checked_pairs, _history, eval_period, training_steps
 from spot.reward.update import PrefPairs, RewardState, init_state, make_evaluate, make_update, num_pairs
 
 
@@ -57,7 +57,7 @@ def train_reward_models(
     state = _stack([init_state(model, init_key, obs_dim, act_dim, steps) for init_key, _ in split])
     train_keys = jnp.stack([train_key for _, train_key in split])
     batch_size = min(reward_cfg.batch_size, pairs_per_run)
-    length = loop.chunk_length(steps, reward_cfg.eval_every)
+    length = loop.chunk_length(steps, eval_period(reward_cfg, pairs_per_run))
     padded = [loop.pad_minibatches(h, min(reward_cfg.batch_size, num_pairs(h))) for h in held_out]
     eval_data, eval_weight = jax.device_put((_stack([p[0] for p in padded]), np.stack([p[1] for p in padded])))
     train = jax.device_put(train)
@@ -66,11 +66,23 @@ def train_reward_models(
     compile_s = loop.compile_seconds(chunk, state, length, train, train_keys) + loop.compile_seconds(
         evaluate, state.params, eval_data, eval_weight
     )
+    baselines = [None] * len(keys)
+    if reward_cfg.eval_initial:  # the untrained models' held-out losses: each seed's first best
+        baselines = [float(x) for x in np.asarray(evaluate(state.params, eval_data, eval_weight)[0])]
+    rules = [
+        BestRule(reward_cfg.best_min_delta, b, lambda st, s=s: jax.tree.map(lambda a: a[s], st.params))
+        for s, b in enumerate(baselines)
+    ]
     desc = f"reward ({model.kind}, {len(keys)} seeds vmapped)" if progress else None
-    runs = _run_seeds(
-        chunk, state, (train, train_keys), lambda st: evaluate(st.params, eval_data, eval_weight), steps, length, desc
-    )
-    return [(jax.device_put(r.best_params), _history(r, batch_size, eval_on, compile_s, steps)) for r in runs]
+    held_out_of = lambda st: evaluate(st.params, eval_data, eval_weight)  # noqa: E731
+    runs = _run_seeds(chunk, state, (train, train_keys), held_out_of, rules, steps, length, desc)
+    out = []
+    for r, rule, baseline in zip(runs, rules, baselines, strict=True):
+        r.best, r.best_params, improved = rule.result()
+        history = _history(r, batch_size, eval_on, compile_s, steps)
+        history.update(best_improved=improved, initial_eval_loss=baseline)
+        out.append((jax.device_put(r.best_params), history))
+    return out
 
 
 def _stack(trees: list[Any]) -> Any:
@@ -99,15 +111,22 @@ def _vmapped_evaluate(model: RewardModel) -> Callable:
 
 
 def _run_seeds(
-    chunk: loop.Chunk, state: RewardState, args: tuple, evaluate: Callable, steps: int, length: int, desc: str | None
+    chunk: loop.Chunk,
+    state: RewardState,
+    args: tuple,
+    evaluate: Callable,
+    rules: list[BestRule],
+    steps: int,
+    length: int,
+    desc: str | None,
 ) -> list[loop.Run]:
     """:func:`spot.loop.run` for a state stacked over seeds: one row per chunk and seed (the NaN/inf
-    checks per seed), each seed's best held-out checkpoint copied to the host."""
+    checks per seed), each seed's checkpoint kept by its :class:`spot.reward.train.BestRule` (as
+    :func:`spot.reward.train.train_reward_model` keeps one seed's) and copied to the host."""
     from tqdm.auto import tqdm
 
     n_seeds = int(np.shape(jax.tree.leaves(state)[0])[0])
     runs = [loop.Run(None) for _ in range(n_seeds)]
-    best = [np.inf] * n_seeds
     bar = tqdm(total=steps, desc=desc, disable=desc is None, leave=False)
     done, t0 = 0, time.perf_counter()
     for n in loop.chunk_sizes(steps, length):
@@ -119,9 +138,7 @@ def _run_seeds(
             row = {"step": done + n, **row, "eval_loss": float(eval_loss[s]), "eval_acc": float(eval_acc[s])}
             if not np.isfinite(row["eval_loss"]):
                 raise NonFiniteError(done + n, "reward/eval_loss", row["eval_loss"])
-            if row["eval_loss"] < best[s]:
-                best[s], r.best = row["eval_loss"], row
-                r.best_params = jax.tree.map(lambda a, s=s: np.array(a[s], copy=True), state.params)
+            rules[s].update(row, state)
             r.rows.append(row)
         done += n
         bar.update(n)

@@ -16,12 +16,17 @@ and minibatch keys, derived from its seed exactly as in a one-seed run. After ea
 updates every seed's policy is evaluated in the env with that seed's episodes and logged to its
 own run, and each run gets its own learning curve, ``models/policy`` and final metrics
 (:func:`spot.run.finish.finish`). The per-seed results equal one-seed runs' to float tolerance
-(batched matmuls round differently): ``tests/test_multiseed.py``.
+(batched matmuls round differently): ``tests/test_multiseed.py``. The evaluations run on the CPU
+device; on an accelerator, in a thread beside the training (the GPU goes on with the next
+updates), and IQL's whole chunks as loops of static length (:func:`train_iql`); either way the
+numbers are those of the evaluations in line (``tests/test_paper_row_multiseed.py``).
 
 Per-seed timings: ``time/iql_s`` of every seed is the wall time of the shared vmapped training
 (the evaluations excluded), ``time/eval_s`` an equal share of the evaluations (all seeds'
-episodes step together), ``time/total_s`` the whole multi-seed call. The runs are tagged
-``seed_mode = vmap`` and ``vmap.seeds`` (all seeds).
+episodes step together; beside the training they overlap it), ``time/total_s`` the whole
+multi-seed call. The times of the stages before IQL are logged when IQL starts too, so a run
+stopped during IQL keeps them. The runs are tagged ``seed_mode = vmap`` and ``vmap.seeds`` (all
+seeds); the stage-cache keys of a vmap trial carry :data:`KEY_EXTRA` and :func:`vmap_code`.
 
 Members of several configs (``spot run --methods oracle,pt,spot --seeds 0,1,2``) share one
 IQL program too, when they agree on :data:`SHARED_SECTIONS`: the stages before the policy run
@@ -37,8 +42,12 @@ FAILED with the reason: the seeds share one program.
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import contextlib
 import dataclasses
+import functools
+import math
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -55,6 +64,19 @@ KEY_EXTRA = {"seed_mode": "vmap"}
 """Added to the deps of every stage-cache entry a vmap trial makes or reads (``Context.key_extra``):
 its reward models and CVAEs differ from one-seed training in the last bits, so the two kinds of
 entries are kept apart and a one-seed run's numbers never depend on which filled the cache first."""
+
+
+@functools.cache
+def vmap_code() -> str:
+    """The code version of the vmapped reward-model and CVAE training (:mod:`spot.reward.vmapped`,
+    :mod:`spot.subgoal.vmapped`), added to a vmap trial's stage-cache keys beside :data:`KEY_EXTRA`:
+    the one-seed stages' code versions do not cover those modules, so an edit to them retires the
+    vmap entries they made."""
+    from spot.reward import vmapped as reward_vmapped
+    from spot.subgoal import vmapped as cvae_vmapped
+
+    code = cache.code_version(reward_vmapped.train_reward_models) + cache.code_version(cvae_vmapped.train_cvaes)
+    return cache.key("vmap", {}, code)
 
 
 SHARED_SECTIONS = ("data", "iql", "eval")
@@ -133,7 +155,7 @@ def run(
             if tracker is not None:
                 tr.set_tags(mode_tags)
             ctx = Context(cfg, ds, card, env_name, tr, pipeline._keys(cfg.seed), progress, callback)
-            ctx.key_extra = dict(KEY_EXTRA)
+            ctx.key_extra = {**KEY_EXTRA, "vmap_code": vmap_code()}
             ctx.times["time/data_s"] = data_s
             labelled.append(ctx.stage("labels", label_stages.labels_stage) if kind.uses_labels else None)
             ctxs.append(ctx)
@@ -145,6 +167,8 @@ def run(
             vmapped_cvaes([ctxs[i] for i in members], [parts[i][1] for i in members], [parts[i][2] for i in members])
             for i in members:
                 shaped[i] = pipeline.from_cvae(ctxs[i], *parts[i])
+        for ctx in ctxs:  # the stages' times so far: a run stopped during IQL (a time limit) keeps them
+            ctx.log(dict(ctx.times))
         policies = train_iql(ctxs, shaped)
         return [finish.finish(ctx, policy, t_start) for ctx, policy in zip(ctxs, policies, strict=True)]
 
@@ -240,9 +264,16 @@ def _seed(tree: Any, s: int) -> Any:
     return jax.tree.map(lambda a: a[s], tree)
 
 
-def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]:
+def train_iql(
+    ctxs: Sequence[Context], shaped: Sequence[Shaped], overlap: bool | None = None, static: bool | None = None
+) -> list[Policy]:
     """IQL for every seed of ``ctxs`` as one vmapped program; each seed evaluated and logged to its
-    own context, as :func:`spot.policy_stages.iql_policy` does for one seed (same keys, same schedule)."""
+    own context, as :func:`spot.policy_stages.iql_policy` does for one seed (same keys, same schedule).
+
+    The evaluations run on the CPU device (:class:`_Evaluations`); with ``overlap`` (default: when
+    JAX's default backend is an accelerator) in a thread beside the training, which goes on with
+    the next updates meanwhile; each is logged in order at the next chunk boundary. With ``static``
+    (the same default) whole chunks run as a loop of static length (:class:`_StaticChunks`)."""
     import jax
     import jax.numpy as jnp
 
@@ -256,42 +287,130 @@ def train_iql(ctxs: Sequence[Context], shaped: Sequence[Shaped]) -> list[Policy]
     )
     state = iql.init_state(init_keys, ds.obs_dim, ds.act_dim, cfg.iql)
     chunk = iql.make_vmapped_train_chunk(cfg.iql, per_seed_rewards=True)
+    on_accelerator = jax.default_backend() != "cpu"
+    if on_accelerator if static is None else static:
+        chunk = _StaticChunks(cfg.iql, chunk)
     fold = jax.vmap(jax.random.fold_in, in_axes=(0, None))
-    scores: list[list[float]] = [[] for _ in ctxs]
-    eval_s = [0.0] * len(ctxs)
+    evals = _Evaluations(ctxs, on_accelerator if overlap is None else overlap)
 
     def evaluate(actor_params: Any, step: int) -> float:
-        """Every seed's episodes stepped together (one jitted policy call per env step), each seed's
-        numbers those of its own evaluation; the time shared equally among the seeds."""
-        from spot import evaluation, phases
-
-        t0 = time.perf_counter()
-        with phases.phase("evaluate"):
-            results = evaluation.evaluate_runs(
-                policy_stages.eval_policy(actor_params, cfg.iql, runs=True),
-                ctxs[0].env_name,
-                policy_stages.eval_episodes(cfg, step),
-                [policy_stages.eval_seed(ctx.cfg) for ctx in ctxs],
-                max_steps=cfg.eval.max_steps,
-                stepper=cfg.eval.stepper,
-            )
-        for s, (ctx, res) in enumerate(zip(ctxs, results, strict=True)):
-            policy_stages.log_evaluation(ctx, res, step)
-            scores[s].append(float(res["score_mean"]))
-        share = (time.perf_counter() - t0) / len(ctxs)
-        for s in range(len(ctxs)):
-            eval_s[s] += share
-        return float(np.mean([seed_scores[-1] for seed_scores in scores]))  # iql.train's curve; unused
+        evals.submit(actor_params, step)
+        return math.nan  # iql.train's curve; unused (each seed's scores are in evals.scores)
 
     def log(metrics: dict[str, Any], step: int) -> None:
+        evals.drain()
         for s, ctx in enumerate(ctxs):
             ctx.log({k: float(np.asarray(v)[s]) for k, v in metrics.items()}, step=step)
 
     t0 = time.perf_counter()
-    curve = iql.train(chunk, state, lambda c: (data, fold(train_keys, c)), cfg.iql, cfg.eval.every, evaluate, log)
-    train_s = time.perf_counter() - t0 - curve.eval_s
+    try:
+        curve = iql.train(chunk, state, lambda c: (data, fold(train_keys, c)), cfg.iql, cfg.eval.every, evaluate, log)
+        train_s = time.perf_counter() - t0 - curve.eval_s
+        evals.drain(wait=True)
+    finally:
+        evals.close()
     policies = []
     for s, ctx in enumerate(ctxs):
-        ctx.times["time/iql_s"] = train_s + eval_s[s]  # finish.finish subtracts this seed's evaluations
-        policies.append(Policy(_seed(curve.state, s), curve.steps, scores[s], eval_s[s]))
+        ctx.times["time/iql_s"] = train_s + evals.eval_s[s]  # finish.finish subtracts this seed's evaluations
+        policies.append(Policy(_seed(curve.state, s), curve.steps, evals.scores[s], evals.eval_s[s]))
     return policies
+
+
+class _StaticChunks:
+    """IQL's vmapped chunk (``chunk(state, n, data, keys)``), whose chunks of exactly ``iql.chunk``
+    updates run as a loop of that static length instead. :mod:`spot.loop`'s ``"sum"`` chunk loops
+    ``n`` times with ``n`` traced (one program for every chunk length); on a GPU, XLA reads the
+    predicate of a loop whose trip count it does not know back to the host at every iteration (a
+    device-to-host copy and a wait per update), and does not when the count is static. The updates,
+    and the means of their metrics, are the same (``tests/test_paper_row_multiseed.py``); a shorter
+    last chunk still runs the traced program."""
+
+    def __init__(self, cfg: Any, traced: Callable) -> None:
+        import jax
+
+        from spot import loop
+        from spot.batches import Transitions
+        from spot.policy import iql
+
+        self.traced, self.length = traced, cfg.chunk
+        update = iql.sampled_update(cfg)
+
+        def one(state: Any, data: Any, key: Any) -> tuple[Any, dict]:
+            def body(_: Any, carry: tuple) -> tuple:
+                st, sums = carry
+                st, metrics = update(st, data, key)
+                return st, jax.tree.map(lambda a, b: a + b, sums, metrics)
+
+            idle = loop._zeros_like_metrics(update, state, data, key)
+            state, sums = jax.lax.fori_loop(0, self.length, body, (state, idle))
+            return state, jax.tree.map(lambda m: m / self.length, sums)  # loop._mean of a whole chunk
+
+        axes = (0, Transitions(None, None, 0, None, None), 0)
+        self.full = jax.jit(jax.vmap(one, in_axes=axes), donate_argnums=0)
+
+    def __call__(self, state: Any, n: int, *args: Any) -> tuple[Any, dict]:
+        return self.full(state, *args) if n == self.length else self.traced(state, n, *args)
+
+
+class _Evaluations:
+    """The evaluations of a vmapped IQL program: every seed's episodes stepped together (one jitted
+    policy call per env step for all of them, :func:`spot.evaluation.evaluate_runs`), each seed's
+    numbers those of its own evaluation, the time shared equally among the seeds.
+
+    The actor parameters are copied to the CPU device first (the next chunk donates the state), so
+    the policy runs on the CPU cores beside an accelerator (one small program per env step: no
+    device round trip) and on the same device as a CPU run's. With ``overlap`` they are evaluated by
+    one worker thread while the training goes on; :meth:`drain` logs the finished ones, in order,
+    from the calling thread (trackers and ``on_eval`` callbacks are only ever called from it)."""
+
+    def __init__(self, ctxs: Sequence[Context], overlap: bool) -> None:
+        import jax
+
+        self.ctxs, self.cfg, self.cpu = ctxs, ctxs[0].cfg, jax.devices("cpu")[0]
+        self.scores: list[list[float]] = [[] for _ in ctxs]
+        self.eval_s = [0.0] * len(ctxs)
+        self.pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="spot-eval") if overlap else None
+        self.pending: collections.deque = collections.deque()
+
+    def _run(self, actor_params: Any, step: int) -> tuple[list[dict[str, Any]], float]:
+        from spot import evaluation
+
+        t0 = time.perf_counter()
+        results = evaluation.evaluate_runs(
+            policy_stages.eval_policy(actor_params, self.cfg.iql, runs=True),
+            self.ctxs[0].env_name,
+            policy_stages.eval_episodes(self.cfg, step),
+            [policy_stages.eval_seed(ctx.cfg) for ctx in self.ctxs],
+            max_steps=self.cfg.eval.max_steps,
+            stepper=self.cfg.eval.stepper,
+        )
+        return results, time.perf_counter() - t0
+
+    def submit(self, actor_params: Any, step: int) -> None:
+        """Evaluate the stacked ``actor_params`` after ``step`` updates (now, or in the worker)."""
+        import jax
+
+        from spot import phases
+
+        params = jax.device_put(jax.tree.map(lambda a: np.array(a, copy=True), actor_params), self.cpu)
+        if self.pool is None:
+            with phases.phase("evaluate"):
+                self._log(step, *self._run(params, step))
+        else:
+            self.pending.append((step, self.pool.submit(self._run, params, step)))
+
+    def drain(self, wait: bool = False) -> None:
+        """Log the evaluations that finished (all of them with ``wait``), in the order submitted."""
+        while self.pending and (wait or self.pending[0][1].done()):
+            step, future = self.pending.popleft()
+            self._log(step, *future.result())
+
+    def _log(self, step: int, results: list[dict[str, Any]], seconds: float) -> None:
+        for s, (ctx, res) in enumerate(zip(self.ctxs, results, strict=True)):
+            policy_stages.log_evaluation(ctx, res, step)
+            self.scores[s].append(float(res["score_mean"]))
+            self.eval_s[s] += seconds / len(self.ctxs)
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=False, cancel_futures=True)
