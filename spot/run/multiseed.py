@@ -319,37 +319,44 @@ def train_iql(
 class _StaticChunks:
     """IQL's vmapped chunk (``chunk(state, n, data, keys)``), whose chunks of exactly ``iql.chunk``
     updates run as a loop of that static length instead. :mod:`spot.loop`'s ``"sum"`` chunk loops
-    ``n`` times with ``n`` traced (one program for every chunk length); on a GPU, XLA reads the
-    predicate of a loop whose trip count it does not know back to the host at every iteration (a
-    device-to-host copy and a wait per update), and does not when the count is static. The updates,
+    ``n`` times with ``n`` traced (one program for every chunk length); on a GPU, XLA's runtime
+    reads the predicate of a loop whose trip count it does not know back to the host at every
+    iteration (a device-to-host copy and a wait per update; as we read XLA, not measured here),
+    and does not when the count is static. The updates,
     and the means of their metrics, are the same (``tests/test_paper_row_multiseed.py``); a shorter
     last chunk still runs the traced program."""
 
     def __init__(self, cfg: Any, traced: Callable) -> None:
-        import jax
-
-        from spot import loop
-        from spot.batches import Transitions
-        from spot.policy import iql
-
-        self.traced, self.length = traced, cfg.chunk
-        update = iql.sampled_update(cfg)
-
-        def one(state: Any, data: Any, key: Any) -> tuple[Any, dict]:
-            def body(_: Any, carry: tuple) -> tuple:
-                st, sums = carry
-                st, metrics = update(st, data, key)
-                return st, jax.tree.map(lambda a, b: a + b, sums, metrics)
-
-            idle = loop._zeros_like_metrics(update, state, data, key)
-            state, sums = jax.lax.fori_loop(0, self.length, body, (state, idle))
-            return state, jax.tree.map(lambda m: m / self.length, sums)  # loop._mean of a whole chunk
-
-        axes = (0, Transitions(None, None, 0, None, None), 0)
-        self.full = jax.jit(jax.vmap(one, in_axes=axes), donate_argnums=0)
+        self.traced, self.length, self.full = traced, cfg.chunk, _static_chunk(cfg)
 
     def __call__(self, state: Any, n: int, *args: Any) -> tuple[Any, dict]:
         return self.full(state, *args) if n == self.length else self.traced(state, n, *args)
+
+
+@functools.lru_cache(maxsize=8)
+def _static_chunk(cfg: Any) -> Callable:
+    """The jitted whole chunk of :class:`_StaticChunks` (``cfg.chunk`` updates), kept per IQL config
+    as :func:`spot.policy.iql.make_vmapped_train_chunk` is: compiled once per shapes in a process."""
+    import jax
+
+    from spot import loop
+    from spot.batches import Transitions
+    from spot.policy import iql
+
+    update, length = iql.sampled_update(cfg), cfg.chunk
+
+    def one(state: Any, data: Any, key: Any) -> tuple[Any, dict]:
+        def body(_: Any, carry: tuple) -> tuple:
+            st, sums = carry
+            st, metrics = update(st, data, key)
+            return st, jax.tree.map(lambda a, b: a + b, sums, metrics)
+
+        idle = loop._zeros_like_metrics(update, state, data, key)
+        state, sums = jax.lax.fori_loop(0, length, body, (state, idle))
+        return state, jax.tree.map(lambda m: m / length, sums)  # loop._mean of a whole chunk
+
+    axes = (0, Transitions(None, None, 0, None, None), 0)
+    return jax.jit(jax.vmap(one, in_axes=axes), donate_argnums=0)
 
 
 class _Evaluations:
