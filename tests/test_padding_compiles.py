@@ -11,6 +11,10 @@ IQL chunk once in a process.
 from __future__ import annotations
 
 import dataclasses
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import jax
@@ -274,3 +278,41 @@ def test_reward_model_inits_compile_once_per_config_and_sizes():
             again = module.init_params(key, cfg, 3, 2)
         assert count.total == 0, count.programs
         _equal_trees(first, again)
+
+
+_CHUNK_ON_ROWS = """
+import json, sys
+from spot import runtime
+runtime.configure()
+import jax, numpy as np
+from spot import compiles, padding
+from spot.config import IQLConfig
+from spot.policy import iql
+n = int(sys.argv[1])
+rng = np.random.default_rng(n)
+cols = [rng.normal(size=(n, *s)).astype(np.float32) for s in ((3,), (2,), (), (3,))]
+data = iql.Transitions(*cols, np.ones(n, np.float32))
+cfg = IQLConfig(hidden=(16, 16), batch_size=8, steps=20, chunk=10)
+state = iql.init_state(jax.random.key(1), 3, 2, cfg)
+rows, key = jax.device_put(padding.padded(data)), jax.random.key(2)
+with compiles.counting() as count:
+    iql.make_train_chunk(cfg)(state, 10, rows, key)
+print(json.dumps({"chunk": count.named("chunk"), "hits": count.cache_hits}))
+"""
+
+
+def test_a_second_process_on_another_dataset_size_loads_the_chunk_from_the_persistent_cache(tmp_path):
+    """Across processes (a sweep's trials): the IQL chunk one process compiled for padded rows of
+    37 transitions is the program another process needs for 1,000 (spot.runtime's persistent
+    compilation cache, in a fresh folder here)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_", "XLA_FLAGS", "SPOT_JAX_CACHE"))}
+    env["SPOT_CACHE_DIR"] = str(tmp_path / "cache")
+    out = []
+    for n in (37, 1000):
+        proc = subprocess.run(
+            [sys.executable, "-c", _CHUNK_ON_ROWS, str(n)], capture_output=True, text=True, env=env, timeout=300
+        )
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        out.append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    assert out[0] == {"chunk": 1, "hits": 0}
+    assert out[1] == {"chunk": 1, "hits": 1}  # handed to XLA once: found in the cache
