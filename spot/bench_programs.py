@@ -262,16 +262,21 @@ def format_programs(result: dict[str, Any]) -> str:
         f"its FLOPs at this machine's matmul rate ({result['rate'] / 1e9:,.1f} GFLOP/s: "
         f"[{result['matmul_n']}, {result['matmul_n']}] @ [{result['matmul_n']}, {result['matmul_n']}] float32)",
         f"  {'stage':8s} {'width':>5s} {'FLOP/step':>11s} {'predicted':>10s} {'in program':>10s} "
-        f"{'overhead':>10s} {'per call':>10s} {'overhead':>10s}   (µs per step)",
+        f"{'overhead':>10s} {'per call':>10s} {'overhead':>10s}   (µs per step)   {'steps/s':>9s} {'FLOP-bound':>12s}",
     ]
 
     def us(x: float | None) -> str:
         return f"{'-':>10s}" if x is None else f"{x:10,.1f}"
 
     for r in result["rows"]:
+        measured = r["in_program_us"] if r["in_program_us"] is not None else r["per_call_us"]
         lines.append(
             f"  {r['stage']:8s} {r['width']:5d} {r['flops_per_step']:11,d} {us(r['predicted_us'])} "
             f"{us(r['in_program_us'])} {us(r['overhead_us'])} {us(r['per_call_us'])} {us(r['call_overhead_us'])}"
+            f"                   {1e6 / measured:9,.0f} {1e6 / r['predicted_us']:12,.0f}"
         )
+    lines.append(
+        "  steps/s: in the program (per call where there is none); FLOP-bound: what the FLOPs alone allow at the rate"
+    )
     lines.append(f"  {'device':8s} {phases.devices()}")
     return "\n".join(lines)
