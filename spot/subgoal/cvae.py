@@ -44,7 +44,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from spot import SpotError, loop
+from spot import SpotError, loop, padding
 from spot.config import CVAEConfig
 from spot.nets import MLP, Params
 from spot.subgoal.cvae_loss import loss_terms
@@ -247,14 +247,15 @@ def bucket(m: int) -> int:
 
     The number of triplets depends on the seed and the reward model, so unpadded every run would
     compile its own CVAE programs; padded, runs whose counts fall in one bucket share them (the
-    in-process jit cache and the persistent compilation cache) at most doubling the rows held.
+    in-process jit cache and the persistent compilation cache) at most doubling the rows held
+    (:func:`spot.padding.bucket` with a smaller minimum than a dataset's).
     """
-    return max(64, 1 << max(0, int(m) - 1).bit_length())
+    return padding.bucket(int(m), min_rows=64)
 
 
 def pad_rows(x: np.ndarray, rows: int) -> np.ndarray:
-    """``x`` with zero rows appended up to ``rows`` rows."""
-    return np.concatenate([x, np.zeros((rows - x.shape[0], *x.shape[1:]), x.dtype)]) if rows > x.shape[0] else x
+    """``x`` with zero rows appended up to ``rows`` rows (:func:`spot.padding.pad_rows`)."""
+    return padding.pad_rows(x, max(rows, x.shape[0]))
 
 
 def make_update(cfg: CVAEConfig) -> Callable[..., tuple[CVAEState, dict[str, jax.Array]]]:
