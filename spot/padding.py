@@ -26,6 +26,15 @@ programs of different environments stay separate.
 Cost: memory only (at most twice the rows, and :data:`MIN_ROWS` rows of a tiny dataset: 5 MB for
 Meta-World's 39-dimensional observations); no program's work grows with the padding, since the
 programs index rows rather than compute over all of them.
+
+Padded: the IQL and IPL chunks' transitions (:mod:`spot.run.policy_stages`), HPL's unlabelled
+segments and regulariser rows (:func:`spot.reward.hpl.train_hpl`), the arrays the relabelling
+programs index (:mod:`spot.reward.relabel`), and the CVAE's triplets (:func:`spot.subgoal.cvae.bucket`,
+a minimum of 64). A vmapped trial's IQL (:func:`spot.policy.iql.make_vmapped_train_chunk`) takes
+padded rows with ``padded=True``. Still compiled per dataset (their sizes change the numbers if
+padded): the reward model's chunk when the number of training pairs differs, the CVAE's
+train/held-out permutation (``jax.random.permutation`` of the subgoal count) and the shaping's
+eager array operations (small programs).
 """
 
 from __future__ import annotations
