@@ -31,10 +31,10 @@ Padded: the IQL and IPL chunks' transitions (:mod:`spot.run.policy_stages`), HPL
 segments and regulariser rows (:func:`spot.reward.hpl.train_hpl`), the arrays the relabelling
 programs index (:mod:`spot.reward.relabel`), and the CVAE's triplets (:func:`spot.subgoal.cvae.bucket`,
 a minimum of 64). A vmapped trial's IQL (:func:`spot.policy.iql.make_vmapped_train_chunk`) takes
-padded rows with ``padded=True``. Still compiled per dataset (their sizes change the numbers if
-padded): the reward model's chunk when the number of training pairs differs, the CVAE's
-train/held-out permutation (``jax.random.permutation`` of the subgoal count) and the shaping's
-eager array operations (small programs).
+padded rows with ``padded=True``. Still compiled per dataset: the reward model's chunk when the
+number of training pairs differs (its minibatches are a permutation of the pairs, whose draws
+depend on their number), the CVAE's train/held-out permutation of the subgoals (the same) and
+the shaping's eager array operations (small programs, left as they are).
 """
 
 from __future__ import annotations
