@@ -9,7 +9,9 @@ little. Actions must lie in ``[-1, 1]``, as in Hopper and Walker2d.
 A run stops after ``total_steps`` or, with ``target_return`` set, once ``stop_evals`` evaluations
 in a row have a mean return that reaches it (``total_steps`` is then a cap); ``stop_policy`` says
 whose return: the deterministic (mean-action) policy's or the stochastic one's, which the datasets
-are rolled out with. A run can write checkpoints
+are rolled out with. Without a stop rule (sizes ``tiny`` and ``small``) nothing in the training
+depends on the evaluations, and each one's episodes run in a worker thread beside the next chunks
+(the eval env and a copy of the actor are the worker's; the same snapshots and data). A run can write checkpoints
 (learner and optimiser states, the replay buffer so far, the snapshots, the random generators and
 the training env's simulator state); :func:`train_sac` resumes from one and continues bit for bit.
 """
@@ -161,7 +163,8 @@ class SACResult:
         ``observations``, ``actions``, ``rewards``, ``next_observations``, ``terminals``,
         ``timeouts``. Row ``t`` is environment step ``t``.
       timing: seconds, summed over every session of the run: ``total``, ``env`` (stepping and
-        acting), ``update`` (chunks, incl. compilation), ``eval``, ``checkpoint``; and
+        acting), ``update`` (chunks, incl. compilation), ``eval`` (in a worker thread beside the
+        training of a run without a stop rule: not part of ``total`` then), ``checkpoint``; and
         ``peak_rss_mb``, the largest peak resident memory of the sessions' processes.
       resumed_from: the steps at which the run was resumed from a checkpoint, in order.
     """
@@ -265,10 +268,10 @@ class _Run:
         self.t = end
         self.timing["update"] += time.perf_counter() - tic
 
-    def evaluate(self) -> dict[str, float]:
-        """Snapshot the actor, evaluate it deterministically (and with sampled actions where the stop
-        rule reads those); the metrics for ``on_eval``."""
-        tic = time.perf_counter()
+    def evaluate(self) -> tuple[int, dict[str, float], Params]:
+        """The evaluation at this step, begun: the chunk's metrics and a host copy of the actor
+        (before the next chunk donates the state); :meth:`returns` measures it, :meth:`snapshot`
+        keeps it."""
         metrics = {}
         if self.t > self.cfg.start_steps:
             metrics = {k: float(v) for k, v in jax.device_get(self.chunk_metrics).items()}
@@ -276,17 +279,29 @@ class _Run:
                 raise FloatingPointError(
                     f"SAC {self.env_id} seed {self.seed}: non-finite metrics at step {self.t}: {metrics}"
                 )
-        params = jax.tree.map(lambda x: np.array(x, copy=True), self.state.actor.params)
+        return self.t, metrics, jax.tree.map(lambda x: np.array(x, copy=True), self.state.actor.params)
+
+    def returns(self, step: int, params: Params) -> tuple[np.ndarray, np.ndarray | None]:
+        """The deterministic evaluation returns of ``params`` (and with sampled actions where the
+        stop rule reads those) in the eval env, which only this call uses: a function of ``params``
+        and ``step`` alone (every evaluation resets the env with the same seed)."""
+        tic = time.perf_counter()
         returns = evaluate(self.eval_env, params, self.cfg.eval_episodes, self.eval_seed, self.cfg)
-        metrics |= {"eval/return_mean": float(returns.mean()), "eval/return_std": float(returns.std())}
-        stoch = (None, None)
+        sampled = None
         if self.cfg.stop_policy == "stochastic":
-            key = jax.random.fold_in(self.stochastic_key, self.t)
+            key = jax.random.fold_in(self.stochastic_key, step)
             sampled = evaluate(self.eval_env, params, self.cfg.eval_episodes, self.stochastic_seed, self.cfg, key)
-            stoch = (float(sampled.mean()), float(sampled.std()))
-            metrics |= {"eval/stochastic_return_mean": stoch[0], "eval/stochastic_return_std": stoch[1]}
-        self.snapshots.append(Snapshot(self.t, float(returns.mean()), float(returns.std()), params, *stoch))
         self.timing["eval"] += time.perf_counter() - tic
+        return returns, sampled
+
+    def snapshot(self, step: int, metrics: dict[str, float], params: Params, returns: Any) -> dict[str, float]:
+        """Keep the evaluated actor as the next :class:`Snapshot`; the metrics for ``on_eval``."""
+        det, sampled = returns
+        metrics = {**metrics, "eval/return_mean": float(det.mean()), "eval/return_std": float(det.std())}
+        stoch = (None, None) if sampled is None else (float(sampled.mean()), float(sampled.std()))
+        if sampled is not None:
+            metrics |= {"eval/stochastic_return_mean": stoch[0], "eval/stochastic_return_std": stoch[1]}
+        self.snapshots.append(Snapshot(step, float(det.mean()), float(det.std()), params, *stoch))
         return metrics
 
     # ---------------------------------------------------------------------------- checkpoints
@@ -357,6 +372,47 @@ class _Run:
         self.eval_env.close()
 
 
+class _Evaluations:
+    """A run's evaluations, in step order. With ``overlap`` (a run whose length does not depend on
+    them: no stop rule) each one's episodes run in a worker thread while training goes on (the
+    actor is copied first; the eval env is the worker's alone), else at once; :meth:`drain` keeps
+    the finished ones as snapshots and calls ``on_eval``, in order, in the caller's thread. The
+    snapshots, and so the data, are those of the sequential loop (a test)."""
+
+    def __init__(self, run: _Run, on_eval: Callable | None, bar: Any, overlap: bool) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.run, self.on_eval, self.bar = run, on_eval, bar
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="sac-eval") if overlap else None
+        self.pending: list[tuple[int, dict[str, float], Params, Any]] = []
+
+    def submit(self) -> None:
+        step, metrics, params = self.run.evaluate()
+        if self.pool is None:
+            self.pending.append((step, metrics, params, self.run.returns(step, params)))
+        else:
+            self.pending.append((step, metrics, params, self.pool.submit(self.run.returns, step, params)))
+        self.drain(wait=False)
+
+    def drain(self, wait: bool = True) -> None:
+        """Keep every finished evaluation (``wait``: every one, waiting for the rest)."""
+        while self.pending:
+            step, metrics, params, returns = self.pending[0]
+            if self.pool is not None:
+                if not (wait or returns.done()):
+                    return
+                returns = returns.result()
+            self.pending.pop(0)
+            metrics = self.run.snapshot(step, metrics, params, returns)
+            if self.on_eval is not None:
+                self.on_eval(step, metrics)
+            self.bar.set_postfix(eval_return=f"{metrics['eval/return_mean']:.0f}")
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+
+
 def train_sac(
     env_id: str,
     cfg: SACConfig,
@@ -396,20 +452,28 @@ def train_sac(
     if checkpoint is not None and Path(checkpoint).exists():
         run.restore(serialization.msgpack_restore(Path(checkpoint).read_bytes()), Path(checkpoint))
     bar = tqdm(total=cfg.total_steps, initial=run.t, desc=f"SAC {env_id}", unit="step", disable=not progress)
-    while run.t < cfg.total_steps:
-        run.collect()
-        run.learn()
-        bar.update(cfg.update_every)
-        if run.t % cfg.eval_every:
-            continue
-        metrics = run.evaluate()
-        if on_eval is not None:
-            on_eval(run.t, metrics)
-        bar.set_postfix(eval_return=f"{metrics['eval/return_mean']:.0f}")
-        if stop_reached(run.snapshots, cfg):
-            break
-        if checkpoint is not None and checkpoint_every and run.t % checkpoint_every == 0 and run.t < cfg.total_steps:
-            run.save(Path(checkpoint))
+    evals = _Evaluations(run, on_eval, bar, overlap=cfg.target_return is None)
+    try:
+        while run.t < cfg.total_steps:
+            run.collect()
+            run.learn()
+            bar.update(cfg.update_every)
+            if run.t % cfg.eval_every:
+                continue
+            evals.submit()  # (without overlap: evaluated and kept now, for the stop rule)
+            if stop_reached(run.snapshots, cfg):
+                break
+            if (
+                checkpoint is not None
+                and checkpoint_every
+                and run.t % checkpoint_every == 0
+                and run.t < cfg.total_steps
+            ):
+                evals.drain()  # a checkpoint holds every snapshot so far
+                run.save(Path(checkpoint))
+        evals.drain()
+    finally:
+        evals.close()
     bar.close()
     run.close()
     run.timing["total"] = run.elapsed()
