@@ -221,7 +221,7 @@ def benched(tmp_path_factory, spot_dirs, tiny_drawer):
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     client = MlflowClient(f"sqlite:///{root / 'spot_runs' / 'mlflow.db'}")
     exp = client.get_experiment_by_name("benchtiny")
-    runs = [r for r in client.search_runs([exp.experiment_id]) if "trial_key" in r.data.tags]
+    runs = [r for r in client.search_runs([exp.experiment_id]) if "spot.trial_key" in r.data.tags]
     runs = sorted(runs, key=lambda r: int(r.data.tags["seed"]))
     return {"stdout": out.stdout, "runs": runs, "client": client, "slots": root / "slots"}
 
@@ -240,7 +240,7 @@ def test_every_run_carries_its_trials_breakdown_adding_up_to_the_wall_time(bench
         assert m["time/total_s"] <= m["time/trial_wall_s"]
         assert m["time/trial_train_s"] > 0 and m["time/trial_evaluate_s"] > 0 and m["time/trial_tracking_s"] > 0
         assert 0 < m["trial/cpu_util"] and m["time/trial_cpus"] == 1
-        assert r.data.tags["trial_device"].startswith("cpu:")
+        assert r.data.tags["spot.trial_device"].startswith("cpu:")
     assert sorted(p.name for p in benched["slots"].glob("cpu*"))  # the trials claimed their slots there
     # a fresh compilation cache: the first trial compiled its programs
     assert runs[0].data.metrics["time/trial_compile_s"] > 0
@@ -271,7 +271,7 @@ def test_trials_reuse_one_process_and_give_a_fresh_process_numbers(benched, tmp_
     same numbers as the same config and seed run in a process of its own (``spot run``)."""
     runs, client = benched["runs"], benched["client"]
     assert len({r.data.tags[PID_TAG] for r in runs}) == 1
-    assert [r.data.tags["trial_process"] for r in runs] == ["new", "reused", "reused"]
+    assert [r.data.tags["spot.trial_process"] for r in runs] == ["new", "reused", "reused"]
     reused = runs[2]
     env = {
         "MLFLOW_TRACKING_URI": f"sqlite:///{tmp_path / 'alone.db'}",

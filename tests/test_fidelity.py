@@ -197,9 +197,11 @@ def test_authors_variant_runs_end_to_end(tmp_path, spot_dirs, tiny_drawer, monke
     assert run.info.status == "FINISHED" and run.data.params["variant"] == "authors"
     m = run.data.metrics
     assert cfg.cvae.schedule == "online" and m["cvae/steps"] == m["reward/steps"] > 0
-    assert "cache.cvae" not in run.data.tags and run.data.tags["cache.reward"] == "miss"  # no CVAE entry of its own
+    assert (
+        "spot.cache.cvae" not in run.data.tags and run.data.tags["spot.cache.reward"] == "miss"
+    )  # no CVAE entry of its own
     again = mlflow.get_run(pipeline.run(config.replace(cfg, **{"shaping.weight": 0.5}), progress=False)["run_id"])
-    assert again.data.tags["cache.reward"] == "hit" and again.data.metrics["cvae/loss"] == m["cvae/loss"]
+    assert again.data.tags["spot.cache.reward"] == "hit" and again.data.metrics["cvae/loss"] == m["cvae/loss"]
     assert again.data.metrics["shaping/r_shape_mean"] == m["shaping/r_shape_mean"]  # the same CVAE
     # the online CVAE trained on its minibatches' own triplets: per step at most one per interval,
     # i.e. per preferred segment at most its 3 top-group steps (25 - int(0.9 x 25)), the last step and

@@ -453,7 +453,7 @@ def test_kill_9_of_the_sweeps_server_stops_the_trials_closes_the_runs_and_resume
     client = MlflowClient(sqlite_uri(tmp_path / "spot_runs" / "mlflow.db"))
     runs = client.search_runs([client.get_experiment_by_name("served").experiment_id])
     assert runs and not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
-    trials = [r for r in runs if "trial_key" in r.data.tags]
+    trials = [r for r in runs if "spot.trial_key" in r.data.tags]
     assert len(trials) == 2 and all(r.data.tags["failure_reason"] == death for r in trials)
     (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
     assert parent.info.status == "KILLED" and parent.data.tags["failure_reason"] == death
@@ -465,7 +465,9 @@ def test_kill_9_of_the_sweeps_server_stops_the_trials_closes_the_runs_and_resume
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     assert "2/2 runs finished" in resumed.stdout
     runs = client.search_runs([client.get_experiment_by_name("served").experiment_id])
-    finished = [r.data.tags["trial_key"] for r in runs if "trial_key" in r.data.tags and r.info.status == "FINISHED"]
+    finished = [
+        r.data.tags["spot.trial_key"] for r in runs if "spot.trial_key" in r.data.tags and r.info.status == "FINISHED"
+    ]
     assert len(finished) == 2 and len(set(finished)) == 2
 
 

@@ -212,7 +212,7 @@ def test_sigterm_closes_runs_killed_and_exits_143(sigtermed):
     assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
     (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
     assert parent.info.status == "KILLED" and parent.data.tags["failure_reason"] == "launch stopped by SIGTERM"
-    children = [r for r in runs if "trial_key" in r.data.tags]
+    children = [r for r in runs if "spot.trial_key" in r.data.tags]
     assert len(children) >= 2 and all(r.info.status == "KILLED" for r in children)
     # The trial whose process was SIGKILLed may have had its run closed first by a trial that
     # started in its place (a new run closes the runs of dead processes of its host).
@@ -304,7 +304,9 @@ def test_sigint_closes_runs_killed_and_exits_130(sigtermed):
     assert not [r for r in runs if r.info.status == "RUNNING"], [(r.info.status, r.data.tags) for r in runs]
     (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
     assert parent.info.status == "KILLED"
-    cut = [r for r in runs if "trial_key" in r.data.tags and r.data.tags.get("failure_reason") == "launch interrupted"]
+    cut = [
+        r for r in runs if "spot.trial_key" in r.data.tags and r.data.tags.get("failure_reason") == "launch interrupted"
+    ]
     assert len(cut) >= 2 and all(r.info.status == "KILLED" for r in cut)
 
 
@@ -314,7 +316,9 @@ def test_resume_after_sigterm_finishes_one_run_per_config_and_seed(sigtermed):
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     runs = sigtermed["final_runs"]
     assert not [r for r in runs if r.info.status == "RUNNING"]
-    finished = [r.data.tags["trial_key"] for r in runs if "trial_key" in r.data.tags and r.info.status == "FINISHED"]
+    finished = [
+        r.data.tags["spot.trial_key"] for r in runs if "spot.trial_key" in r.data.tags and r.info.status == "FINISHED"
+    ]
     assert len(finished) == 4 and len(set(finished)) == 4
     assert "4/4 runs finished" in out.stdout
 
@@ -451,7 +455,7 @@ def test_a_squatted_port_gets_no_run_and_the_server_moves(tmp_path, squatter, ca
     finally:
         server.stop()
     assert all(r.startswith("GET /health") or "experiments/get" in r for r in squatter.requests), squatter.requests
-    assert MlflowClient(sqlite_uri(db)).get_run(run_id).data.tags["git_commit"] == "secret-ish"
+    assert MlflowClient(sqlite_uri(db)).get_run(run_id).data.tags["spot.git_commit"] == "secret-ish"
     # The nonce tag is removed once checked.
     assert not [k for k in MlflowClient(sqlite_uri(db)).get_experiment("0").tags if k.startswith("spot.server_nonce")]
 

@@ -317,7 +317,7 @@ def test_a_run_that_fails_after_it_was_created_is_deleted_and_the_record_imports
     (done,) = recorded.import_records(tmp_path / "rec", uri)  # not marked imported by the failed try
     assert done["action"] == "imported" and done["run_id"] != run.info.run_id
     live = [r for r in _runs(db) if r.info.lifecycle_stage == "active"]
-    assert [r.data.tags["record_id"] for r in live] == [folder.name]
+    assert [r.data.tags["spot.record_id"] for r in live] == [folder.name]
 
 
 def test_a_valid_record_from_spots_recorder_imports_whole(tmp_path):
@@ -331,7 +331,7 @@ def test_a_valid_record_from_spots_recorder_imports_whole(tmp_path):
     assert done["action"] == "imported"
     client = MlflowClient(uri)
     run = client.get_run(done["run_id"])
-    assert run.info.status == "FINISHED" and run.data.tags["record_id"] == folder.name
+    assert run.info.status == "FINISHED" and run.data.tags["spot.record_id"] == folder.name
     assert run.data.tags["mlflow.source.type"] == head["tags"]["mlflow.source.type"]
     assert run.data.tags["mlflow.runName"] == head["run_name"] and "mlflow.parentRunId" not in run.data.tags
     history = client.get_metric_history(run.info.run_id, "eval/score")

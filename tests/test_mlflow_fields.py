@@ -101,7 +101,7 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
     assert tags["mlflow.source.name"] == shlex.join(["spot", *argv]) and tags["mlflow.source.type"] == "LOCAL"
     if tracking.git_commit() != "unknown":
         assert re.fullmatch(r"[0-9a-f]{40}", tags["mlflow.source.git.commit"])
-        assert tags["git_commit"].startswith(tags["mlflow.source.git.commit"])
+        assert tags["spot.git_commit"].startswith(tags["mlflow.source.git.commit"])
 
     # the description: method, dataset, budget, the command line and a command that reproduces it
     note = tags["mlflow.note.content"]
@@ -110,7 +110,7 @@ def test_a_runs_record_has_mlflows_own_fields(tmp_path, spot_dirs, tiny_drawer, 
     assert "spot run method=oracle budget=tiny variant=spot data.name=drawer-open seed=0 iql.steps=100" in note
 
     # the dataset as an input, with the fingerprint the stage cache uses
-    digest = tags["data_digest"]
+    digest = tags["spot.data_digest"]
     assert re.fullmatch(r"[0-9a-f]{64}", digest)
     (inp,) = run.inputs.dataset_inputs
     assert inp.dataset.name == "drawer-open" and inp.dataset.digest == digest[:32]

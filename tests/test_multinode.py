@@ -204,7 +204,9 @@ def runs(launched):
     ) as srv:
         client = MlflowClient(srv.uri)
         exp = client.get_experiment_by_name("multinode-smoke")
-        children = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "trial_key" in r.data.tags]
+        children = [
+            r for r in client.search_runs([exp.experiment_id], max_results=100) if "spot.trial_key" in r.data.tags
+        ]
         yield client, children
 
 
@@ -241,9 +243,9 @@ def test_each_shared_stage_was_trained_once(launched, runs):
     for stage in ("reward", "relabel", "cvae"):
         entries = {k: n for k, n in puts.items() if k.startswith(f"sweep/stages/{stage}-")}
         assert len(entries) == 2 and set(entries.values()) == {1}, puts  # one per seed, written once
-        sources = sorted(r.data.tags.get(f"stage.{stage}.source") for r in children)
+        sources = sorted(r.data.tags.get(f"spot.stage.{stage}.source") for r in children)
         assert sources == ["computed", "computed", "reused", "reused"], stage
-        keys = {r.data.tags[f"stage.{stage}.key"] for r in children}
+        keys = {r.data.tags[f"spot.stage.{stage}.key"] for r in children}
         assert {f"sweep/stages/{k}.npz" for k in keys} == set(entries)
     for node in ("node_a", "node_b", "driver"):  # nothing in the local stage caches
         assert not list((launched["root"] / node / "cache").glob("*.npz"))
@@ -321,9 +323,9 @@ def test_a_lambda_sweep_trains_one_reward_model_and_one_cvae_per_seed(tmp_path):
         assert len(list((tmp_path / "cache").glob(f"{stage}-*.npz"))) == 2, stage
     client = MlflowClient(f"sqlite:///{tmp_path / 'spot_runs' / 'mlflow.db'}")
     exp = client.get_experiment_by_name("lambdas-smoke")
-    children = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "trial_key" in r.data.tags]
+    children = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "spot.trial_key" in r.data.tags]
     assert len(children) == 4
     for stage in ("reward", "relabel", "cvae"):
-        computed = [r for r in children if r.data.tags[f"stage.{stage}.source"] == "computed"]
+        computed = [r for r in children if r.data.tags[f"spot.stage.{stage}.source"] == "computed"]
         assert len(computed) == 2 and sorted(int(r.data.tags["seed"]) for r in computed) == [0, 1], stage
-        assert sum(r.data.tags[f"stage.{stage}.source"] == "reused" for r in children) == 2
+        assert sum(r.data.tags[f"spot.stage.{stage}.source"] == "reused" for r in children) == 2

@@ -207,11 +207,11 @@ def test_a_vmap_trial_logs_one_run_per_seed_and_skips_them_when_finished(tmp_pat
     reports: list[dict] = []
     finals = sweep.run_trial(trial.overrides, list(trial.seeds), ctx, trial_id="t1", report=reports.append, vmap=True)
     assert [f["seed"] for f in finals] == [0, 1] and all(f["skipped"] == 0 for f in finals)
-    runs = {int(r.data.tags["seed"]): r for r in client.search_runs([exp], "tags.sweep_id = 'sweep-1'")}
+    runs = {int(r.data.tags["seed"]): r for r in client.search_runs([exp], "tags.spot.sweep_id = 'sweep-1'")}
     assert sorted(runs) == [0, 1]
     for seed, run in runs.items():
-        assert run.info.status == "FINISHED" and run.data.tags["seed_mode"] == "vmap"
-        assert run.data.tags["trial_key"] == sweep.run_key(trial.overrides, seed)
+        assert run.info.status == "FINISHED" and run.data.tags["spot.seed_mode"] == "vmap"
+        assert run.data.tags["spot.trial_key"] == sweep.run_key(trial.overrides, seed)
         assert run.data.tags["mlflow.parentRunId"] == parent
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")]
         assert steps == [0, 100, 120]
@@ -245,7 +245,7 @@ def test_a_failed_vmap_trial_records_a_failed_run_per_seed(tmp_path):
 
     with pytest.raises(RuntimeError, match="seed 0: ValueError: no dataset today; seed 1: ValueError"):
         sweep.run_trial(trial.overrides, [0, 1], ctx, trial_id="t", report=lambda m: None, run_fn=broken, vmap=True)
-    runs = client.search_runs([exp], "tags.sweep_id = 'sweep-2'")
+    runs = client.search_runs([exp], "tags.spot.sweep_id = 'sweep-2'")
     assert sorted(int(r.data.tags["seed"]) for r in runs) == [0, 1]
     assert all(r.info.status == "FAILED" and "no dataset today" in r.data.tags["failure_reason"] for r in runs)
 

@@ -31,9 +31,19 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
     d = run.data
     assert run.info.status == "FINISHED"
     # tags and the full resolved config as params
-    for tag in ("method", "dataset", "dataset_source", "label_source", "seed", "git_commit", "version.jax"):
+    for tag in (
+        "method",
+        "dataset",
+        "spot.dataset_source",
+        "spot.label_source",
+        "seed",
+        "spot.git_commit",
+        "spot.version.jax",
+    ):
         assert tag in d.tags, tag
-    assert d.tags["method"] == "spot" and d.tags["dataset"] == "drawer-open" and d.tags["dataset_source"] == "recipe"
+    assert (
+        d.tags["method"] == "spot" and d.tags["dataset"] == "drawer-open" and d.tags["spot.dataset_source"] == "recipe"
+    )
     # the active config as params (no mr.*/hpl.*/ipl.* on a SPOT run); the whole config in config.yaml
     assert d.params == {k: str(list(v) if isinstance(v, tuple) else v) for k, v in tracking.active_params(cfg).items()}
     # metrics of every stage
@@ -56,7 +66,7 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
         assert key in d.metrics, key
     # cache hits are tags, not metrics
     assert not any(k.startswith("cache/") for k in d.metrics)
-    assert (d.tags["cache.reward"], d.tags["cache.relabel"], d.tags["cache.cvae"]) == ("miss", "miss", "miss")
+    assert (d.tags["spot.cache.reward"], d.tags["spot.cache.relabel"], d.tags["spot.cache.cvae"]) == ("miss",) * 3
     client = mlflow.tracking.MlflowClient()
     # evaluated before the first update and at every multiple of eval.every
     assert [m.step for m in client.get_metric_history(run.info.run_id, "eval/score")] == [0, 100, 200]
@@ -79,7 +89,7 @@ def test_spot_run_logs_everything_and_reuses_stages(tmp_path, spot_dirs, tiny_dr
     # Only lambda changes: the reward model, relabelling and CVAE come from the cache.
     again = _run(config.replace(cfg, **{"shaping.weight": 0.5}))
     m, t = again.data.metrics, again.data.tags
-    assert (t["cache.reward"], t["cache.relabel"], t["cache.cvae"]) == ("hit", "hit", "hit")
+    assert (t["spot.cache.reward"], t["spot.cache.relabel"], t["spot.cache.cvae"]) == ("hit", "hit", "hit")
     assert m["shaping/r_final_mean"] != d.metrics["shaping/r_final_mean"]
 
 
@@ -98,7 +108,7 @@ def test_same_config_and_seed_give_identical_metrics(tmp_path, spot_dirs, tiny_d
 
 def test_oracle_uses_true_reward_without_labels(tmp_path, spot_dirs, tiny_drawer, fresh_cache):
     run = _run(_cfg(tmp_path, "method=oracle"))
-    assert run.data.tags["label_source"] == "none"
+    assert run.data.tags["spot.label_source"] == "none"
     assert "reward/best_eval_acc" not in run.data.metrics and "eval/score_final" in run.data.metrics
 
 
@@ -151,9 +161,9 @@ def test_baselines_run_end_to_end(method, tmp_path, spot_dirs, tiny_drawer, fres
     else:
         # HPL's two pretraining phases are timed (Table 8) and the relabelled reward is cached
         assert {"time/hpl_vae_s", "time/hpl_reward_s", "time/reward_s"} <= set(m)
-        assert run.data.tags["cache.reward"] == "miss"
+        assert run.data.tags["spot.cache.reward"] == "miss"
         again = _run(_cfg(tmp_path, f"method={method}", "iql.steps=100"))
-        assert again.data.tags["cache.reward"] == "hit" and again.data.tags["cache.relabel"] == "hit"
+        assert again.data.tags["spot.cache.reward"] == "hit" and again.data.tags["spot.cache.relabel"] == "hit"
 
 
 @pytest.mark.parametrize("method", ["spot", "pt"])

@@ -183,5 +183,5 @@ def test_the_documented_real_data_command_runs_to_finished(tmp_path, monkeypatch
     run_id = out.split()[1].rstrip(":")
     run = mlflow.tracking.MlflowClient(uri).get_run(run_id)
     assert run.info.status == "FINISHED"
-    assert run.data.tags["dataset"] == "hopper-medium-replay-v2" and run.data.tags["dataset_source"] == "file"
+    assert run.data.tags["dataset"] == "hopper-medium-replay-v2" and run.data.tags["spot.dataset_source"] == "file"
     assert np.isfinite(run.data.metrics["eval/score_final"])

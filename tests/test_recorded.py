@@ -45,7 +45,7 @@ def test_a_record_holds_the_run_and_imports_once(tmp_path):
     folder = _record(tmp_path)
     head = record_checks.read_record(folder)
     assert head["status"] == "FINISHED" and head["end_time"] >= head["start_time"]
-    assert head["tags"]["method"] == "oracle" and head["tags"]["cache.reward"] == "hit"
+    assert head["tags"]["method"] == "oracle" and head["tags"]["spot.cache.reward"] == "hit"
     assert head["params"]["iql.steps"] == "100" and head["params"]["seed"] == "0"
     # NaN is not logged (as MLflow's tracker); the points keep their steps
     points = [(k, v, s) for k, v, s, _ in record_checks.read_metrics(folder)]
@@ -64,7 +64,7 @@ def test_a_record_holds_the_run_and_imports_once(tmp_path):
     run = MlflowClient(uri).get_run(first[0]["run_id"])
     assert run.info.status == "FINISHED"
     assert (run.info.start_time, run.info.end_time) == (head["start_time"], head["end_time"])
-    assert run.data.params["iql.steps"] == "100" and run.data.tags["record_id"] == folder.name
+    assert run.data.params["iql.steps"] == "100" and run.data.tags["spot.record_id"] == folder.name
     history = MlflowClient(uri).get_metric_history(run.info.run_id, "eval/score")
     assert [(m.step, m.value) for m in history] == [(0, 1.5), (50, 2.5), (100, 3.5)]
     again = recorded.import_records(tmp_path / "rec", uri, "imported")
@@ -162,7 +162,7 @@ def test_an_interrupted_import_leaves_no_run_and_resumes(tmp_path, monkeypatch):
     done = recorded.import_records(tmp_path / "rec", uri, "imported")
     assert [d["action"] for d in done] == ["imported"]
     runs = load.load_runs(uri, ["imported"])
-    assert runs["run_id"].tolist() == [done[0]["run_id"]] and runs["tags.record_id"].tolist() == [folder.name]
+    assert runs["run_id"].tolist() == [done[0]["run_id"]] and runs["tags.spot.record_id"].tolist() == [folder.name]
 
 
 @pytest.mark.slow  # a tiny run stopped by SIGTERM (~30 s)
@@ -231,4 +231,4 @@ def test_the_gpu_script_records_every_method(tmp_path, spot_dirs, tiny_drawer):
     for head in heads:
         assert head["status"] == "FINISHED" and head["experiment"] == "gpu_paper_hopper_fr_pf"
         assert head["params"]["budget"] == "tiny" and head["params"]["variant"] == "paper"
-        assert head["tags"]["vmap.members"] == "oracle:0,pt:0"
+        assert head["tags"]["spot.vmap.members"] == "oracle:0,pt:0"

@@ -254,11 +254,11 @@ def test_resume_leaves_exactly_one_finished_run_per_config_and_seed(killed_and_r
     _, _, runs = store
     out = killed_and_resumed["resumed"]
     assert out.returncode == 1  # the broken-file trials failed; the summary says so
-    children = [r for r in runs if "trial_key" in r.data.tags]
+    children = [r for r in runs if "spot.trial_key" in r.data.tags]
     s = killed_and_resumed["sweep"]
     assert len(s.runs()) == 4
     for trial, seed in s.runs():
-        mine = [r for r in children if r.data.tags["trial_key"] == sweep.run_key(trial.overrides, seed)]
+        mine = [r for r in children if r.data.tags["spot.trial_key"] == sweep.run_key(trial.overrides, seed)]
         finished = [r for r in mine if r.info.status == "FINISHED"]
         if trial.axes["data.name"] == "drawer-open":
             assert len(finished) == 1, [(r.info.status, r.data.tags.get("failure_reason")) for r in mine]
@@ -283,16 +283,17 @@ def test_runs_carry_sweep_tags_parent_and_metrics(killed_and_resumed, store):
     _, _, runs = store
     state = killed_and_resumed["state"]
     (parent,) = [r for r in runs if r.data.tags.get("spot.role") == "sweep"]
-    assert parent.info.run_id == state["parent_run_id"] and parent.data.tags["sweep_id"] == state["sweep_id"]
+    assert parent.info.run_id == state["parent_run_id"] and parent.data.tags["spot.sweep_id"] == state["sweep_id"]
     assert parent.info.status == "FAILED" and parent.data.metrics["sweep/runs_finished"] == 2
-    assert "resumed_at" in parent.data.tags
-    children = [r for r in runs if "trial_key" in r.data.tags]
+    assert "spot.resumed_at" in parent.data.tags
+    children = [r for r in runs if "spot.trial_key" in r.data.tags]
     assert len(children) >= 4
     for r in children:
         tags = r.data.tags
         assert tags["mlflow.parentRunId"] == parent.info.run_id
-        assert tags["sweep_id"] == state["sweep_id"] and tags["sweep_name"] == "killtest" and tags["trial_id"]
-        assert tags["method"] == "oracle" and tags["seed"] in ("0", "1") and tags["budget"] == "tiny"
+        assert tags["spot.sweep_id"] == state["sweep_id"] and tags["spot.sweep_name"] == "killtest"
+        assert tags["spot.trial_id"] and tags["spot.budget"] == "tiny"
+        assert tags["method"] == "oracle" and tags["seed"] in ("0", "1")
         assert tags["axis.data.name"] in ("drawer-open", killed_and_resumed["broken"])
         assert tags["dataset"] == tags["axis.data.name"]
         assert r.data.params["data.name"] == tags["axis.data.name"] and r.data.params["iql.steps"] == "100"
@@ -319,7 +320,7 @@ def test_trial_skips_a_config_and_seed_that_already_finished(killed_and_resumed,
     (done,) = [
         r
         for r in runs
-        if r.data.tags.get("trial_key") == sweep.run_key(trial.overrides, 1) and r.info.status == "FINISHED"
+        if r.data.tags.get("spot.trial_key") == sweep.run_key(trial.overrides, 1) and r.info.status == "FINISHED"
     ]
 
     def must_not_run(*args, **kwargs):

@@ -254,7 +254,7 @@ def test_searcher_proposes_and_asha_stops_a_trial(tmp_path, spot_dirs):
     assert "4 trials" in out.stdout, log
     client = MlflowClient(sqlite_uri(tmp_path / "spot_runs" / "mlflow.db"))
     exp = client.get_experiment_by_name("searchtest")
-    runs = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "trial_key" in r.data.tags]
+    runs = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "spot.trial_key" in r.data.tags]
     assert len(runs) == 4, log
     # the searcher's proposals: inside the declared ranges, different from each other, and what ran
     temps = [float(r.data.params["iql.temperature"]) for r in runs]
@@ -311,10 +311,10 @@ def test_resume_continues_the_searcher(tmp_path, spot_dirs):
     assert "resuming launch" in resumed.stdout and "runs finished" in resumed.stdout, log
     client = MlflowClient(sqlite_uri(db))
     exp = client.get_experiment_by_name("searchresume")
-    runs = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "trial_key" in r.data.tags]
+    runs = [r for r in client.search_runs([exp.experiment_id], max_results=100) if "spot.trial_key" in r.data.tags]
     by_key: dict[str, list] = {}
     for r in runs:
-        by_key.setdefault(r.data.tags["trial_key"], []).append(r)
+        by_key.setdefault(r.data.tags["spot.trial_key"], []).append(r)
     assert len(by_key) == 4, (len(by_key), log)  # num_samples configs in all, over both launches
     for key, key_runs in by_key.items():
         ended = [
@@ -338,7 +338,7 @@ def test_resume_continues_the_searcher(tmp_path, spot_dirs):
     # proposed after Tune's last experiment checkpoint: the restored searcher proposes it again)
     ids = {str(t.trial_id) for t in trials}
     ended = [r for r in runs if r.info.status == "FINISHED" or "stopped early" in r.data.tags.get("failure_reason", "")]
-    assert {r.data.tags["trial_id"] for r in ended} == ids
+    assert {r.data.tags["spot.trial_id"] for r in ended} == ids
 
 
 @pytest.mark.parametrize("algorithm", ["optuna", "hyperopt"])

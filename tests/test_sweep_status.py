@@ -41,10 +41,14 @@ def _dead_process() -> tuple[int, str]:
 
 
 class Launch:
-    """A launch record and an MLflow store of sweep ``st`` (launch st-1), as ``spot sweep`` leaves them."""
+    """A launch record and an MLflow store of sweep ``st`` (launch st-1), as ``spot sweep`` leaves them:
+    with ``names="old"`` as versions before the bookkeeping tags moved under ``spot.`` left them
+    (``sweep_id``, ``trial_key``), with ``"new"`` as spot tags runs now (``spot.sweep_id``, ...)."""
 
-    def __init__(self, root: Path, parent_status: str = "FINISHED") -> None:
+    def __init__(self, root: Path, parent_status: str = "FINISHED", names: str = "old") -> None:
         from mlflow.tracking import MlflowClient
+
+        self.prefix = "spot." if names == "new" else ""
 
         self.path = root / "st.yaml"
         self.path.write_text(SWEEP)
@@ -53,14 +57,15 @@ class Launch:
         self.ray.mkdir(parents=True)
         self.client = MlflowClient(sqlite_uri(root / "spot_runs" / "mlflow.db"))
         self.exp = self.client.create_experiment("st")
-        parent = self.client.create_run(self.exp, tags={"sweep_id": "st-1", "spot.role": "sweep"}).info.run_id
+        parent = self.client.create_run(self.exp, tags={self.prefix + "sweep_id": "st-1", "spot.role": "sweep"})
+        parent = parent.info.run_id
         self.client.set_terminated(parent, parent_status)
         record = {"sweep_id": "st-1", "spec_hash": spec.spec_hash(), "parent_run_id": parent}
         (self.ray / "st.json").write_text(json.dumps(record))
         self.keys = {t.axes["data.name"]: sweep.run_key(t.overrides, 0) for t in spec.trials()}
 
     def child(self, name: str, status: str | None = None, score: float | None = None, **tags: str) -> str:
-        tags = {"sweep_id": "st-1", "trial_key": self.keys[name], **tags}
+        tags = {self.prefix + "sweep_id": "st-1", self.prefix + "trial_key": self.keys[name], **tags}
         run = self.client.create_run(self.exp, tags=tags).info.run_id
         if score is not None:
             self.client.log_metric(run, "eval/score_final", score)
@@ -75,11 +80,11 @@ class Launch:
         return rc, out, lines
 
 
-@pytest.fixture
-def launch(tmp_path, monkeypatch):
+@pytest.fixture(params=["old", "new"])
+def launch(tmp_path, monkeypatch, request):
     monkeypatch.chdir(tmp_path)
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
-    return Launch(tmp_path)
+    return Launch(tmp_path, names=request.param)
 
 
 def test_status_lists_each_config_and_seed_of_the_last_launch(launch, capsys):
@@ -93,7 +98,9 @@ def test_status_lists_each_config_and_seed_of_the_last_launch(launch, capsys):
         launch.client.log_metric(running, "eval/score", score, step=step)
     pid, started = _dead_process()
     launch.child("lift-ph", **{"spot.host": socket.gethostname(), "spot.pid": str(pid), "spot.pid_started": started})
-    other = launch.client.create_run(launch.exp, tags={"sweep_id": "st-0", "trial_key": launch.keys["button-press"]})
+    other = launch.client.create_run(
+        launch.exp, tags={launch.prefix + "sweep_id": "st-0", launch.prefix + "trial_key": launch.keys["button-press"]}
+    )
     launch.client.set_terminated(other.info.run_id, "FINISHED")  # another launch's run: not this launch's
 
     rc, out, lines = launch.status(capsys)

@@ -257,7 +257,8 @@ def test_load_runs_and_failed(t1_runs):
     failed = select.not_finished(t1_runs)
     assert sorted(failed["status"]) == ["FAILED", "KILLED"]
     assert failed.loc[failed["status"] == "FAILED", "failure_reason"].item() == "boom"
-    assert {"params.shaping.weight", "metrics.eval/score_final", "tags.git_commit"} <= set(t1_runs.columns)
+    # the store's runs are tagged git_commit (as before the bookkeeping tags moved under spot.)
+    assert {"params.shaping.weight", "metrics.eval/score_final", "tags.spot.git_commit"} <= set(t1_runs.columns)
 
 
 def test_table1_cells(t1_runs):

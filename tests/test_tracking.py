@@ -186,12 +186,14 @@ def test_a_run_is_found_by_its_lookup_tags_only_once_its_params_are_in(client):
     tags = {"trial_key": "k1", "attempt": "a1", "sweep_id": "s"}
     run = record.create_run(client, exp, "r", tags, cfg)  # ... and the process dies here
     got = client.get_run(run.info.run_id).data
-    assert got.tags["sweep_id"] == "s" and "trial_key" not in got.tags and "attempt" not in got.tags
+    assert got.tags["spot.sweep_id"] == "s" and not {"trial_key", "spot.trial_key", "attempt", "spot.attempt"} & set(
+        got.tags
+    )
     assert got.params == {}
     assert tracking.finished_run(client, exp, {"trial_key": "k1"}) is None
     record.log_params(client, run.info.run_id, cfg, record.lookup_tags(tags))
     got = client.get_run(run.info.run_id).data
-    assert got.tags["trial_key"] == "k1" and got.tags["attempt"] == "a1" and got.params == _params(cfg)
+    assert got.tags["spot.trial_key"] == "k1" and got.tags["spot.attempt"] == "a1" and got.params == _params(cfg)
 
 
 class _LosesTheInsertRace:

@@ -46,7 +46,7 @@ def make_store(folder: Path) -> tuple[str, str, str, str]:
     exp_id = tracking.experiment_id("lambda-sweep", uri)
     client = MlflowClient(uri)
     sweep_id = "lambda-20261207-180000-ab12"
-    parent = client.create_run(exp_id, run_name=f"sweep {sweep_id}", tags={"sweep_id": sweep_id}).info.run_id
+    parent = client.create_run(exp_id, run_name=f"sweep {sweep_id}", tags={"spot.sweep_id": sweep_id}).info.run_id
     run_ids = []
     for weight in WEIGHTS:
         overrides = {"method": "spot", "budget": "tiny", "data.name": "hopper-medium-replay", "seed": 0}
@@ -94,6 +94,24 @@ def browse(url: str, png: Path) -> str:
     return dom.stdout
 
 
+def dom_of(url: str) -> str:
+    """The page's DOM after its scripts ran (no screenshot)."""
+    return subprocess.run([CHROMIUM, *BROWSER, "--dump-dom", url], capture_output=True, text=True, timeout=180).stdout
+
+
+WORKSPACES = ("GenAI", "Model training")
+
+
+def workspace_labels(dom: str) -> dict[str, str]:
+    """The class of each label of the sidebar's workspace switch (``GenAI`` | ``Model training``): the
+    UI draws the chosen one in the default text colour and the other in the secondary one, so the
+    two differ and swap between the workspaces."""
+    found = re.findall(
+        r'<div role="button" tabindex="0" class="[^"]*"><span class="([^"]*)">(GenAI|Model training)</span></div>', dom
+    )
+    return {label: cls for cls, label in found}
+
+
 def not_blank(png: Path) -> bool:
     """Written, a browser-sized picture, and more than a few colours."""
     from PIL import Image
@@ -117,6 +135,8 @@ def screenshots(work: Path, out: Path) -> dict[str, str]:
         return {
             "sweep": browse(tracking.sweep_url(exp_id, sweep_id, base), out / "sweep-link.png"),
             "run": browse(tracking.run_url(exp_id, run_id, base), out / "run-page.png"),
+            # the same run page in the GenAI workspace: the workspace switch as it looks there
+            "run-genai": dom_of(tracking.run_url(exp_id, run_id, base).replace("=machine_learning", "=genai")),
         }
     finally:
         proc.send_signal(signal.SIGINT)  # spot ui stops its server on Ctrl-C
@@ -140,6 +160,12 @@ def test_the_printed_link_and_a_run_page_in_a_real_browser(tmp_path, monkeypatch
         assert f'col-id="{col}"' in dom["sweep"]  # renders the columns in view; the others come on scrolling)
     # a run page: the model-training view, with its model metrics
     assert "spot λ=0.5 s0" in dom["run"] and "Model metrics" in dom["run"]
+    # ... and its sidebar shows the Model training workspace chosen: its switch's labels are drawn as
+    # on the GenAI page with the roles swapped (the chosen label there is GenAI)
+    shown, genai = workspace_labels(dom["run"]), workspace_labels(dom["run-genai"])
+    assert set(shown) == set(genai) == set(WORKSPACES), (shown, genai)
+    assert shown["Model training"] != shown["GenAI"]
+    assert shown["Model training"] == genai["GenAI"] and shown["GenAI"] == genai["Model training"]
 
 
 if __name__ == "__main__":

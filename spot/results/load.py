@@ -5,7 +5,9 @@ CSVs (:func:`read`), else the store (:func:`load_runs`). Both frames have one ro
 ``run_id``, ``experiment``, ``status``, ``start_time``, ``method``, ``dataset`` (our name),
 ``paper_dataset`` (the paper's row name), ``dataset_source``, ``seed``, ``config_hash`` (SHA-256 of
 every param but ``seed`` and ``tracking.*``: the runs of one config share it), ``params.<key>`` and
-``metrics.<name>`` (last logged value); the store's frame also has every ``tags.<key>``.
+``metrics.<name>`` (last logged value); the store's frame also has every ``tags.<key>``, under the
+names runs are tagged with now (``tags.spot.sweep_id``, ``tags.spot.cache.reward``: a store written
+before the bookkeeping tags moved under ``spot.`` gives the same columns, :mod:`spot.tracking.tagnames`).
 
 A results CSV is what ``spot results export`` writes (:mod:`spot.results.export`). Reading never
 executes anything: the file is parsed by pandas as text and numbers, and every column is checked
@@ -29,7 +31,12 @@ from spot.results.paper import paper_dataset_name
 REQUIRED = ("run_id", "experiment", "status", "method", "dataset", "seed")
 CURVE_METRIC = "eval/score"  # the periodic evaluations' mean normalised score, logged at its IQL step
 CURVE_COLUMN = f"curve.{CURVE_METRIC}"
-TAG_COLUMNS = {"sweep_id": "tags.sweep_id", "data_digest": "tags.data_digest", "git_commit": "tags.git_commit"}
+TAG_COLUMNS = {
+    "sweep_id": "tags.spot.sweep_id",
+    "data_digest": "tags.spot.data_digest",
+    "git_commit": "tags.spot.git_commit",
+}
+"""Results-CSV columns (:mod:`spot.results.export`) and the store frame's tag columns they come from."""
 _RUN_COLUMNS = (
     "run_id",
     "run_name",
@@ -85,28 +92,32 @@ def load_runs(
 
     Sweep parent runs (runs without a ``method`` tag) are left out. Columns follow
     ``mlflow.search_runs``: ``run_id``, ``experiment``, ``status``, ``start_time``, ...,
-    ``params.<key>``, ``metrics.<name>`` (last logged value) and ``tags.<key>``, plus ``method``,
+    ``params.<key>``, ``metrics.<name>`` (last logged value) and ``tags.<key>`` (stored names, also
+    for runs tagged with the old bare ones: :func:`spot.tracking.tagnames.normalized`), plus ``method``,
     ``dataset`` (our name), ``paper_dataset`` (the paper's row name), ``dataset_source``, ``seed``
     and ``config_hash``. All statuses are kept: :func:`spot.results.select.finished` picks the runs
     that count.
     """
     client = tracking.reader(tracking_uri)
     experiments = tracking.experiments(client, experiment_names)
-    filter_string = tracking.tag_filter({"sweep_id": sweep_id}) if sweep_id else ""
-    rows = [_run_row(run, experiments) for run in tracking.search_runs(client, list(experiments), filter_string)]
+    ids = list(experiments)
+    found = tracking.search_runs(client, ids)
+    if sweep_id:  # tagged spot.sweep_id, or sweep_id by older versions
+        found = tracking.search_tagged(client, ids, {"sweep_id": sweep_id})
+    rows = [_run_row(run, experiments) for run in found]
     df = pd.DataFrame(rows)
     if df.empty:
         return pd.DataFrame(columns=list(_RUN_COLUMNS))
     if "tags.method" not in df:
         df["tags.method"] = np.nan
     df = df[df["tags.method"].notna()].copy()
-    for col in ("tags.dataset", "tags.dataset_source", "tags.seed", "params.seed"):
+    for col in ("tags.dataset", "tags.spot.dataset_source", "tags.seed", "params.seed"):
         if col not in df:
             df[col] = np.nan
     df["method"] = df["tags.method"].astype(str)
     df["dataset"] = df["tags.dataset"].fillna("unknown").astype(str)
     df["paper_dataset"] = df["dataset"].map(paper_dataset_name)
-    df["dataset_source"] = df["tags.dataset_source"].fillna("unknown").astype(str)
+    df["dataset_source"] = df["tags.spot.dataset_source"].fillna("unknown").astype(str)
     df["seed"] = pd.to_numeric(df["tags.seed"].fillna(df["params.seed"]), errors="coerce").astype("Int64")
     df["config_hash"] = config_hashes(df)
     first = [c for c in _RUN_COLUMNS if c in df]
@@ -127,7 +138,7 @@ def _run_row(run: Any, experiments: dict[str, str]) -> dict[str, Any]:
     }
     row.update({f"params.{k}": v for k, v in data.params.items()})
     row.update({f"metrics.{k}": v for k, v in data.metrics.items()})
-    row.update({f"tags.{k}": v for k, v in data.tags.items()})
+    row.update({f"tags.{k}": v for k, v in tracking.tagnames.normalized(data.tags).items()})  # old names too
     return row
 
 

@@ -53,7 +53,7 @@ SOURCE_NOTES = {
 REWARD_MODEL_STAGES = ("reward", "relabel")
 SUBGOAL_STAGES = ("subgoals", "cvae", "shaping")  # reward-model time only where shaping is on
 OFFLINE_RL_STAGES = ("iql", "eval")
-CACHE_HIT_TAGS = ("cache.reward", "cache.relabel", "cache.cvae")  # "hit" | "miss"
+CACHE_HIT_TAGS = ("spot.cache.reward", "spot.cache.relabel", "spot.cache.cvae")  # "hit" | "miss" (load's names)
 CACHE_HIT_METRICS = ("cache/reward_hit", "cache/relabel_hit", "cache/cvae_hit")  # runs logged before the tags
 BEST_FRACTION = 0.95
 
@@ -249,7 +249,7 @@ def _wide(cells: pd.DataFrame, spec: Spec) -> pd.DataFrame:
 
 def _run_notes(used: pd.DataFrame, excluded: pd.DataFrame) -> list[str]:
     """Where the counted runs came from, and which runs were not counted."""
-    sweeps = sorted(used["tags.sweep_id"].dropna().unique()) if "tags.sweep_id" in used else []
+    sweeps = sorted(used["tags.spot.sweep_id"].dropna().unique()) if "tags.spot.sweep_id" in used else []
     notes = [
         f"runs: {len(used)} from experiment(s) {', '.join(sorted(used['experiment'].unique()))}"
         + (f", sweep(s) {', '.join(sweeps)}" if sweeps else "")

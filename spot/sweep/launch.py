@@ -418,7 +418,7 @@ def _print_outcome(
     )
     print(
         f"\n{table}\n\n{n_done}/{len(rows)} runs finished. Experiment '{sweep.experiment}', "
-        f"filter: tags.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{link}{missing}",
+        f"filter: tags.spot.sweep_id = {tracking.quote(ctx.sweep_id)}\n{store.how_to_open}{link}{missing}",
         flush=True,
     )
     if timing:

@@ -20,6 +20,7 @@ def open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, 
     """Create the launch's parent run (recorded in ``state``), or reopen it on resume."""
     from spot import tracking
     from spot.tracking.processes import process_tags
+    from spot.tracking.tagnames import stored, stored_tags
 
     if resume:
         parent_id = state["parent_run_id"]
@@ -34,22 +35,24 @@ def open_parent(client: Any, experiment_id: str, sweep: Sweep, state: dict[str, 
             f"resuming {state['sweep_id']}: {n} run(s) left RUNNING by the interrupted launch marked KILLED", flush=True
         )
         client.update_run(parent_id, status="RUNNING")
-        client.set_tag(parent_id, "resumed_at", time.strftime("%Y-%m-%d %H:%M:%S"))
+        client.set_tag(parent_id, stored("resumed_at"), time.strftime("%Y-%m-%d %H:%M:%S"))
         for key, value in process_tags().items():  # this driver owns the reopened run now
             client.set_tag(parent_id, key, value)
         return parent_id
     parent = client.create_run(
         experiment_id,
         run_name=f"sweep {state['sweep_id']}",
-        tags={
-            "sweep_id": state["sweep_id"],
-            "sweep_name": sweep.name,
-            "spot.role": "sweep",
-            "smoke": str(sweep.smoke),
-            "sweep_file": str(sweep.path.resolve()),
-            "git_commit": tracking.git_commit(),
-            **process_tags(),
-        },
+        tags=stored_tags(  # spot.sweep_id, spot.sweep_name, ... (the bookkeeping names)
+            {
+                "sweep_id": state["sweep_id"],
+                "sweep_name": sweep.name,
+                "spot.role": "sweep",
+                "smoke": str(sweep.smoke),
+                "sweep_file": str(sweep.path.resolve()),
+                "git_commit": tracking.git_commit(),
+                **process_tags(),
+            }
+        ),
     )
     parent_id = parent.info.run_id
     client.log_text(parent_id, sweep.path.read_text(), "sweep.yaml")

@@ -66,7 +66,7 @@ def mark_stopped(client: Any, ctx: Any, attempts: list[str], stop: StoppedEarly)
     from spot import tracking
 
     for attempt in attempts:
-        for run in tracking.search_runs(client, [ctx.experiment_id], tracking.tag_filter({"attempt": attempt})):
+        for run in tracking.search_tagged(client, [ctx.experiment_id], {"attempt": attempt}):
             client.set_tag(run.info.run_id, "failure_reason", str(stop))
             if run.info.status != "KILLED":
                 client.set_terminated(run.info.run_id, "KILLED")
@@ -85,7 +85,7 @@ def close_stopped(client: Any, ctx: Any, trials: list[Any]) -> int:
         if trial.status != "TERMINATED":
             continue
         found = {"sweep_id": ctx.sweep_id, "trial_id": str(trial.trial_id)}
-        for run in tracking.search_runs(client, [ctx.experiment_id], tracking.tag_filter(found)):
+        for run in tracking.search_tagged(client, [ctx.experiment_id], found):
             reason = run.data.tags.get("failure_reason", "")
             if run.info.status == "KILLED" and reason.startswith(f"{StoppedEarly.__name__}: "):
                 # the process ended between closing the run and naming its reason (mark_stopped)

@@ -15,6 +15,44 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 
+def quiet_ray_sigterm() -> None:
+    """In a trial's process: a SIGTERM that lands while the main thread runs a weakref callback or a
+    ``__del__`` ends the process as any other, without ``Exception ignored ... SystemExit: 1``.
+
+    Ray's worker handles SIGTERM (sent to the trial processes when Ray shuts down at a sweep's end)
+    by raising ``SystemExit`` wherever the main thread is. Inside a callback of the garbage collector
+    Python cannot raise it: it prints ``Exception ignored in: <function WeakSet...._remove>`` and the
+    traceback to stderr, which Ray forwards to the end of the sweep's log, and the process goes on
+    (until Ray kills it). This :data:`sys.unraisablehook` takes such a ``SystemExit`` (one raised by
+    Ray's ``sigterm_handler``), prints nothing and sends the SIGTERM again a moment later, outside the
+    callback, where Ray's handler ends the process as it meant to; anything else goes to the hook
+    that was there. Set once per process."""
+    previous = sys.unraisablehook
+    if getattr(previous, "spot_ray_sigterm", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        if isinstance(unraisable.exc_value, SystemExit) and _raised_by_ray_sigterm(unraisable.exc_traceback):
+            timer = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM))
+            timer.daemon = True
+            timer.start()
+            return
+        previous(unraisable)
+
+    hook.spot_ray_sigterm = True  # type: ignore[attr-defined]
+    sys.unraisablehook = hook
+
+
+def _raised_by_ray_sigterm(tb: Any) -> bool:
+    """Whether the traceback passes through Ray's worker SIGTERM handler (``ray/_private/worker.py``)."""
+    while tb is not None:
+        code = tb.tb_frame.f_code
+        if code.co_name == "sigterm_handler" and code.co_filename.replace("\\", "/").endswith("ray/_private/worker.py"):
+            return True
+        tb = tb.tb_next
+    return False
+
+
 class Interrupted(Exception):  # noqa: N818 - a stop, not an error
     """The launch was stopped by SIGTERM or SIGINT; its runs are closed (KILLED) and Ray is shut down.
 

@@ -27,10 +27,12 @@ class Row:
     finished_runs: int
     trial_id: str = ""
     timing: dict[str, float] = field(default_factory=dict)  # the trial's time/trial_* and trial/* metrics
-    device: str = ""  # the trial_device tag: what JAX ran on
+    device: str = ""  # the spot.trial_device tag: what JAX ran on
 
 
 def _row(axes: dict[str, Any], seed: int, key: str, runs: list[Any], ray_error: str | None) -> Row:
+    from spot.tracking import tagnames
+
     finished = [r for r in runs if r.info.status == "FINISHED"]
     if finished:
         r = finished[0]
@@ -44,9 +46,9 @@ def _row(axes: dict[str, Any], seed: int, key: str, runs: list[Any], ray_error: 
             "",
             r.info.run_id,
             len(finished),
-            trial_id=r.data.tags.get("trial_id", ""),
+            trial_id=tagnames.get(r.data.tags, "trial_id"),
             timing={k: v for k, v in m.items() if k.startswith(("time/trial_", "trial/"))},
-            device=r.data.tags.get("trial_device", ""),
+            device=tagnames.get(r.data.tags, "trial_device"),
         )
     if runs:
         r = max(runs, key=lambda r: r.info.start_time or 0)
@@ -59,12 +61,13 @@ def summarize(
 ) -> list[Row]:
     """One :class:`Row` per (config, seed) from the sweep's MLflow runs (and Ray's trial errors)."""
     from spot import tracking
+    from spot.tracking import tagnames
 
     by_key: dict[str, list[Any]] = {}
     parents = []
-    for r in tracking.search_runs(client, [experiment_id], tracking.tag_filter({"sweep_id": sweep_id})):
-        if "trial_key" in r.data.tags:
-            by_key.setdefault(r.data.tags["trial_key"], []).append(r)
+    for r in tracking.search_tagged(client, [experiment_id], {"sweep_id": sweep_id}):  # spot.sweep_id or sweep_id
+        if tagnames.has(r.data.tags, "trial_key"):
+            by_key.setdefault(tagnames.get(r.data.tags, "trial_key"), []).append(r)
         else:
             parents.append(r.info.run_id)
     if parents:

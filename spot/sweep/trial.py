@@ -16,8 +16,8 @@ opened dataset carry over; the process settings are made once per process (:func
 Each trial is timed by phase (:mod:`spot.phases`: start-up, dataset, compile, train, evaluate,
 tracking, other) and the breakdown is logged to every run the trial ran as ``time/trial_<phase>_s``,
 ``time/trial_wall_s``, ``time/trial_cpu_s`` (CPU seconds of the trial's process, all threads),
-``time/trial_cpus`` (the CPUs it had) and the tags ``trial_device`` (``jax.devices()``) and
-``trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
+``time/trial_cpus`` (the CPUs it had) and the tags ``spot.trial_device`` (``jax.devices()``) and
+``spot.trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
 ``spot bench sweep`` each trial's row (:func:`spot.sweep.summary.format_breakdown`).
 
 A trial whose tracking server stops answering (its MLflow requests have deadlines,
@@ -44,6 +44,7 @@ from typing import Any
 
 from spot import config as config_lib
 from spot.sweep.reports import Reports, StoppedEarly, evaluated, mark_stopped
+from spot.sweep.signals import quiet_ray_sigterm
 from spot.sweep.spec import config_key, run_key, tag_value
 
 RunFn = Callable[..., dict[str, Any]]
@@ -216,6 +217,7 @@ def _record_failure(
 
 
 def _seed_tags(overrides: dict[str, Any], key: str, ctx: SweepContext, trial_id: str) -> dict[str, str]:
+    """A seed's run tags, bare names (MLflow's: ``spot.sweep_id``, ..., :mod:`spot.tracking.tagnames`)."""
     from spot.tracking.processes import process_tags
 
     return {
@@ -376,6 +378,7 @@ def _configure_once(cpus: int, gpus: float, fast_compile: bool = False) -> None:
     resources and sweep (a sweep's trials all ask for the same), and XLA has read them."""
     from spot import runtime
 
+    quiet_ray_sigterm()  # Ray's SIGTERM at the sweep's end: no "Exception ignored ... SystemExit" lines
     if _PROCESS["settings"] == (cpus, gpus, fast_compile):
         return
     if _PROCESS["settings"] is not None and _PROCESS["settings"][2] != fast_compile and "jax" in sys.modules:
@@ -423,7 +426,7 @@ def _log_breakdown(
     from mlflow.entities import Metric, RunTag
     from mlflow.tracking import MlflowClient
 
-    from spot.tracking import limits
+    from spot.tracking import limits, tagnames
 
     client = MlflowClient(ctx.tracking_uri)
     now = int(time.time() * 1000)
@@ -433,7 +436,7 @@ def _log_breakdown(
                 client.log_batch(
                     final["run_id"],
                     metrics=[Metric(k, float(v), now, 0) for k, v in values.items()],
-                    tags=[RunTag(k, v) for k, v in tags.items()],
+                    tags=[RunTag(k, v) for k, v in tagnames.stored_tags(tags).items()],
                 )
 
 

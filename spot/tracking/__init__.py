@@ -11,6 +11,9 @@
 * :mod:`spot.tracking.run_temp`: the folders where runs stage their artifact files.
 * :mod:`spot.tracking.queries`: quoted filter strings, paging through runs, finished-run lookup,
   orphan closing, artifacts (used by sweeps, tables and figures).
+* :mod:`spot.tracking.tagnames`: the names tags have in MLflow (first-class ``method``,
+  ``dataset``, ``seed``, ``variant``, ``axis.*``; the bookkeeping under ``spot.``) and reading the
+  old bare names of stores written before.
 * :mod:`spot.tracking.models`: a run's trained models as data-only artifacts with a JSON header
   (``models/<name>.npz`` + ``.json``), saved and loaded again (``spot eval``, ``spot figures``).
 * :mod:`spot.tracking.ui`: the ``spot ui`` command and links that open the runs table (a sweep's shared view).
@@ -26,6 +29,7 @@ under ``<cwd>/spot_runs/artifacts`` (``spot run`` writes it; sweeps serve it, :m
 an older folder's ``mlruns/mlflow.db`` is still read when it is the only one).
 """
 
+from spot.tracking import tagnames
 from spot.tracking.limits import TrackingUnreachable, failure_reason, set_http_deadlines, waiting_on
 from spot.tracking.models import MODELS_DIR, load_artifact_text, load_model, run_config, save_model
 from spot.tracking.provenance import (
@@ -49,6 +53,7 @@ from spot.tracking.queries import (
     local_artifact,
     quote,
     search_runs,
+    search_tagged,
     tag_filter,
 )
 from spot.tracking.record import log_params, record_failure, start_run
@@ -122,6 +127,8 @@ __all__ = [
     "resolve_uri",
     "run_tags",
     "search_runs",
+    "search_tagged",
+    "tagnames",
     "sqlite_path",
     "start_run",
     "tag_filter",

@@ -3,7 +3,9 @@
 Every run logs its resolved config as params (flat dotted keys; the model sections of other
 methods, ``mr.*``, ``pt.*``, ``hpl.*``, ``ipl.*``, are left out: :func:`active_params`), tags
 naming the method, dataset, dataset source, label source, seed, budget, git commit, package
-versions and the dataset fingerprint (``data_digest``: :func:`start_tags`), and MLflow's own
+versions and the dataset fingerprint (``data_digest``: :func:`start_tags`; named here by their bare
+names, stored in MLflow under ``spot.`` but for the first-class ``method``, ``dataset``, ``seed``,
+``variant`` and ``axis.*``: :mod:`spot.tracking.tagnames`), and MLflow's own
 fields (:func:`mlflow_tags`): a description (``mlflow.note.content``: method, dataset, budget,
 sweep, the command line and a ``spot run`` command that reproduces the config),
 ``mlflow.source.name`` (the command), ``mlflow.source.type``, ``mlflow.source.git.commit``.

@@ -17,6 +17,7 @@ from urllib.parse import urlparse
 from spot import SpotError
 from spot.tracking.limits import cap_reason, waiting_on
 from spot.tracking.store import PAGE, SEARCH_EXPERIMENTS, sqlite_path
+from spot.tracking.tagnames import alternatives
 
 STATUSES = ("RUNNING", "SCHEDULED", "FINISHED", "FAILED", "KILLED")
 
@@ -60,20 +61,38 @@ def search_runs(client: Any, experiment_ids: Sequence[str], filter_string: str =
                 break
 
 
+def search_tagged(
+    client: Any, experiment_ids: Sequence[str], tags: Mapping[str, Any], status: str | None = None
+) -> Iterator[Any]:
+    """Every run of the experiments with all ``tags`` (bare or stored names, :mod:`spot.tracking.tagnames`)
+    and ``status``: the runs tagged under the stored names, then those of older stores tagged under
+    the bare ones (MLflow's filters have no ``or``), each run once."""
+    seen: set[str] = set()
+    for found in alternatives(tags):
+        for run in search_runs(client, experiment_ids, tag_filter(found, status)):
+            if run.info.run_id not in seen:
+                seen.add(run.info.run_id)
+                yield run
+
+
 def client_uri(client: Any) -> str:
     """The tracking URI of an MLflow client (for error messages), "" if it has none."""
     return str(getattr(client, "tracking_uri", "") or "")
 
 
 def first_run(client: Any, experiment_id: str, tags: Mapping[str, Any], status: str | None = None) -> Any | None:
-    """One run of the experiment with all ``tags`` (and ``status``), or None."""
-    with waiting_on(client_uri(client), "looking up a run"):
-        found = client.search_runs([experiment_id], tag_filter(tags, status), max_results=1)
-    return found[0] if found else None
+    """One run of the experiment with all ``tags`` (and ``status``), or None; ``tags`` by bare or
+    stored name, found under either (:func:`search_tagged`)."""
+    for names in alternatives(tags):
+        with waiting_on(client_uri(client), "looking up a run"):
+            found = client.search_runs([experiment_id], tag_filter(names, status), max_results=1)
+        if found:
+            return found[0]
+    return None
 
 
 def finished_run(client: Any, experiment_id: str, tags: Mapping[str, Any]) -> Any | None:
-    """A FINISHED run with all ``tags`` (e.g. a sweep's id and trial key), or None."""
+    """A FINISHED run with all ``tags`` (e.g. a sweep's id and trial key; bare or stored names), or None."""
     return first_run(client, experiment_id, tags, "FINISHED")
 
 
@@ -85,16 +104,14 @@ def close_orphans(
     keep: Sequence[str] = (),
     deadline: float | None = None,
 ) -> int:
-    """Mark the runs with ``tags`` still RUNNING (their process is gone), but ``keep``, as KILLED
+    """Mark the runs with ``tags`` (bare or stored names) still RUNNING (their process is gone), but ``keep``, as KILLED
     with ``failure_reason`` (capped); return how many.
 
     With ``deadline`` (a ``time.monotonic()`` value), :class:`TimeoutError` once it has passed
     before all are closed (each request is bounded by MLflow's own deadlines,
     :mod:`spot.tracking.limits`); the runs closed so far stay closed.
     """
-    orphans = [
-        r for r in search_runs(client, [experiment_id], tag_filter(tags, "RUNNING")) if r.info.run_id not in keep
-    ]
+    orphans = [r for r in search_tagged(client, [experiment_id], tags, "RUNNING") if r.info.run_id not in keep]
     for i, r in enumerate(orphans):
         if deadline is not None and time.monotonic() > deadline:
             raise TimeoutError(f"closed {i} of {len(orphans)} runs left RUNNING before the deadline")

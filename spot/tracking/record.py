@@ -26,6 +26,7 @@ from spot.tracking.processes import close_dead_runs, process_tags
 from spot.tracking.provenance import active_params, log_run_files, mlflow_tags, run_tags, start_tags
 from spot.tracking.queries import client_uri, first_run
 from spot.tracking.store import experiment_id, resolve_uri
+from spot.tracking.tagnames import get, stored, stored_tags
 from spot.tracking.trackers import MlflowTracker
 
 DIGEST_CHARS = 32  # MLflow keeps at most 36 characters of a dataset digest
@@ -117,7 +118,8 @@ class SystemMetrics:
 
 
 LOOKUP_TAGS = ("trial_key", "attempt")
-"""The tags sweeps find a run by (finished-run lookups on resume, failure records). A run is
+"""The tags sweeps find a run by (finished-run lookups on resume, failure records; stored as
+``spot.trial_key`` and ``spot.attempt``, :mod:`spot.tracking.tagnames`). A run is
 created without them; they arrive in the same ``log_batch`` as the last of its params
 (:func:`create_run`), so a process killed in between leaves a run that no lookup finds (closed
 later as a dead process's run), never one that is found without its params."""
@@ -126,14 +128,20 @@ later as a dead process's run), never one that is found without its params."""
 def create_run(
     client: Any, experiment_id: str, name: str, tags: dict[str, str], cfg: config_lib.ExperimentConfig
 ) -> Any:
-    """``client.create_run`` with ``tags`` except :data:`LOOKUP_TAGS`; returns the run. Follow it
-    with :func:`log_params` and :func:`lookup_tags` of the same ``tags``."""
-    return client.create_run(experiment_id, run_name=name, tags={k: v for k, v in tags.items() if k not in LOOKUP_TAGS})
+    """``client.create_run`` with ``tags`` (under their stored names, :mod:`spot.tracking.tagnames`)
+    except :data:`LOOKUP_TAGS`; returns the run. Follow it with :func:`log_params` and
+    :func:`lookup_tags` of the same ``tags``."""
+    lookup = {stored(k) for k in LOOKUP_TAGS}
+    return client.create_run(
+        experiment_id, run_name=name, tags={k: v for k, v in stored_tags(tags).items() if k not in lookup}
+    )
 
 
 def lookup_tags(tags: dict[str, str]) -> dict[str, str]:
-    """The :data:`LOOKUP_TAGS` among ``tags`` (they go with the params: :func:`log_params`)."""
-    return {k: tags[k] for k in LOOKUP_TAGS if k in tags}
+    """The :data:`LOOKUP_TAGS` among ``tags``, under their stored names (they go with the params:
+    :func:`log_params`)."""
+    lookup = {stored(k) for k in LOOKUP_TAGS}
+    return {k: v for k, v in stored_tags(tags).items() if k in lookup}
 
 
 def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig, tags: dict[str, str] | None = None) -> None:
@@ -146,7 +154,7 @@ def log_params(client: Any, run_id: str, cfg: config_lib.ExperimentConfig, tags:
     starts = list(range(0, len(params), 100)) or [0]  # MLflow's limit of params per batch
     for i in starts:
         last = i == starts[-1]
-        run_tags_ = [RunTag(k, str(v)) for k, v in (tags or {}).items()] if last else []
+        run_tags_ = [RunTag(k, v) for k, v in stored_tags(tags or {}).items()] if last else []
         client.log_batch(run_id, params=params[i : i + 100], tags=run_tags_)
 
 
@@ -165,7 +173,7 @@ def record_failure(
     failure before that (config, dataset), with the config params, the run tags and the
     ``failure_reason`` tag (capped, :func:`spot.tracking.limits.failure_reason`).
     """
-    if first_run(client, experiment_id, {"attempt": tags["attempt"]}) is not None:
+    if first_run(client, experiment_id, {"attempt": get(tags, "attempt")}) is not None:
         return None
     all_tags = run_tags(cfg, {"name": cfg.data.name}, tags)
     all_tags.update(mlflow_tags(cfg, all_tags))

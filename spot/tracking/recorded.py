@@ -16,9 +16,11 @@ metric point is appended as it is logged, so a killed run leaves its curve so fa
 
 :func:`import_records` (``spot results import DIR``) logs every finished record into an MLflow
 experiment as a run with the record's own start and end times, metric timestamps and steps, then
-tags it ``record_id`` last: importing again skips the records already there, so an interrupted
-import resumes without duplicating runs (a run it was writing is deleted; one a SIGKILL left
-RUNNING is closed as KILLED by the next import and has no ``record_id``). Records still
+tags it ``spot.record_id`` last (the record's tags under the names of
+:mod:`spot.tracking.tagnames`, also those of a record written before the bookkeeping tags moved
+under ``spot.``): importing again skips the records already there, so an interrupted import
+resumes without duplicating runs (a run it was writing is deleted; one a SIGKILL left RUNNING is
+closed as KILLED by the next import and has no ``spot.record_id``). Records still
 ``RUNNING`` (the run goes on, or its process was killed) are skipped and listed. Reading a
 record parses JSON and copies files; nothing in it is executed.
 
@@ -46,10 +48,12 @@ from spot.tracking.limits import failure_reason
 from spot.tracking.naming import default_name, log_paper_score
 from spot.tracking.provenance import active_params, log_run_files, start_tags
 from spot.tracking.record_checks import ARTIFACTS_DIR, FORMAT, METRICS_FILE, RECORD_FILE, now_ms
+from spot.tracking.tagnames import normalized, stored, stored_tags
 from spot.tracking.trackers import finite_metrics, json_safe
 
-RECORD_TAG = "record_id"
-"""The tag an imported run carries: the record it came from (what a second import looks for)."""
+RECORD_TAG = stored("record_id")
+"""The tag an imported run carries: the record it came from (what a second import looks for; runs
+imported before the bookkeeping tags moved under ``spot.`` carry ``record_id``)."""
 
 
 def _write_json(path: Path, data: Any) -> None:
@@ -114,7 +118,7 @@ class RecordTracker:
         self._artifact_path(name).write_text(text)
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
-        self.head["tags"].update({k: str(v) for k, v in tags.items()})
+        self.head["tags"].update(stored_tags(tags))
         self.save()
 
 
@@ -146,7 +150,7 @@ def start_record(
         "status": "RUNNING",
         "start_time": now_ms(),
         "end_time": None,
-        "tags": tags,
+        "tags": stored_tags(tags),
         "params": {k: str(list(v) if isinstance(v, tuple) else v) for k, v in active_params(cfg).items()},
     }
     tracker = RecordTracker(root / record_id, head)
@@ -177,7 +181,7 @@ def _log_record(client: Any, exp_id: str, folder: Path, head: dict[str, Any], po
     from spot.tracking.processes import process_tags
 
     rid = head["record_id"]
-    tags = {k: v for k, v in head["tags"].items() if k != RECORD_TAG}
+    tags = {k: v for k, v in normalized(head["tags"]).items() if k != RECORD_TAG}  # a record's old names too
     run = client.create_run(
         exp_id, start_time=head["start_time"], run_name=head["run_name"], tags={**tags, **process_tags()}
     )
@@ -191,7 +195,7 @@ def _log_record(client: Any, exp_id: str, folder: Path, head: dict[str, Any], po
             client.log_batch(run_id, metrics=metrics[i : i + 1000])
         if staged is not None:
             client.log_artifacts(run_id, str(staged))
-        tags_last = [RunTag(RECORD_TAG, rid), RunTag("imported_from", str(folder.resolve()))]
+        tags_last = [RunTag(RECORD_TAG, rid), RunTag(stored("imported_from"), str(folder.resolve()))]
         client.log_batch(run_id, tags=tags_last)
         client.set_terminated(run_id, head["status"], end_time=head["end_time"] or head["start_time"])
     except BaseException:  # a half-imported run is removed; the next import logs the record whole

@@ -68,7 +68,9 @@ class Tracker(Protocol):
         """A text artifact."""
 
     def set_tags(self, tags: Mapping[str, str]) -> None:
-        """String tags."""
+        """String tags, named by their bare names (``cache.reward``); MLflow and record folders store
+        the bookkeeping ones under ``spot.`` (:mod:`spot.tracking.tagnames`), :class:`MemoryTracker`
+        keeps the names given."""
 
 
 class MemoryTracker:
@@ -157,4 +159,6 @@ class MlflowTracker:
     def set_tags(self, tags: Mapping[str, str]) -> None:
         from mlflow.entities import RunTag
 
-        self.client.log_batch(self.run_id, tags=[RunTag(k, str(v)) for k, v in tags.items()])
+        from spot.tracking.tagnames import stored_tags
+
+        self.client.log_batch(self.run_id, tags=[RunTag(k, v) for k, v in stored_tags(tags).items()])
