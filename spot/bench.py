@@ -454,7 +454,8 @@ def bench_sweep(path: str, smoke: bool = False, **sweep_kwargs: Any) -> int:
     """``spot bench sweep FILE [--smoke]``: run the sweep (:func:`spot.sweep.run_sweep`, which prints
     its own summary and the totals of the time breakdown), then print one line per trial (seconds
     per phase, :mod:`spot.phases`), the totals, the CPU utilisation of the whole command's process
-    tree (dataset builds, MLflow server, Ray and every trial) and the device the trials ran on.
+    tree (dataset builds, MLflow server, Ray and every trial) and the device the trials ran on, and
+    last the floor of the launch's training and each phase's ratio to it (:mod:`spot.sweep.floor`).
     Returns the exit code of ``spot sweep``."""
     from spot import phases, sweep
 
@@ -466,6 +467,9 @@ def bench_sweep(path: str, smoke: bool = False, **sweep_kwargs: Any) -> int:
         print(f"interrupted: {e}", file=sys.stderr)
         return e.exit_code
     print(format_sweep_bench(rows, spec, cpu), flush=True)
+    from spot.sweep import floor  # the floor (a calibration now, on the idle cores) and each phase's ratio to it
+
+    print(floor.report(spec, rows, cpu), flush=True)
     return 0 if all(r.status == "FINISHED" for r in rows) else 1
 
 

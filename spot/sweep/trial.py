@@ -1,10 +1,11 @@
 """One trial, inside its Ray worker process: CPU slots and XLA settings, then each seed's run.
 
-:func:`_trainable` is the Ray Tune function trainable. It claims the trial's CPUs
-(:func:`cpu_slots`), makes spot's process settings (:func:`spot.runtime.configure`) and sets
-XLA/JAX for the trial's share of the node (:func:`configure_process`), before anything imports
-jax, and calls :func:`run_trial`, which looks each seed up in MLflow (a FINISHED run with the
-sweep id and trial key is reported instead of running again), runs the others with
+:func:`_trainable` is the Ray Tune function trainable. It claims the trial's CPUs, its threads
+following the free ones (:func:`spot.sweep.cpus.trial_cpus`), makes spot's process settings
+(:func:`spot.runtime.configure`) and sets XLA/JAX for the trial's share of the node
+(:func:`configure_process`), before anything imports jax, and calls :func:`run_trial`, which
+looks each seed up in MLflow (a FINISHED run with the sweep id and trial key is reported instead
+of running again), runs the others with
 :func:`spot.pipeline.run` one after another, or together with :func:`spot.run.multiseed.run` (IQL
 vmapped over the seeds) for a ``seed_mode: vmap`` trial, and records a FAILED run for a seed that
 failed before the pipeline opened its own. Nothing here imports jax at module level.
@@ -43,6 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import config as config_lib
+from spot.sweep.cpus import trial_cpus
 from spot.sweep.reports import Reports, StoppedEarly, evaluated, mark_stopped
 from spot.sweep.signals import quiet_ray_sigterm
 from spot.sweep.spec import config_key, run_key, tag_value
@@ -457,9 +459,9 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
     startup, cpu0 = _startup_s(ctx, called_at), _cpu_s()
     reused = _PROCESS["settings"] is not None
     try:
-        with phases.measure("other") as clock, cpu_slots(cpus) as pinned:
+        with phases.measure("other") as clock, trial_cpus(cpus) as share:  # threads follow the free CPUs
             with phases.phase("startup"):
-                _configure_once(cpus, gpus, ctx.fast_compile)
+                _configure_once(share.xla_cpus(cpus), gpus, ctx.fast_compile)
                 if run_fn is None:  # the pipeline's imports, timed as start-up
                     import jax  # noqa: F401
                     import mlflow  # noqa: F401
@@ -486,7 +488,7 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
                 {
                     "time/trial_wall_s": startup + clock.read_wall,
                     "time/trial_cpu_s": cpu_s,
-                    "time/trial_cpus": float(len(pinned) or len(os.sched_getaffinity(0))),
+                    "time/trial_cpus": share.mean_cpus(),  # averaged over the trial (spot.sweep.cpus)
                 }
             )
             values["trial/cpu_util"] = cpu_s / max(clock.read_wall * values["time/trial_cpus"], 1e-9)

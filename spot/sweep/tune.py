@@ -17,6 +17,7 @@ from typing import Any
 
 from spot import SpotError
 from spot.sweep import search as search_lib
+from spot.sweep.order import trial_order
 from spot.sweep.spec import Sweep, run_key
 from spot.sweep.summary import log_fit_cpu
 from spot.sweep.tracking_store import watching_server
@@ -171,7 +172,7 @@ def _param_space(sweep: Sweep) -> dict[str, Any]:
     from ray import tune
 
     if sweep.search is None:
-        return {"trial": tune.grid_search([t.to_config() for t in sweep.trials()])}
+        return {"trial": tune.grid_search([t.to_config() for t in trial_order(sweep.trials())])}  # what overlaps does
     return {"trial": sweep.trials()[0].to_config(), "search": search_lib.space(sweep.search)}
 
 

@@ -1,0 +1,83 @@
+"""The order a sweep's trials start in, so that what overlaps does.
+
+Trials of one sweep often share a stage: a SPOT run reuses the reward model of the PT run with the
+same dataset, labels, reward config and seed (the stage cache, :mod:`spot.cache`, computes an entry
+once and makes a trial that needs it meanwhile wait on its lock). Tune starts trials in the order
+of its grid, as many at once as the sweep allows, so :func:`trial_order` puts
+
+1. the trials that train a reward model another trial reuses (its first user in the grid),
+2. then the trials that need no shared reward model (Oracle, or a reward model of their own),
+3. then the trials that reuse a reward model trained by an earlier one,
+
+each group in the grid's order. The reward model's users then start as late as the sweep allows
+(their producer has had the longest time to store it), and what can run beside it (Oracle's IQL
+beside PT's reward model) does: on 2 cores the quickstart starts PT and Oracle together and SPOT
+when one of them ends. Only the start order changes: every run's config, seed and stage-cache keys
+are those of the grid, and the summary lists the runs in the grid's order.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+from spot import config as config_lib
+
+
+def reward_identity(cfg: config_lib.ExperimentConfig) -> str | None:
+    """What the run's learned reward model depends on (dataset, labels, reward and model config,
+    seed; with the online CVAE its config too), as text: runs with equal text train the same
+    stage-cache entry (:func:`spot.run.reward_stages.learned_reward`). None for a run that trains no
+    reward model (Oracle, HPL, IPL)."""
+    from spot.run import methods, reward_stages
+
+    stages = methods.stages_of(cfg)
+    if stages.reward not in (reward_stages.learned_reward, reward_stages.learned_reward_online):
+        return None
+    kind = cfg.reward.kind
+    parts: dict[str, Any] = {
+        "stage": stages.reward.__name__,
+        "data": cfg.data,
+        "labels": cfg.labels,
+        "reward": cfg.reward,
+        kind: getattr(cfg, kind),
+        "seed": cfg.seed,
+    }
+    if stages.reward is reward_stages.learned_reward_online:
+        parts.update(subgoal=cfg.subgoal, cvae=cfg.cvae, state_action=cfg.shaping.state_action)
+    plain = {k: dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v for k, v in parts.items()}
+    return json.dumps(plain, sort_keys=True, default=str)
+
+
+def _identities(trial: Any) -> set[str]:
+    """The reward identities of a trial's seeds (a trial may run several seeds)."""
+    out = set()
+    for seed in trial.seeds:
+        ident = reward_identity(config_lib.resolve(trial.overrides, {"seed": seed}))
+        if ident is not None:
+            out.add(ident)
+    return out
+
+
+def trial_order(trials: list[Any]) -> list[Any]:
+    """``trials`` (:class:`spot.sweep.spec.Trial`) in the order to start them (module docstring):
+    producers of shared reward models, then the trials that share none, then their reusers; the
+    grid's order within each group."""
+    idents = [_identities(t) for t in trials]
+    users: dict[str, int] = {}
+    for ids in idents:
+        for i in ids:
+            users[i] = users.get(i, 0) + 1
+    seen: set[str] = set()
+    groups: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
+    for trial, ids in zip(trials, idents, strict=True):
+        shared = {i for i in ids if users[i] > 1}
+        if shared and shared <= seen:
+            groups[2].append(trial)  # every shared model it needs comes from an earlier trial
+        elif shared - seen:
+            groups[0].append(trial)  # the first to need one of them: it trains it
+        else:
+            groups[1].append(trial)
+        seen |= shared
+    return [*groups[0], *groups[1], *groups[2]]
