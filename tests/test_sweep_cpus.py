@@ -133,8 +133,27 @@ def test_xla_cpus_sets_the_pool_for_the_follow_modes(monkeypatch, tmp_path):
     monkeypatch.delenv("NPROC", raising=False)
     share = cpus.Share(tmp_path, [0, 1, 2], {}, "pinned")
     assert share.xla_cpus(1) == 1 and "NPROC" not in os.environ
-    assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow").xla_cpus(1) == 1 and os.environ["NPROC"] == "3"
-    assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow-eigen").xla_cpus(1) == 3
+    assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow").xla_cpus(1) == 1 and os.environ["NPROC"] == "2"
+    assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow-eigen").xla_cpus(1) == 2
+    assert [cpus.pool_size(c, node) for c, node in ((1, 1), (1, 2), (1, 16), (3, 4), (4, 16))] == [1, 2, 2, 4, 8]
+
+
+def test_a_trial_borrows_at_most_its_pools_cpus_and_gives_them_back_when_wanted(monkeypatch, tmp_path):
+    pinned: list[list[int]] = []
+    monkeypatch.setattr(cpus, "set_affinity", lambda c: pinned.append(sorted(c)))  # (CPU numbers of a 4-CPU node)
+    own = cpus.claim(tmp_path, [0, 1, 2, 3], 1, wait_s=0)
+    share = cpus.Share(tmp_path, [0, 1, 2, 3], own, "follow")
+    assert share.look() and share.cpus() == [0, 1] and pinned == [[0, 1]]  # 2 of 4: twice its own
+    assert (tmp_path / "borrowed-1").read_text() == str(os.getpid())
+    assert not share.look()  # nothing changed
+    (tmp_path / f"want-{os.getpid()}").write_text(str(os.getpid()))  # a starting trial wants slots
+    assert share.look() and share.cpus() == [0] and pinned[-1] == [0] and not (tmp_path / "borrowed-1").exists()
+    (tmp_path / f"want-{os.getpid()}").unlink()
+    (tmp_path / "want-999999999").write_text("999999999")  # a dead process's want: removed, not obeyed
+    assert share.look() and share.cpus() == [0, 1] and not (tmp_path / "want-999999999").exists()
+    share.close()
+    assert pinned[-1] == [0, 1, 2, 3] and not list(tmp_path.glob("borrowed-*"))
+    assert len(cpus.claim(tmp_path, [0, 1, 2, 3], 4, wait_s=0)) == 4  # every slot free again
 
 
 IQL = textwrap.dedent(

@@ -9,14 +9,15 @@ sweep on the node, by default) get disjoint CPUs, and the trial's process is pin
 How its threads use CPUs no trial holds depends on ``$SPOT_TRIAL_THREADS`` (:data:`MODES`):
 
 * ``follow`` (the default): a watcher thread looks at the slots every :data:`POLL_S` seconds and
-  *borrows* the free ones (it locks them too, and writes ``borrowed-<i>``), widening the process's
-  affinity onto them; a trial that runs alone on the node therefore gets every core, and its
-  threads narrow back to the trial's own slots as soon as another trial starts: a starting trial
+  *borrows* free ones (it locks them too, and writes ``borrowed-<i>``), up to twice the trial's own
+  (:func:`pool_size`), widening the process's affinity onto them; a 1-CPU trial that runs alone on
+  a 2-CPU node therefore gets every core, and its threads narrow back to the trial's own slots as
+  soon as another trial starts: a starting trial
   that finds too few free slots while some are borrowed writes ``want-<pid>`` and waits (up to
   :data:`WAIT_S`) while the borrowers give their borrowed slots back at their next look. XLA's CPU
   thread pool is sized once, when the process's first backend starts, from the affinity mask or
-  ``$NPROC`` (``xla::DefaultThreadPoolSize``): the trial sets ``NPROC`` to the node's CPUs before
-  jax starts, so the pool has a thread per CPU the trial may come to use (XLA then partitions
+  ``$NPROC`` (``xla::DefaultThreadPoolSize``): the trial sets ``NPROC`` to :func:`pool_size` before
+  jax starts, so the pool has a thread per CPU the trial may come to hold (XLA then partitions
   large elementwise loops and runs independent operations, such as the three updates of IQL's
   ``parallel`` order, side by side). Eigen stays single-threaded in a 1-CPU trial
   (``--xla_cpu_multi_thread_eigen=false``, as before). Under spot's XLA flags
@@ -155,6 +156,7 @@ class Share:
     def __init__(self, folder: Path, allowed: list[int], own: dict[int, Any], how: str) -> None:
         self.folder, self.allowed, self.own, self.how = folder, allowed, own, how
         self.borrow = how != "pinned"
+        self.limit = pool_size(len(own), len(allowed)) if self.borrow else len(own)  # CPUs held at most
         self.borrowed: dict[int, Any] = {}
         self._lock = threading.Lock()
         self._since = self._start = time.monotonic()
@@ -176,13 +178,15 @@ class Share:
             return self._cpu_time / max(self._since - self._start, 1e-9) if self._since > self._start else 0.0
 
     def xla_cpus(self, cpus: int) -> int:
-        """Before jax starts: ``NPROC`` for XLA's pool in the ``follow`` modes (one thread per
-        allowed CPU; a ``NPROC`` already set is kept). Returns the CPU count to configure XLA for
-        (:func:`spot.sweep.trial.configure_process`): the trial's ``cpus``, or the node's in
+        """Before jax starts: ``NPROC`` for XLA's pool in the ``follow`` modes (:func:`pool_size`
+        threads; a ``NPROC`` already set is kept). Returns the CPU count to configure XLA for
+        (:func:`spot.sweep.trial.configure_process`): the trial's ``cpus``, or its pool's in
         ``follow-eigen`` (Eigen then stays multi-threaded)."""
-        if self.borrow:
-            os.environ.setdefault("NPROC", str(len(self.allowed)))
-        return len(self.allowed) if self.how == "follow-eigen" else cpus
+        if not self.borrow:
+            return cpus
+        pool = pool_size(cpus, len(self.allowed))
+        os.environ.setdefault("NPROC", str(pool))
+        return pool if self.how == "follow-eigen" else cpus
 
     def _give_back(self) -> None:
         for cpu, f in self.borrowed.items():
@@ -202,6 +206,8 @@ class Share:
                 self._give_back()
             else:
                 for cpu in self.allowed:
+                    if len(self.own) + len(self.borrowed) >= self.limit:
+                        break
                     if cpu not in self.own and cpu not in self.borrowed and (f := _lock(self.folder, cpu)):
                         self.borrowed[cpu] = f
                         _mark(self.folder / f"borrowed-{cpu}")
@@ -220,6 +226,14 @@ class Share:
             for f in self.own.values():
                 f.close()
             self.own = {}
+
+
+def pool_size(cpus: int, node: int) -> int:
+    """The CPUs a trial of ``cpus`` may come to hold on a node of ``node`` (and its XLA pool's
+    threads): twice its own, at most the node's. Capped so that a narrowed trial's pool stays
+    small (its threads then share the trial's own CPUs) and so that one lone trial on a large node
+    does not take every free slot from the trials that start after it."""
+    return max(cpus, min(node, 2 * cpus))
 
 
 def _watch(share: Share, stop: threading.Event, poll_s: float) -> None:
