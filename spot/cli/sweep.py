@@ -1,5 +1,5 @@
-"""``spot sweep``: run a sweep file with Ray Tune (``--dry-run``: list its trials; ``--status``:
-where its last launch stands)."""
+"""``spot sweep``: run a sweep file with Ray Tune (``--dry-run``: what a launch would run, a grid's
+trials or a search's setup; ``--status``: where its last launch stands)."""
 
 from __future__ import annotations
 
@@ -42,7 +42,13 @@ def add(sub: Any) -> None:
         help="with --address: bind the MLflow server spot starts to this address (e.g. 0.0.0.0) so trials on "
         "other nodes reach it; unauthenticated, see docs/sweeps.md (default: 127.0.0.1)",
     )
-    d.add_argument("--dry-run", action="store_true", help="list the trials (axes, seeds) and exit; launches nothing")
+    d.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="show what a launch would run and exit; launches nothing: the trial and run counts, then a grid's "
+        "trials (axes, seeds) or a search's searcher, num_samples, searched keys' domains and fixed part (base, "
+        "seeds); with a scheduler, its metric, mode, options and ASHA's rungs",
+    )
     add_quiet(d)  # the datasets the driver builds, the configs' check; Tune's status table stays
     d.add_argument(
         "--status",
