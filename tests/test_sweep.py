@@ -190,7 +190,7 @@ def _finished_child_runs(db: Path) -> int:
         with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
             return con.execute(
                 "select count(*) from runs r join tags t on r.run_uuid = t.run_uuid "
-                "where t.key = 'trial_key' and r.status = 'FINISHED'"
+                "where t.key = 'spot.trial_key' and r.status = 'FINISHED'"
             ).fetchone()[0]
     except sqlite3.OperationalError:  # tables not created yet
         return 0
