@@ -455,7 +455,7 @@ def test_a_squatted_port_gets_no_run_and_the_server_moves(tmp_path, squatter, ca
     finally:
         server.stop()
     assert all(r.startswith("GET /health") or "experiments/get" in r for r in squatter.requests), squatter.requests
-    assert MlflowClient(sqlite_uri(db)).get_run(run_id).data.tags["spot.git_commit"] == "secret-ish"
+    assert MlflowClient(sqlite_uri(db)).get_run(run_id).data.tags["git_commit"] == "secret-ish"
     # The nonce tag is removed once checked.
     assert not [k for k in MlflowClient(sqlite_uri(db)).get_experiment("0").tags if k.startswith("spot.server_nonce")]
 
