@@ -215,6 +215,7 @@ def benched(tmp_path_factory, spot_dirs, tiny_drawer):
     env = {
         "SPOT_CACHE_DIR": str(root / "cache"),
         "SPOT_CPU_SLOTS_DIR": str(root / "slots"),
+        "SPOT_TRIAL_THREADS": "follow",  # not the default: the end-to-end check of the free CPUs' use
         "PYTHONUNBUFFERED": "1",
         "MLFLOW_TRACKING_URI": "",
     }

@@ -185,7 +185,7 @@ def test_sigterm_ends_a_spot_run_killed(tmp_path, spot_dirs, tiny_drawer):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "interrupted" in err
-    (folder,) = record_checks.find_records(tmp_path / "rec")
+    (folder,) = record_checks.find_records(tmp_path / "out" / "records")
     head = record_checks.read_record(folder)
     assert head["status"] == "KILLED" and head["tags"]["failure_reason"] == "KeyboardInterrupt: signal SIGTERM"
     assert [k for k, *_ in record_checks.read_metrics(folder)].count("eval/score") >= 1  # its curve so far
@@ -210,7 +210,7 @@ def test_the_gpu_script_records_every_method(tmp_path, spot_dirs, tiny_drawer):
     env = {
         **os.environ,
         "SPOT_CACHE_DIR": str(tmp_path / "cache"),
-        "RECORDS": str(tmp_path / "rec"),
+        "OUT": str(tmp_path / "out"),
         "SEEDS": "0",
         "METHODS": "oracle,pt",
         "LIMIT_S": "600",
@@ -226,7 +226,7 @@ def test_the_gpu_script_records_every_method(tmp_path, spot_dirs, tiny_drawer):
         timeout=900,
     )
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-2000:]
-    heads = [record_checks.read_record(f) for f in record_checks.find_records(tmp_path / "rec")]
+    heads = [record_checks.read_record(f) for f in record_checks.find_records(tmp_path / "out" / "records")]
     assert sorted(h["tags"]["method"] for h in heads) == ["oracle", "pt"]
     for head in heads:
         assert head["status"] == "FINISHED" and head["experiment"] == "gpu_paper_hopper_fr_pf"

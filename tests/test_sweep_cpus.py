@@ -121,11 +121,11 @@ def test_pinned_mode_keeps_the_claimed_cpu(tmp_path):
 
 def test_mode_reads_the_variable(monkeypatch):
     monkeypatch.delenv(cpus.MODE_VAR, raising=False)
-    assert cpus.mode() == "follow"
-    monkeypatch.setenv(cpus.MODE_VAR, "pinned")
     assert cpus.mode() == "pinned"
+    monkeypatch.setenv(cpus.MODE_VAR, "follow")
+    assert cpus.mode() == "follow"
     monkeypatch.setenv(cpus.MODE_VAR, "all")
-    with pytest.raises(SpotError, match=r"SPOT_TRIAL_THREADS='all': expected one of follow, follow-eigen, pinned"):
+    with pytest.raises(SpotError, match=r"SPOT_TRIAL_THREADS='all': expected one of pinned, follow, follow-eigen"):
         cpus.mode()
 
 

@@ -23,7 +23,7 @@ def add(sub: Any) -> None:
         "spot figures fig2 --experiment table1 --out fig2.pdf",
     )
     d.add_argument("--experiment", action="append", help="MLflow experiment (repeatable; default: all)")
-    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag spot.sweep_id)")
     d.add_argument("--dataset", help="the paper's dataset name, if the runs span several")
     d.add_argument("--source", choices=("recipe", "file"), help="dataset source, if the runs span both")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over runs: 1 = sample, 0 = population")
@@ -132,7 +132,7 @@ def _figures(args: argparse.Namespace) -> None:
 def _add_sources(d: Any, study_help: str) -> None:
     d.add_argument("study", nargs="?", metavar="STUDY_DIR", help=study_help)
     d.add_argument("--results", nargs="+", help="results CSVs (files or folders) instead of MLflow or the study's")
-    d.add_argument("--sweep-id", help="from MLflow: only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--sweep-id", help="from MLflow: only the runs of this sweep (tag spot.sweep_id)")
 
 
 def _add_results_figures(figs: Any) -> None:

@@ -39,7 +39,7 @@ def _add_tables(sub: Any) -> None:
         help="MLflow experiment (repeatable; default: the table's sweep experiment if present, else all)",
     )
     d.add_argument("--tracking-uri", help=URI_HELP)
-    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag spot.sweep_id)")
     d.add_argument("--metric", default="eval/score_final", help="score metric of tables 1-7")
     d.add_argument("--format", default="md", choices=FORMATS, help="output format")
     d.add_argument("--ddof", type=int, default=1, choices=(0, 1), help="std over seeds: 1 = sample, 0 = population")
@@ -103,7 +103,7 @@ def _add_results(sub: Any) -> None:
         "spot results export --experiment table1 --out experiments/my-study/results/table1.csv",
     )
     d.add_argument("--experiment", action="append", required=True, help="MLflow experiment (repeatable)")
-    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag spot.sweep_id)")
     d.add_argument("--tracking-uri", help=URI_HELP)
     d.add_argument("--out", required=True, help="the CSV to write, e.g. experiments/<study>/results/<experiment>.csv")
     d.set_defaults(fn=_results_export)
@@ -159,7 +159,7 @@ def _add_report(sub: Any) -> None:
     )
     d.add_argument("--results", nargs="+", help="results CSVs (files or folders) instead of the claims file's")
     d.add_argument("--tracking-uri", help=URI_HELP)
-    d.add_argument("--sweep-id", help="only the runs of this sweep (tag sweep_id)")
+    d.add_argument("--sweep-id", help="only the runs of this sweep (tag spot.sweep_id)")
     d.add_argument(
         "--use",
         action="append",

@@ -5,7 +5,7 @@ A run is ``labels -> reward -> relabel -> [subgoals -> cvae -> shaping -> diagno
 :class:`~spot.run.context.Context` (config, dataset, keys, tracker, stage cache) and the typed
 outputs of earlier stages. ``Context.stage`` wraps every stage the same way: it times it
 (``time/<stage>_s``) and the stage's expensive part goes through ``Context.cached``, which tags the
-run ``cache.<stage> = hit | miss``. The trained models are saved as run artifacts
+run ``spot.cache.<stage> = hit | miss``. The trained models are saved as run artifacts
 (``models/reward_model``, ``models/cvae``, ``models/policy``, data only, with a JSON header), so a
 run can be evaluated again (``spot eval``) without the stage cache. Which functions fill the
 reward, relabel and policy slots is read from :data:`spot.run.methods.REWARD_KINDS` by

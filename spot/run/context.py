@@ -171,7 +171,7 @@ class Context:
         self, name: str, deps: dict[str, Any], compute: Callable[[], Any], code: str | None = None
     ) -> tuple[Any, str]:
         """``(value, key)`` of stage ``name`` from the stage cache (computed and stored on a miss);
-        tags the run ``cache.<name>`` = ``hit`` or ``miss`` (a tag, not a metric: it is a fact
+        tags the run ``spot.cache.<name>`` = ``hit`` or ``miss`` (a tag, not a metric: it is a fact
         about the run, not a measurement) and ``stage.<name>.source`` = ``computed`` or ``reused`` and
         ``stage.<name>.key`` = the entry's key (the run that computed an entry others reused: the one
         with the same key and ``computed``). ``code``: the stage's code version (default: that of

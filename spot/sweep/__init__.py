@@ -41,7 +41,7 @@ from spot.sweep.launch import DEFAULT_STORAGE, prebuild_datasets
 from spot.sweep.signals import Interrupted
 from spot.sweep.spec import Sweep, Trial, config_key, load, load_dict, run_key, tag_value
 from spot.sweep.summary import Row, format_summary, paper_table, summarize
-from spot.sweep.trial import SweepContext, configure_process, cpu_slots, run_trial
+from spot.sweep.trial import SweepContext, configure_process, run_trial
 
 __all__ = [
     "DEFAULT_STORAGE",
@@ -52,7 +52,6 @@ __all__ = [
     "Trial",
     "config_key",
     "configure_process",
-    "cpu_slots",
     "format_summary",
     "load",
     "load_dict",

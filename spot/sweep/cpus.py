@@ -8,7 +8,13 @@ sweep on the node, by default) get disjoint CPUs, and the trial's process is pin
 
 How its threads use CPUs no trial holds depends on ``$SPOT_TRIAL_THREADS`` (:data:`MODES`):
 
-* ``follow`` (the default): a watcher thread looks at the slots every :data:`POLL_S` seconds and
+* ``pinned`` (the default): the trial keeps the CPUs it claimed (a 1-CPU trial's XLA pool has one
+  thread). It is the default because ``follow`` was measured no faster on the quickstart (2 cores:
+  178.0 s against 169.5 s, docs/benchmarks.md) and changed a result: a PT reward model trained in
+  a widened 2-thread process differs in the last digits from a pinned one's, and the quickstart's PT
+  and SPOT scores with it (7.8 and 3.8 against 8.1 and 7.7), so a run's numbers would depend on
+  whether it happened to run alone.
+* ``follow``: a watcher thread looks at the slots every :data:`POLL_S` seconds and
   *borrows* free ones (it locks them too, and writes ``borrowed-<i>``), up to twice the trial's own
   (:func:`pool_size`), widening the process's affinity onto them; a 1-CPU trial that runs alone on
   a 2-CPU node therefore gets every core, and its threads narrow back to the trial's own slots as
@@ -21,11 +27,11 @@ How its threads use CPUs no trial holds depends on ``$SPOT_TRIAL_THREADS`` (:dat
   large elementwise loops and runs independent operations, such as the three updates of IQL's
   ``parallel`` order, side by side). Eigen stays single-threaded in a 1-CPU trial
   (``--xla_cpu_multi_thread_eigen=false``, as before). Under spot's XLA flags
-  (:mod:`spot.runtime`) IQL's updates are bit-equal to a pinned trial's, widened or not (a test).
+  (:mod:`spot.runtime`) IQL's updates are bit-equal to a pinned trial's, widened or not (a test);
+  the PT reward model's training is not (above).
 * ``follow-eigen``: as ``follow``, and Eigen's operations use every thread of the pool too; their
   sums may then differ in the last digits from a 1-CPU trial's (docs/sweeps.md), and a narrowed
   trial splits them over threads that share one core.
-* ``pinned``: the trial keeps the CPUs it claimed (a 1-CPU trial's XLA pool has one thread).
 
 If the slots cannot be claimed (fractional CPUs, a trial as large as the node, more trials than
 slots), nothing is claimed, pinned or borrowed. Nothing here imports jax.
@@ -46,13 +52,13 @@ from typing import Any
 from spot import SpotError
 
 MODE_VAR = "SPOT_TRIAL_THREADS"
-MODES = ("follow", "follow-eigen", "pinned")
+MODES = ("pinned", "follow", "follow-eigen")
 POLL_S = 1.0  # seconds between two looks at the slots (a starting trial waits at most about this)
 WAIT_S = 10.0  # how long a starting trial waits for borrowed slots to come back
 
 
 def mode() -> str:
-    """``$SPOT_TRIAL_THREADS`` (default ``follow``); another value is a :class:`spot.SpotError`."""
+    """``$SPOT_TRIAL_THREADS`` (default ``pinned``); another value is a :class:`spot.SpotError`."""
     value = os.environ.get(MODE_VAR, "").strip() or MODES[0]
     if value not in MODES:
         raise SpotError(f"${MODE_VAR}={value!r}: expected one of {', '.join(MODES)}")

@@ -30,15 +30,13 @@ trial again (it was cut off, not failed).
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import resource
 import sys
-import tempfile
 import time
 import uuid
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,60 +69,6 @@ class SweepContext:
 
 
 # --------------------------------------------------------------------------- process setup
-def _claim(folder: Path, cpus: list[int], n: int) -> list[tuple[int, Any]]:
-    """Lock files of up to ``n`` free CPU slots among ``cpus`` (the open files hold the locks)."""
-    held: list[tuple[int, Any]] = []
-    for cpu in cpus:
-        if len(held) == n:
-            break
-        f = open(folder / f"cpu{cpu}", "a")  # held (locked) for the trial's lifetime
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            f.close()
-            continue
-        held.append((cpu, f))
-    return held
-
-
-@contextlib.contextmanager
-def cpu_slots(n: int) -> Iterator[list[int]]:
-    """Claim ``n`` CPUs of this node for the trial and pin the whole process to them.
-
-    Slots are ``flock``s on files in ``$SPOT_CPU_SLOTS_DIR`` (default ``$TMPDIR/spot-cpu-slots``;
-    released at the end of the block or when the process dies, however it dies), so concurrent
-    trials on one node that share the folder get disjoint CPUs. XLA sizes its CPU thread pools
-    from the affinity mask, which makes this the thread-count setting that works (an
-    ``intra_op_parallelism_threads`` token in XLA_FLAGS is ignored by jaxlib 0.10). If ``n``
-    slots are not free (fractional CPUs, a trial as large as the node), nothing is claimed or
-    pinned. Yields the pinned CPUs (empty if none); the process's threads get the CPUs they had
-    back at the end (a reused actor runs the next trial in them).
-    """
-    allowed = sorted(os.sched_getaffinity(0))
-    folder = Path(os.environ.get("SPOT_CPU_SLOTS_DIR") or Path(tempfile.gettempdir()) / "spot-cpu-slots")
-    folder.mkdir(parents=True, exist_ok=True)
-    held: list[tuple[int, Any]] = []
-    try:
-        held = _claim(folder, allowed, n)
-        if len(held) < n or n >= len(allowed):
-            for _, f in held:
-                f.close()
-            held = []
-        cpus = [c for c, _ in held]
-        if cpus:
-            for tid in os.listdir("/proc/self/task"):
-                with contextlib.suppress(OSError):
-                    os.sched_setaffinity(int(tid), cpus)
-        yield cpus
-    finally:
-        if held:  # unpinned again: a reused actor's next trial claims its own CPUs
-            for tid in os.listdir("/proc/self/task"):
-                with contextlib.suppress(OSError):
-                    os.sched_setaffinity(int(tid), allowed)
-        for _, f in held:
-            f.close()
-
-
 def configure_process(cpus: int, gpus: float) -> None:
     """XLA and JAX settings for a trial's share of the node; must run before jax is imported.
 
