@@ -119,7 +119,8 @@ def ratios(rows: list[Any], floor: float, wall_s: float, cores: int) -> dict[str
         for p in PHASE_COLUMNS:
             used[p] += r.timing.get(f"time/trial_{p}_s", 0.0) * cpus
     out = {p: used[p] / budget for p in PHASE_COLUMNS}
-    out["outside"] = (wall_s * cores - sum(used.values())) / budget
+    # trials' CPUs are time averages, so their core-seconds can exceed the command's by a little
+    out["outside"] = max(0.0, wall_s * cores - sum(used.values())) / budget
     out["total"] = wall_s / floor
     return out
 
