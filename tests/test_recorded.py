@@ -185,7 +185,7 @@ def test_sigterm_ends_a_spot_run_killed(tmp_path, spot_dirs, tiny_drawer):
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and "interrupted" in err
-    (folder,) = record_checks.find_records(tmp_path / "out" / "records")
+    (folder,) = record_checks.find_records(tmp_path / "rec")
     head = record_checks.read_record(folder)
     assert head["status"] == "KILLED" and head["tags"]["failure_reason"] == "KeyboardInterrupt: signal SIGTERM"
     assert [k for k, *_ in record_checks.read_metrics(folder)].count("eval/score") >= 1  # its curve so far
