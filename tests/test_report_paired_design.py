@@ -342,7 +342,10 @@ KEEP = {
 
 
 def _study_runs() -> pd.DataFrame:
-    return load.read(list(claims.load(claims.study_file(STUDY)).results))
+    """The study's committed runs as they were before the paired launch's export (the tests below
+    stand in for that export themselves, so they hold however far the launch has got)."""
+    runs = load.read(list(claims.load(claims.study_file(STUDY)).results))
+    return runs[runs["experiment"] != "lab_hopper_fr_pf_paired"]
 
 
 def test_the_studys_claims_file_marks_the_controls_paired_and_shows_both_oracle_arms():
