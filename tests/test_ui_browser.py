@@ -3,7 +3,8 @@ small store of spot's runs (a two-run λ sweep: a parent and its trials, logged 
 ``spot.tracking.start_run``), and the link a sweep prints and a run page are loaded, their DOM read
 and screenshots taken. Skipped with a reason where Chromium is absent.
 
-Run as a script to keep the screenshots: ``python tests/test_ui_browser.py experiments/ui-screenshots``.
+Run as a script to keep its screenshots: ``python tests/test_ui_browser.py OUT_DIR``. The pictures in
+``experiments/ui-screenshots`` come from a real sweep instead (its ``take.py`` and NOTES.md).
 """
 
 from __future__ import annotations
