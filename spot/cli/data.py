@@ -37,6 +37,7 @@ def _data_list(args: argparse.Namespace) -> None:
         for b in built:
             print(
                 f"  {b['name']} size={b['size']} seed={b['seed']} transitions={b['transitions']}  {b['path']}"
+                + ("  (embedded copy)" if b.get("obtained") == "embedded" else "")
                 + ("" if b["status"] == "ok" else f"  [{b['status']}]")
             )
 
@@ -46,13 +47,22 @@ def _add_build(data: Any) -> None:
     d = subcommand(
         data,
         "build",
-        "build a dataset with its local recipe (once; cached)",
-        "spot data build hopper-medium-replay --size small --data-seed 0",
+        "make a dataset: the copy spot ships of it, else a build with its local recipe (once; cached)",
+        "spot data build hopper-medium-replay --size small --data-seed 0\n"
+        "spot data build hopper-medium-replay --size small --from-recipe",
+        description="Make a registered dataset in $SPOT_DATA_DIR. Where spot ships this build "
+        "(hopper-medium-replay, size small, seed 0: byte-equal to the recipe's build), the shipped "
+        "file is copied in after its sha256 is checked; --from-recipe runs the recipe instead.",
     )
     d.add_argument("name", help="registered dataset name (spot data list)")
     d.add_argument("--size", default="small", choices=SIZES, help="dataset size")
     add_data_seed(d)
-    d.add_argument("--force", action="store_true", help="rebuild even if cached")
+    d.add_argument("--force", action="store_true", help="rebuild with the recipe even if cached")
+    d.add_argument(
+        "--from-recipe",
+        action="store_true",
+        help="build with the recipe, not from the embedded copy (a cached recipe build is reused)",
+    )
     add_quiet(d)
     d.set_defaults(fn=_data_build)
 
@@ -60,9 +70,16 @@ def _add_build(data: Any) -> None:
 def _data_build(args: argparse.Namespace) -> None:
     from spot.data import registry
 
-    path = registry.build(args.name, args.size, args.data_seed, force=args.force, progress=not args.quiet)
+    path = registry.build(
+        args.name,
+        args.size,
+        args.data_seed,
+        force=args.force,
+        from_recipe=args.from_recipe,
+        progress=not args.quiet,
+    )
     card = registry.read_card(path)
-    print(f"built {path}")
+    print(f"{'copied' if card.get('obtained') == 'embedded' else 'built'} {path}")
     print(json.dumps({k: card[k] for k in card if k not in ("name",)}, indent=2, default=str))
 
 
@@ -95,7 +112,19 @@ def _data_info(args: argparse.Namespace) -> None:
             )
         args.name = str(path)
     ds, card = registry.load(args.name, source="file", progress=not args.quiet)
-    print(json.dumps({"summary": ds.summary(), "card": card}, indent=2, default=str))
+    built = registry.read_card(Path(args.name))  # the card file beside a build: its data and build facts
+    if built:
+        card = {**built, "path": card.get("path")}
+    print(json.dumps({"source": _source(card), "summary": ds.summary(), "card": card}, indent=2, default=str))
+
+
+def _source(card: dict[str, Any]) -> str:
+    """Where a dataset's bytes came from, in words (``spot data info``)."""
+    if card.get("source") != "recipe":
+        return str(card.get("source", "file"))
+    if card.get("obtained") == "embedded":
+        return "recipe: the build spot ships (embedded copy, sha256 verified; byte-equal to the recipe's build)"
+    return "recipe: built on this machine"
 
 
 # --------------------------------------------------------------------------- fetch

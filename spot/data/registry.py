@@ -8,6 +8,13 @@ a build writes to a temporary name and renames, under a file lock, so concurrent
 neither corrupt nor duplicate it. A recipe module that defines ``RECIPE_VERSION`` stores it in the
 card, and a cached build whose card holds another version (or none) is stale and rebuilt; a recipe
 whose datasets differ in version (e.g. by size) defines ``recipe_version(name, size)`` instead.
+
+A build spot ships (:mod:`spot.data.embedded`: the quickstart's ``hopper-medium-replay``, size
+``small``, seed 0) is copied in instead of built, when its card's recipe, recipe version and package
+versions are the installed ones and its sha256 checks; ``build(..., from_recipe=True)`` (``spot data
+build --from-recipe``) runs the recipe all the same. A card says how its file was ``obtained``:
+``built`` here or copied from the ``embedded`` build; the hdf5 file holds only the data and the
+card's data fields, so two builds of equal data are equal bytes.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from spot import SpotError, runtime, store
+from spot.data import embedded
 from spot.data.dataset import Dataset, RawDataset
 
 
@@ -208,18 +216,26 @@ def _write_card(path: Path, card: dict[str, Any]) -> None:
     store.write_atomic(card_path(path), json.dumps(card, indent=2, default=str).encode())
 
 
-def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = True, force: bool = False) -> Path:
-    """Build a registered dataset with its local recipe (once) and return the file path.
+def build(
+    name: str,
+    size: str = "small",
+    seed: int = 0,
+    *,
+    progress: bool = True,
+    force: bool = False,
+    from_recipe: bool = False,
+) -> Path:
+    """Make a registered dataset (once) and return the file path: the embedded copy where spot
+    ships this build (:mod:`spot.data.embedded`, byte-equal to the recipe's, verified), else a build
+    with its local recipe.
 
-    A cached build is reused unless ``force``, its card's ``recipe_version`` differs from the
+    A cached file is reused unless ``force``, its card's ``recipe_version`` differs from the
     recipe's (:func:`_version`: its ``recipe_version(name, size)`` or ``RECIPE_VERSION``; recipes
-    without either are never stale), or the file is damaged: its
-    sha256 (recorded in the card) differs, or, for a card from before checksums, it does not read.
-    A damaged or stale build is rebuilt. Temp files of killed builds are removed first.
+    without either are never stale), the file is damaged (its sha256, recorded in the card,
+    differs, or, for a card from before checksums, it does not read), or ``from_recipe`` and the
+    file is the embedded copy. ``force`` and ``from_recipe`` run the recipe instead of copying the
+    embedded file. Temp files of killed builds are removed first.
     """
-    from spot.data import formats
-    from spot.data.fetch import sha256_file
-
     e = entry(name)
     if size not in SIZES:
         raise SpotError(f"unknown size '{size}'; expected one of {', '.join(SIZES)}")
@@ -237,23 +253,42 @@ def build(name: str, size: str = "small", seed: int = 0, *, progress: bool = Tru
         recipe = importlib.import_module(f"spot.recipes.{e.recipe}")
         version = _version(recipe, e.name, size)
         if path.exists() and card_path(path).exists() and not force:
-            _, why = _reusable(path, version)
+            card, why = _reusable(path, version)
+            if why is None and from_recipe and card is not None and card.get("obtained") == "embedded":
+                why = "it is the embedded copy, and a build from the recipe was asked for"
             if why is None:
                 store.publish_dataset(path, card_path(path), if_missing=True)  # built before the store was named
                 return path
             if progress or "damaged" in why:
                 print(f"spot: rebuilding {path.name}: {why}", file=sys.stderr)
-        joined = _join_parts(recipe, e.name, size, seed, progress)
-        raw, card = joined or recipe.build(e.name, size, seed, data_dir() / "_work", progress=progress)
-        card = {**card, "name": e.name, "size": size, "seed": seed, "source": "recipe"}
-        if version is not None:
-            card["recipe_version"] = version
-        formats.write_d4rl_hdf5(raw, path, card)
+        copied = None
+        if not (force or from_recipe):
+            copied = embedded.copy_in(
+                e.name, size, seed, path, getattr(recipe, "RECIPE", None), version, progress=progress
+            )
+        if copied is None:
+            _build_here(recipe, e.name, size, seed, path, version, progress)
         st = path.stat()
-        _write_card(path, {**card, "sha256": sha256_file(path), "bytes": st.st_size})
         _VERIFIED.add((str(path), st.st_mtime_ns, st.st_size))
         store.publish_dataset(path, card_path(path))
     return path
+
+
+def _build_here(recipe: Any, name: str, size: str, seed: int, path: Path, version: Any, progress: bool) -> None:
+    """Run the recipe (or join the built parts of a composite) and write ``path`` and its card: the
+    hdf5 file holds the data and :func:`spot.data.embedded.data_card` (equal data, equal bytes), the
+    card file also the build's facts (times, memory, :func:`spot.data.embedded.host_facts`)."""
+    from spot.data import formats
+    from spot.data.fetch import sha256_file
+
+    joined = _join_parts(recipe, name, size, seed, progress)
+    raw, card = joined or recipe.build(name, size, seed, data_dir() / "_work", progress=progress)
+    card = {**card, "name": name, "size": size, "seed": seed, "source": "recipe"}
+    if version is not None:
+        card["recipe_version"] = version
+    formats.write_d4rl_hdf5(raw, path, embedded.data_card(card))
+    facts = {"obtained": "built", "host": embedded.host_facts()}
+    _write_card(path, {**card, **facts, "sha256": sha256_file(path), "bytes": path.stat().st_size})
 
 
 def _version(recipe: Any, name: str, size: str) -> Any:
@@ -395,6 +430,6 @@ def cached() -> list[dict[str, Any]]:
             why = _damage(path, card, record=False)
             status = "ok" if why is None else f"damaged: {why} (rebuilt when used)"
         card = card or {}
-        keys = ("name", "size", "seed", "transitions", "episodes")
+        keys = ("name", "size", "seed", "transitions", "episodes", "obtained")
         out.append({"path": str(path), **{k: card.get(k) for k in keys}, "status": status})
     return out
