@@ -35,7 +35,6 @@ Episodes are run and scored by :mod:`spot.evaluation`.
 
 from __future__ import annotations
 
-import functools
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -286,10 +285,22 @@ ACTION_SLACK = 0.05
 width (evaluation clips to the bounds; real data recorded through a tanh or a clip lies inside)."""
 
 
-@functools.lru_cache(maxsize=8)
+_SIZES: dict[tuple, tuple[str, int, int, tuple[float, ...], tuple[float, ...]]] = {}
+
+
 def _env_sizes(env_name: str) -> tuple[str, int, int, tuple[float, ...], tuple[float, ...]]:
     """``(env id, observation size, action size, action low, action high)`` of the evaluation env
-    of ``env_name`` (built once)."""
+    of ``env_name``, built once per env in a process: the datasets of one env (lift-ph and lift-mh,
+    hopper-medium-replay and hopper-medium-expert) share it."""
+    spec = env_spec(env_name)
+    key = (spec.family, spec.env_id, spec.make_kwargs)
+    if key not in _SIZES:
+        _SIZES[key] = _built_sizes(env_name)
+    return _SIZES[key]
+
+
+def _built_sizes(env_name: str) -> tuple[str, int, int, tuple[float, ...], tuple[float, ...]]:
+    """:func:`_env_sizes` read from a newly built env of ``env_name``."""
     env = make_env(env_name, 0)
     try:
         obs, space = env.observation_space.shape, env.action_space

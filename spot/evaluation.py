@@ -11,10 +11,12 @@ their last bits with the batch's size. Episode ``i`` gets its own env built and 
 ``seed + i``. The envs are kept for the next evaluation (:func:`pooled_env`): a run evaluates
 with the same seeds every time, and building a robosuite env takes 1.5-3.5 s and about 140 MB that
 closing it does not all give back, a Meta-World env about 0.5 s. A kept env is reset with the
-episode's seed, which makes its episode that of a new env (tested per family). Only the envs of
-the env last evaluated are kept, at most :data:`MAX_LIVE` of its family (least recently used go),
-and at most that many are alive at once: more episodes than that (robosuite's 30-episode final
-evaluations) run in waves of that many.
+episode's seed, which makes its episode that of a new env (tested per family). The envs of
+several envs are kept (a reused sweep process moving between lift-mh, can-ph and drawer-open
+builds each of their envs once, not once per trial), least recently used closed first, within two
+bounds: at most :data:`MAX_LIVE` of a family alive at once, and the kept envs' estimated memory
+(:data:`ENV_MB`) within :data:`POOL_MB`. An evaluation with more episodes than :data:`MAX_LIVE`
+(robosuite's 30-episode final evaluations) runs them in waves of that many.
 
 The locomotion envs skip gymnasium's ``step`` by default (``eval.stepper: mujoco``,
 :func:`stepper_used`): :class:`spot.mujoco_step.LocomotionBatch` steps all of an evaluation's
@@ -40,6 +42,13 @@ STEPPERS = ("mujoco", "gymnasium")
 always the gymnasium env's own ``step``."""
 MAX_LIVE = {"robosuite": 10, "metaworld": 32, "locomotion": 32}
 """Most envs of a family alive at once: an evaluation with more episodes runs them in waves."""
+ENV_MB = {"robosuite": 140, "metaworld": 32, "locomotion": 8}
+"""About the memory one env of a family holds (resident set growth per env built: Lift ~130 MB,
+Can ~100 MB, drawer-open ~32 MB)."""
+POOL_MB = 1600
+"""Most estimated memory (:data:`ENV_MB`) the kept envs may hold, those of the wave about to run
+included: a full robosuite wave (10 envs) or a full Meta-World wave (32) fits, with room for a few
+envs of other envs."""
 _PoolKey = tuple[str, str, tuple, int, int]  # family, env id, make kwargs, seed, copy
 _POOL: OrderedDict[_PoolKey, gym.Env] = OrderedDict()
 
@@ -55,6 +64,18 @@ def _evict(victim: Callable[[_PoolKey], bool], keep: int) -> None:
     chosen = [k for k in _POOL if victim(k)]
     for key in chosen[: max(0, len(chosen) - keep)]:
         _POOL.pop(key).close()
+
+
+def _make_room(needed: set[_PoolKey]) -> None:
+    """Close kept envs that ``needed`` (the envs of the wave about to run) does not name, least
+    recently used first, until the family of ``needed`` has at most ``MAX_LIVE`` envs alive and
+    the kept envs' :data:`ENV_MB` fit in :data:`POOL_MB` with those of ``needed``."""
+    family = next(iter(needed))[0]
+    _evict(lambda k: k[0] == family and k not in needed, MAX_LIVE[family] - len(needed))
+    others = [k for k in _POOL if k not in needed]
+    room = POOL_MB - sum(ENV_MB[k[0]] for k in needed)
+    while others and sum(ENV_MB[k[0]] for k in others) > room:
+        _POOL.pop(others.pop(0)).close()
 
 
 def pooled_env(name: str, seed: int, copy: int = 0) -> gym.Env:
@@ -115,8 +136,7 @@ def _wave_envs(name: str, env_seeds: list[int]) -> list[gym.Env]:
     """The envs of one wave's episodes (:func:`pooled_env`), reset by the caller; an episode seed
     that several runs of the wave share (members of one seed) gets one env per run."""
     copies = [env_seeds[:j].count(s) for j, s in enumerate(env_seeds)]
-    needed = {_pool_key(name, s, c) for s, c in zip(env_seeds, copies, strict=True)}
-    _evict(lambda k: k not in needed, MAX_LIVE[env_spec(name).family] - len(needed))  # MAX_LIVE alive
+    _make_room({_pool_key(name, s, c) for s, c in zip(env_seeds, copies, strict=True)})
     return [pooled_env(name, s, c) for s, c in zip(env_seeds, copies, strict=True)]
 
 
@@ -216,8 +236,6 @@ def evaluate_runs(
     out = [np.zeros((runs, episodes)), np.zeros((runs, episodes), dtype=np.int64), np.zeros((runs, episodes), bool)]
     wave = episodes if direct else max(1, MAX_LIVE[env_spec(name).family] // runs)
     run_wave = _run_wave_mujoco if direct else _run_wave
-    this_env = _pool_key(name, seeds[0])[:3]
-    _evict(lambda k: k[:3] != this_env, 0)  # a reused process moving on to another env frees the last one's
     try:
         for start in range(0, episodes, wave):
             ids = np.arange(start, min(start + wave, episodes))
@@ -270,10 +288,9 @@ def evaluate_sequential(
     horizon = _horizon(name, episodes, max_steps)
     returns, lengths = np.zeros(episodes), np.zeros(episodes, dtype=np.int64)
     successes = np.zeros(episodes, dtype=bool)
-    _evict(lambda k: k[:3] != _pool_key(name, seed)[:3], 0)
     try:
         for i in range(episodes):
-            _evict(lambda k, i=i: k != _pool_key(name, seed + i), MAX_LIVE[env_spec(name).family] - 1)
+            _make_room({_pool_key(name, seed + i)})
             env = pooled_env(name, seed + i)
             obs = env.reset(seed=seed + i)[0]
             for _ in range(horizon):

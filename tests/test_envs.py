@@ -246,5 +246,5 @@ def test_episodes_beyond_a_familys_live_limit_run_in_waves(monkeypatch):
     with pytest.raises(SpotError, match="max_steps must be >= 0"):
         evaluate(policy, "hopper-medium-expert", 1, seed=0, max_steps=-1)
     evaluate(_noisy_policy(6, 0), "walker2d-medium-replay", 1, seed=0, max_steps=5, stepper="gymnasium")  # another env
-    assert [k[1] for k in evaluation._POOL] == ["Walker2d-v5"]  # the Hopper envs were closed
+    assert [(k[1], k[3]) for k in evaluation._POOL] == [("Hopper-v5", 4), ("Walker2d-v5", 0)]  # 2 alive: LRU closed
     evaluation.clear_env_pool()
