@@ -61,6 +61,7 @@ from typing import Any, NamedTuple
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
@@ -198,7 +199,15 @@ def _jitted_init(module: nn.Module) -> Callable[..., Params]:
 
 def _train_state(module: nn.Module, params: Params, tx: optax.GradientTransformation) -> TrainState:
     # An int32 step from the start, so the first chunk call has the same signature as later ones.
-    return create_train_state(module, params, tx).replace(step=jnp.zeros((), jnp.int32))
+    return _jitted_train_state(module, tx)(params)
+
+
+@functools.cache
+def _jitted_train_state(module: nn.Module, tx: optax.GradientTransformation) -> Callable[[Params], TrainState]:
+    """:func:`_train_state` as one jitted program per network and optimizer (cached, as
+    :func:`_optimizers` keeps the optimizers): run eagerly, the optimizer's zero moments compile a
+    small program per parameter shape, again for every new observation size in a process."""
+    return jax.jit(lambda params: create_train_state(module, params, tx).replace(step=jnp.zeros((), jnp.int32)))
 
 
 # --------------------------------------------------------------------------- pure pieces
@@ -262,14 +271,15 @@ def init_state(
         return jax.tree.map(lambda *leaves: jnp.stack(leaves), *states)
     actor_key, critic_key, value_key = jax.random.split(key, 3)
     actor_def, critic_def, value_def = _nets(cfg, act_dim)
-    obs, act = jnp.zeros((1, obs_dim), jnp.float32), jnp.zeros((1, act_dim), jnp.float32)
+    obs, act = np.zeros((1, obs_dim), np.float32), np.zeros((1, act_dim), np.float32)  # no program per size
     critic_params = _jitted_init(critic_def)(critic_key, obs, act)
     actor_tx, critic_tx, value_tx = optimizers or _optimizers(cfg)
     return IQLState(
         actor=_train_state(actor_def, _jitted_init(actor_def)(actor_key, obs), actor_tx),
         critic=_train_state(critic_def, critic_params, critic_tx),
         value=_train_state(value_def, _jitted_init(value_def)(value_key, obs), value_tx),
-        target_critic_params=jax.tree.map(jnp.copy, critic_params),  # own buffers: the state is donated
+        # own buffers (the state is donated): the same program again, not a copy program per shape
+        target_critic_params=_jitted_init(critic_def)(critic_key, obs, act),
         step=jnp.zeros((), jnp.int32),
     )
 

@@ -62,7 +62,7 @@ def eval_policy(
     act = _act_each(iql_cfg)
     if runs:
         return lambda obs: np.asarray(act(actor_params, obs))
-    stacked = jax.tree.map(lambda a: a[None], actor_params)
+    stacked = jax.tree.map(lambda a: jax.device_put(np.array(a)[None]), actor_params)  # a copy; no program per shape
     return lambda obs: np.asarray(act(stacked, obs[None]))[0]
 
 
