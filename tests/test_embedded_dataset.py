@@ -3,6 +3,7 @@ used only when it is what the installed recipe and packages build, and byte-equa
 
 import hashlib
 import json
+import os
 import shutil
 import tomllib
 from fnmatch import fnmatch
@@ -171,6 +172,7 @@ def test_a_mismatching_shipped_build_is_not_used_and_the_recipe_builds(
     assert "from its recipe, not the embedded copy" in err and why in err
     card = registry.read_card(path)
     assert card["obtained"] == "built" and card["host"] == embedded.host_facts()
+    assert card["xla_flags"] == os.environ.get("XLA_FLAGS", "")
 
 
 def test_from_recipe_builds_even_where_a_copy_is_shipped_or_was_copied(data_dir, recipe_calls):
@@ -194,7 +196,8 @@ def test_equal_data_give_equal_bytes_whatever_the_build_facts(data_dir, recipe_c
     assert card_one["sac"]["train_time_s"] != card_two["sac"]["train_time_s"]
     assert first.read_bytes() == one and card_two["sha256"] == card_one["sha256"] == _sha(first)
     inner = formats.read_d4rl_hdf5(first).metadata["spot_card"]  # the file holds no build facts
-    assert "build_time_s" not in inner and "train_time_s" not in inner["sac"] and "host" not in inner
+    assert "build_time_s" not in inner and "train_time_s" not in inner["sac"]
+    assert not {"host", "xla_flags", "obtained"} & set(inner)
     assert inner["sac"] == {"steps": 10} and inner["transitions"] == 6 and inner["source"] == "recipe"
 
 

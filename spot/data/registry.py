@@ -277,7 +277,8 @@ def build(
 def _build_here(recipe: Any, name: str, size: str, seed: int, path: Path, version: Any, progress: bool) -> None:
     """Run the recipe (or join the built parts of a composite) and write ``path`` and its card: the
     hdf5 file holds the data and :func:`spot.data.embedded.data_card` (equal data, equal bytes), the
-    card file also the build's facts (times, memory, :func:`spot.data.embedded.host_facts`)."""
+    card file also the build's facts (times, memory, :func:`spot.data.embedded.host_facts`, the
+    ``XLA_FLAGS`` it ran under: ``SPOT_FAST_COMPILE``'s flags change the data)."""
     from spot.data import formats
     from spot.data.fetch import sha256_file
 
@@ -287,7 +288,7 @@ def _build_here(recipe: Any, name: str, size: str, seed: int, path: Path, versio
     if version is not None:
         card["recipe_version"] = version
     formats.write_d4rl_hdf5(raw, path, embedded.data_card(card))
-    facts = {"obtained": "built", "host": embedded.host_facts()}
+    facts = {"obtained": "built", "host": embedded.host_facts(), "xla_flags": os.environ.get("XLA_FLAGS", "")}
     _write_card(path, {**card, **facts, "sha256": sha256_file(path), "bytes": path.stat().st_size})
 
 

@@ -44,7 +44,7 @@ FOLDER = Path(__file__).resolve().parent
 PACKAGES = ("gymnasium", "mujoco", "jax", "flax")
 """The packages whose versions must match the shipped card's for the copy to be used."""
 BUILD_FACTS = frozenset(
-    {"build_time_s", "train_time_s", "peak_rss_mb", "sac_cache_hit", "resumed_from", "host", "obtained"}
+    {"build_time_s", "train_time_s", "peak_rss_mb", "sac_cache_hit", "resumed_from", "host", "xla_flags", "obtained"}
 )
 """Card keys (at any depth) that describe one build rather than its data: the card file has them,
 the hdf5 file's card does not (:func:`data_card`)."""
