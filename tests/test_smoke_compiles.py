@@ -15,11 +15,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from spot import compiles, config, evaluation
 from spot.nets import create_train_state
 from spot.policy import iql
+from spot.reward import hpl, models, update
 from spot.run import pipeline, policy_stages
 
 EAGER = ("jit(broadcast_in_dim)", "jit(copy)", "jit(convert_element_type)", "jit(expand_dims)")
@@ -88,6 +90,29 @@ def test_the_evaluation_policy_compiles_one_program_per_shape():
     with compiles.counting() as again:
         policy_stages.eval_policy(iql.init_state(jax.random.key(1), 29, 5, cfg).actor.params, cfg)(obs)
     assert again.total == 0
+
+
+@pytest.mark.parametrize("kind", ["mr", "pt"])
+def test_a_reward_models_state_equals_the_eager_construction_and_compiles_two_programs(kind):
+    """MR's and PT's state: params (their init program, example inputs on the host) and the
+    optimizer's state as one program, the zeros of the eager ``optimizer(steps).init`` bit for bit."""
+    cfg = config.resolve({"method": kind, "budget": "tiny", "mr.hidden": [24, 24], "pt.embd_dim": 24})
+    model = models.from_config(cfg)
+    update.init_state(model, jax.random.key(0), 19, 5, 37)  # what a process compiles once
+    with compiles.counting() as count:  # a new observation size
+        state = update.init_state(model, jax.random.key(3), 23, 5, 37)
+    assert count.total == 2 and not any(count.programs[name] for name in EAGER), count.programs
+    params = model.init(jax.random.key(3), 23, 5)
+    eager = update.RewardState(params, model.optimizer(37).init(params), jnp.zeros((), jnp.int32))
+    _assert_same_tree(state, eager)
+
+
+def test_hpls_adam_state_equals_the_eager_one():
+    params = {"w": jnp.arange(6.0).reshape(2, 3), "b": jnp.ones(3, jnp.bfloat16)}
+    _assert_same_tree(hpl.adam_init(3e-4)(params), optax.adam(3e-4).init(params))
+    with compiles.counting() as count:
+        hpl.adam_init(3e-4)({"w": jnp.zeros((2, 3)), "b": jnp.zeros(3, jnp.bfloat16)})
+    assert count.total == 0  # kept per learning rate
 
 
 @pytest.mark.usefixtures("spot_dirs")

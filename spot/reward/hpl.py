@@ -325,13 +325,20 @@ def unlabelled(ds: Any, padded: bool = False) -> Any:
 
 
 # --------------------------------------------------------------------------- driver
+@functools.lru_cache(maxsize=8)
+def adam_init(lr: float) -> Callable[[Params], optax.OptState]:
+    """``optax.adam(lr).init`` as one jitted program per learning rate (kept): eagerly, one small
+    program per parameter shape, again for every new observation size in a process."""
+    return jax.jit(optax.adam(lr).init)
+
+
 def _train_vae(
     cfg: HPLConfig, params: Params, data: Any, key: jax.Array, progress: bool
 ) -> tuple[Params, dict[str, Any]]:
     """Phase 1: the encoder, prior and decoder for exactly ``cfg.vae_steps`` steps."""
     t0 = time.perf_counter()
     vae_params = {k: params[k] for k in ("encoder", "prior", "decoder")}
-    state = HPLState(vae_params, optax.adam(cfg.lr).init(vae_params), jnp.zeros((), jnp.int32))
+    state = HPLState(vae_params, adam_init(cfg.lr)(vae_params), jnp.zeros((), jnp.int32))
     length = loop.chunk_length(cfg.vae_steps, cfg.chunk)
     chunk = make_vae_chunk(cfg, length)
     compile_s = loop.compile_seconds(chunk, state, length, data, key)
@@ -372,7 +379,7 @@ def _train_reward(
     q_train, q_eval = int(train.label.shape[0]), int(held_out.label.shape[0])
     eval_data, eval_weight = jax.device_put(loop.pad_minibatches(held_out, min(EVAL_PAIRS, q_eval)))
     batch_size = min(cfg.reward_batch, q_train)
-    state = HPLState(params["reward"], optax.adam(cfg.lr).init(params["reward"]), jnp.zeros((), jnp.int32))
+    state = HPLState(params["reward"], adam_init(cfg.lr)(params["reward"]), jnp.zeros((), jnp.int32))
     length = loop.chunk_length(cfg.reward_steps, cfg.chunk)
     chunk, evaluate = make_reward_chunk(cfg, batch_size, length), make_evaluate(cfg)
     args = (train, params["prior"], x_all, key)

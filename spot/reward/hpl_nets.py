@@ -163,7 +163,7 @@ def _init_program(cfg: HPLConfig, obs_dim: int, act_dim: int) -> Callable[[jax.A
     """All four nets' init as one program at optimisation level 0 (as :func:`spot.nets.jit_init`),
     kept per config and dims so that further seeds do not compile it again."""
     d, z = obs_dim + act_dim, cfg.latent_groups * cfg.latent_classes
-    x = jnp.zeros((cfg.seq_len, d), jnp.float32)
+    x = np.zeros((cfg.seq_len, d), np.float32)  # numpy: no program per size
 
     def init(key: jax.Array) -> Params:
         k = jax.random.split(key, 4)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from spot.config import MRConfig
@@ -38,7 +39,7 @@ def make_model(cfg: MRConfig) -> MLP:
 @functools.lru_cache(maxsize=16)
 def _init_program(cfg: MRConfig, obs_dim: int, act_dim: int) -> Callable[[jax.Array], Params]:
     """The jitted init, kept per config and sizes (compiled once per process, as PT's)."""
-    return jit_init(make_model(cfg), jnp.zeros((1, obs_dim + act_dim), jnp.float32))
+    return jit_init(make_model(cfg), np.zeros((1, obs_dim + act_dim), np.float32))  # no program per size
 
 
 def init_params(key: jax.Array, cfg: MRConfig, obs_dim: int, act_dim: int) -> Params:

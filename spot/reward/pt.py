@@ -175,10 +175,10 @@ def _init_program(cfg: PTConfig, obs_dim: int, act_dim: int) -> Callable[[jax.Ar
     length = 2
     return jit_init(
         make_model(cfg),
-        jnp.zeros((1, length, obs_dim)),
-        jnp.zeros((1, length, act_dim)),
-        jnp.ones((1, length), jnp.int32),
-        jnp.ones((1, length)),
+        np.zeros((1, length, obs_dim), np.float32),  # numpy: no program per size
+        np.zeros((1, length, act_dim), np.float32),
+        np.ones((1, length), np.int32),
+        np.ones((1, length), np.float32),
     )
 
 

@@ -122,7 +122,15 @@ def _pair_logits(
 def init_state(model: RewardModel, key: jax.Array, obs_dim: int, act_dim: int, steps: int) -> RewardState:
     """Fresh parameters, the state of the optimizer of a ``steps``-step run, and step 0."""
     params = model.init(key, obs_dim, act_dim)
-    return RewardState(params, model.optimizer(steps).init(params), jnp.zeros((), jnp.int32))
+    return RewardState(params, _optimizer_init(model, steps)(params), jnp.zeros((), jnp.int32))
+
+
+@functools.lru_cache(maxsize=32)
+def _optimizer_init(model: RewardModel, steps: int) -> Callable[[Params], optax.OptState]:
+    """``model.optimizer(steps).init`` as one jitted program per model and run length (kept): run
+    eagerly, the zero moments compile a small program per parameter shape, again for every new
+    observation size in a process. The same zeros."""
+    return jax.jit(model.optimizer(steps).init)
 
 
 # --------------------------------------------------------------------------- jitted programs
