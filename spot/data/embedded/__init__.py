@@ -2,7 +2,7 @@
 their bytes depend on.
 
 The quickstart's dataset (``hopper-medium-replay``, size ``small``, seed 0) takes minutes to build
-(SAC on Hopper in MuJoCo), yet it is a 1.2 MB file. Its build is shipped in this folder as
+(SAC on Hopper in MuJoCo), yet it is a 1.4 MB file. Its build is shipped in this folder as
 ``<name>__<size>__seed<seed>.hdf5`` with its card (``.card.json``, the card the recipe wrote, with
 ``sha256`` and ``bytes``). When a dataset is needed and ``$SPOT_DATA_DIR`` lacks it,
 :func:`spot.data.registry.build` asks :func:`copy_in`, which copies the shipped file in (under the
@@ -48,7 +48,7 @@ BUILD_FACTS = frozenset(
 )
 """Card keys (at any depth) that describe one build rather than its data: the card file has them,
 the hdf5 file's card does not (:func:`data_card`)."""
-MAX_BYTES = 8 * 1024 * 1024  # a shipped file larger than this is not read (the quickstart's: 1.2 MB)
+MAX_BYTES = 8 * 1024 * 1024  # a shipped file larger than this is not read (the quickstart's: 1.4 MB)
 
 # The CPU features (as /proc/cpuinfo names them) that compiled code may use: SIMD widths, fused
 # multiply-add and the bit-manipulation extensions LLVM selects instructions from for the host.
