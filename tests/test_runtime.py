@@ -198,3 +198,52 @@ def test_a_process_cannot_switch_fast_compile_once_jax_started(monkeypatch):
     monkeypatch.setitem(trial._PROCESS, "settings", (1, 0.0, False))
     with pytest.raises(SpotError, match="fast_compile: this process compiled with fast_compile=False"):
         trial._configure_once(1, 0.0, True)
+
+
+def test_an_interrupt_raised_in_a_gc_callback_is_sent_again_and_stops_the_process():
+    # The KeyboardInterrupt a SIGTERM handler raises inside a weakref callback cannot propagate;
+    # without the hook the loop below would end on its own ("finished", exit 0).
+    code = """
+import signal, time, weakref
+from spot import runtime
+runtime.redeliver_swallowed_interrupts()
+def on_term(signum, frame):
+    raise KeyboardInterrupt("signal SIGTERM")
+signal.signal(signal.SIGTERM, on_term)
+class Thing: pass
+def callback(ref):
+    on_term(signal.SIGTERM, None)  # as if the signal landed while the gc ran this callback
+thing = Thing(); ref = weakref.ref(thing, callback); del thing
+try:
+    deadline = time.time() + 5
+    while time.time() < deadline:
+        time.sleep(0.01)
+    print("finished")
+except KeyboardInterrupt as e:
+    print("stopped by", e)
+"""
+    done = _python(code, dict(os.environ))
+    assert done.stdout.strip() == "stopped by signal SIGTERM", done.stderr
+    assert "Exception ignored" not in done.stderr
+
+
+def test_an_interrupted_exit_runs_the_other_atexit_hooks_but_not_jaxs_teardown():
+    code = """
+import atexit, sys
+from spot import runtime
+runtime.configure()
+import jax, jax.numpy as jnp
+from jax._src import api
+jnp.ones(3).block_until_ready()
+atexit.register(lambda: print("hook ran", flush=True))
+def never():  # stands for jax's clean_up, which must not run under a compile that is still going
+    print("jax teardown ran", flush=True)
+atexit.unregister(api.clean_up)
+api.clean_up = never
+atexit.register(never)
+print("partial line", end="")
+runtime.exit_interrupted(130)
+"""
+    done = _python(code, dict(os.environ))
+    assert done.returncode == 130, done.stderr
+    assert done.stdout == "partial linehook ran\n"

@@ -91,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     args = _parse(argv)  # --help, --version and usage errors exit here, before any heavy import
+    if argv is None:  # the command's own process: a Ctrl-C or SIGTERM in a gc callback still stops it
+        runtime.redeliver_swallowed_interrupts()
     from spot.tracking.provenance import COMMAND_ENV
 
     # the command line, recorded as each run's mlflow.source.name (sweep trials inherit it)
@@ -108,6 +110,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
+        if argv is None:  # the command's own process: XLA may still be compiling on its threads
+            runtime.exit_interrupted(130)
         return 130
     except BrokenPipeError:
         if not _stdout_closed():  # a socket or a child's pipe (MLflow, Ray): a real failure
