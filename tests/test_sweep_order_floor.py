@@ -133,3 +133,41 @@ def test_runs_found_finished_do_not_count(tmp_path):
         r if r.axes["method"] == "oracle" else Row(r.axes, r.seed, r.key, "FINISHED", 1.0, "", "x", 1) for r in rows
     ]
     assert (floor.work_of(spec, only_oracle).reward_steps, floor.work_of(spec, only_oracle).reward_cfg) == (0, None)
+
+
+def test_datasets_of_one_environment_do_not_start_together(tmp_path):
+    # hopper's two datasets compile the same programs: the second waits for walker2d's first
+    path = tmp_path / "s.yaml"
+    path.write_text(
+        "name: s\nbase: {budget: tiny, data.size: tiny}\n"
+        "zip:\n  data.name: [hopper-medium-replay, hopper-medium-expert, walker2d-medium-replay]\n"
+        "grid:\n  method: [pt, oracle]\nseeds: [0, 1]\nresources: {cpu: 1, gpu: 0}\n"
+    )
+    grid = sweep.load(str(path)).trials()
+    short = {"hopper-medium-replay": "hr", "hopper-medium-expert": "he", "walker2d-medium-replay": "wr"}
+    named = [(t.axes["method"], short[t.axes["data.name"]], t.seeds[0]) for t in grid]
+    assert named[:3] == [("pt", "hr", 0), ("pt", "he", 0), ("pt", "wr", 0)]  # the grid: hopper's two together
+    ordered = [named[grid.index(t)] for t in order.trial_order(grid)]
+    assert ordered == [  # no trial here reuses another's reward model: one group
+        ("pt", "hr", 0), ("pt", "wr", 0), ("oracle", "hr", 0), ("oracle", "wr", 0),
+        ("pt", "he", 0), ("oracle", "he", 0),
+        ("pt", "hr", 1), ("pt", "he", 1), ("pt", "wr", 1),
+        ("oracle", "hr", 1), ("oracle", "he", 1), ("oracle", "wr", 1),
+    ]  # fmt: skip
+
+
+def test_program_identity_names_the_environment_not_the_dataset():
+    def ident(**kw):
+        return order.program_identity(
+            config_lib.resolve({"method": "pt", "budget": "tiny", **kw}, {"seed": kw.pop("seed", 0)})
+        )
+
+    hopper = ident(**{"data.name": "hopper-medium-replay"})
+    assert (
+        ident(**{"data.name": "hopper-medium-expert"})
+        == hopper
+        == ident(**{"data.name": "hopper-medium-replay", "seed": 3})
+    )
+    assert ident(**{"data.name": "walker2d-medium-replay"}) != hopper
+    assert ident(**{"data.name": "hopper-medium-replay", "labels.num_queries": 7}) != hopper  # other label shapes
+    assert ident(**{"data.name": "lift-mh"}) == ident(**{"data.name": "lift-ph"})

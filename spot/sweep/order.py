@@ -9,7 +9,15 @@ of its grid, as many at once as the sweep allows, so :func:`trial_order` puts
 2. then the trials that need no shared reward model (Oracle, or a reward model of their own),
 3. then the trials that reuse a reward model trained by an earlier one,
 
-each group in the grid's order. The reward model's users then start as late as the sweep allows
+each group in the grid's order, except that within a group a trial whose programs an earlier trial
+already compiles (:func:`program_identity`: the same config on another dataset of the same
+environment, or another seed) waits until the group's trials with programs of their own have
+started. Two trials of the same shapes started together both compile every program (neither finds
+it in the persistent compilation cache yet); one after the other, the second loads them from the
+cache. In the Table 1 smoke sweep the medium-replay and medium-expert (or mh and ph) datasets of an
+environment are neighbours in the grid, and so started together.
+
+The reward model's users then start as late as the sweep allows
 (their producer has had the longest time to store it), and what can run beside it (Oracle's IQL
 beside PT's reward model) does: on 2 cores the quickstart starts PT and Oracle together and SPOT
 when one of them ends. Only the start order changes: every run's config, seed and stage-cache keys
@@ -50,6 +58,24 @@ def reward_identity(cfg: config_lib.ExperimentConfig) -> str | None:
     return json.dumps(plain, sort_keys=True, default=str)
 
 
+def program_identity(cfg: config_lib.ExperimentConfig) -> str:
+    """What the programs a run compiles depend on, as text: its whole config except the seed, with
+    the dataset named by its evaluation environment (datasets of one environment have the same
+    observation and action sizes, so the same program shapes; only a few small programs depend on
+    the number of transitions). A dataset spot does not know is named as it is."""
+    from spot import SpotError
+    from spot.envs import env_spec
+
+    plain = dataclasses.asdict(cfg)
+    plain.pop("seed", None)
+    try:
+        spec = env_spec(cfg.data.name)
+        plain["data"] = {**plain["data"], "name": [spec.env_id, list(spec.make_kwargs)]}
+    except SpotError:
+        pass
+    return json.dumps(plain, sort_keys=True, default=str)
+
+
 def _identities(trial: Any) -> set[str]:
     """The reward identities of a trial's seeds (a trial may run several seeds)."""
     out = set()
@@ -62,8 +88,9 @@ def _identities(trial: Any) -> set[str]:
 
 def trial_order(trials: list[Any]) -> list[Any]:
     """``trials`` (:class:`spot.sweep.spec.Trial`) in the order to start them (module docstring):
-    producers of shared reward models, then the trials that share none, then their reusers; the
-    grid's order within each group."""
+    producers of shared reward models, then the trials that share none, then their reusers; within
+    each group the trials whose programs no earlier trial compiles first, each part in the grid's
+    order."""
     idents = [_identities(t) for t in trials]
     users: dict[str, int] = {}
     for ids in idents:
@@ -80,4 +107,13 @@ def trial_order(trials: list[Any]) -> list[Any]:
         else:
             groups[1].append(trial)
         seen |= shared
-    return [*groups[0], *groups[1], *groups[2]]
+    compiled: set[str] = set()
+    ordered: list[Any] = []
+    for group in groups:  # within each group: trials with programs of their own first
+        keys = [program_identity(config_lib.resolve(t.overrides, {"seed": t.seeds[0]})) for t in group]
+        first = [k not in compiled and k not in keys[:i] for i, k in enumerate(keys)]
+        ordered += [t for t, f in zip(group, first, strict=True) if f] + [
+            t for t, f in zip(group, first, strict=True) if not f
+        ]
+        compiled |= set(keys)
+    return ordered
