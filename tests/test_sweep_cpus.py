@@ -131,8 +131,13 @@ def test_mode_reads_the_variable(monkeypatch):
 
 def test_xla_cpus_sets_the_pool_for_the_follow_modes(monkeypatch, tmp_path):
     monkeypatch.delenv("NPROC", raising=False)
-    share = cpus.Share(tmp_path, [0, 1, 2], {}, "pinned")
-    assert share.xla_cpus(1) == 1 and "NPROC" not in os.environ
+    assert cpus.Share(tmp_path, [0], {}, "pinned").xla_cpus(1) == 1 and "NPROC" not in os.environ  # the node
+    held = {0: open(tmp_path / "cpu0", "w")}  # noqa: SIM115 - a claimed slot's open file
+    assert cpus.Share(tmp_path, [0, 1, 2], held, "pinned").xla_cpus(1) == 1 and "NPROC" not in os.environ
+    # no slot (a fractional CPU, or none free): the pool of a pinned trial, not of the whole node
+    assert cpus.Share(tmp_path, [0, 1, 2], {}, "pinned").xla_cpus(1) == 1 and os.environ["NPROC"] == "1"
+    held[0].close()
+    monkeypatch.delenv("NPROC")
     assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow").xla_cpus(1) == 1 and os.environ["NPROC"] == "2"
     assert cpus.Share(tmp_path, [0, 1, 2], {}, "follow-eigen").xla_cpus(1) == 2
     assert [cpus.pool_size(c, node) for c, node in ((1, 1), (1, 2), (1, 16), (3, 4), (4, 16))] == [1, 2, 2, 4, 8]
@@ -199,3 +204,24 @@ def test_the_follow_pool_leaves_a_1_cpu_trials_numbers_unchanged(tmp_path):
 
     pinned = run(CPUS[:1], None)
     assert run(CPUS, "2") == pinned and run(CPUS[:1], "2") == pinned
+
+
+def test_a_trial_asking_for_a_fraction_of_a_cpu_claims_no_slot_and_stays_where_the_os_puts_it(monkeypatch, tmp_path):
+    monkeypatch.setenv("SPOT_CPU_SLOTS_DIR", str(tmp_path / "slots"))
+    monkeypatch.delenv("NPROC", raising=False)
+    before = os.sched_getaffinity(0)
+    with cpus.trial_cpus(1, how="pinned", claim_slots=False) as share:
+        assert share.own == {} and os.sched_getaffinity(0) == before
+        assert not list((tmp_path / "slots").glob("cpu*"))  # no slot file locked
+        if len(before) > 1:
+            assert share.xla_cpus(1) == 1 and os.environ["NPROC"] == "1"
+    monkeypatch.delenv("NPROC", raising=False)
+
+
+def test_a_trial_sharing_the_cores_had_the_cpu_it_used_and_a_pinned_one_its_slots(tmp_path):
+    from spot.sweep.trial import _cpus_had
+
+    shared = cpus.Share(tmp_path, [0, 1], {}, "pinned")  # no slot on a 2-CPU node: shared as the OS schedules
+    assert _cpus_had(shared, 1, cpu_s=30.0, wall_s=45.0) == pytest.approx(2 / 3)
+    whole = cpus.Share(tmp_path, [0], {}, "pinned")  # a 1-CPU node: the trial had all of it
+    assert _cpus_had(whole, 1, cpu_s=10.0, wall_s=40.0) == pytest.approx(1.0, rel=1e-3)

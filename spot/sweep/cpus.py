@@ -33,8 +33,11 @@ How its threads use CPUs no trial holds depends on ``$SPOT_TRIAL_THREADS`` (:dat
   sums may then differ in the last digits from a 1-CPU trial's (docs/sweeps.md), and a narrowed
   trial splits them over threads that share one core.
 
-If the slots cannot be claimed (fractional CPUs, a trial as large as the node, more trials than
-slots), nothing is claimed, pinned or borrowed. Nothing here imports jax.
+A trial that asked for a fraction of a CPU (``resources.cpu: 0.5``: Ray then runs more trials than
+the node has cores) claims no slot, and nor does one as large as the node or one that finds no free
+slot: nothing is claimed, pinned or borrowed, and its threads run where the OS puts them. In
+``pinned`` mode such a trial's XLA pool still has as many threads as a pinned trial's (``NPROC``,
+:meth:`Share.xla_cpus`), so its numbers are a pinned trial's. Nothing here imports jax.
 """
 
 from __future__ import annotations
@@ -185,10 +188,15 @@ class Share:
 
     def xla_cpus(self, cpus: int) -> int:
         """Before jax starts: ``NPROC`` for XLA's pool in the ``follow`` modes (:func:`pool_size`
-        threads; a ``NPROC`` already set is kept). Returns the CPU count to configure XLA for
+        threads), and in ``pinned`` mode for a trial that holds no slot (``cpus`` threads, as a
+        pinned trial's pool: unpinned, XLA would size it from the whole node's affinity, and a PT
+        reward model trained with more threads differs in the last digits); a ``NPROC`` already
+        set is kept. Returns the CPU count to configure XLA for
         (:func:`spot.sweep.trial.configure_process`): the trial's ``cpus``, or its pool's in
         ``follow-eigen`` (Eigen then stays multi-threaded)."""
         if not self.borrow:
+            if not self.own and cpus < len(self.allowed):  # no slot: a pool the size of a pinned trial's
+                os.environ.setdefault("NPROC", str(cpus))
             return cpus
         pool = pool_size(cpus, len(self.allowed))
         os.environ.setdefault("NPROC", str(pool))
@@ -248,8 +256,12 @@ def _watch(share: Share, stop: threading.Event, poll_s: float) -> None:
 
 
 @contextlib.contextmanager
-def trial_cpus(n: int, poll_s: float = POLL_S, wait_s: float = WAIT_S, how: str | None = None) -> Iterator[Share]:
-    """Claim ``n`` CPU slots of this node for a trial and pin the process to them; in the ``follow``
+def trial_cpus(
+    n: int, poll_s: float = POLL_S, wait_s: float = WAIT_S, how: str | None = None, claim_slots: bool = True
+) -> Iterator[Share]:
+    """Claim ``n`` CPU slots of this node for a trial and pin the process to them (none with
+    ``claim_slots`` False: a trial that asked Ray for a fraction of a CPU shares the node's cores
+    with the others, as the OS schedules them); in the ``follow``
     modes (``how``, default :func:`mode`) a watcher thread widens the process onto free slots and
     narrows it back (module docstring). Yields the :class:`Share`; at the end the watcher stops,
     every slot is released and the process's threads get the CPUs they had back (a reused actor
@@ -257,7 +269,7 @@ def trial_cpus(n: int, poll_s: float = POLL_S, wait_s: float = WAIT_S, how: str 
     how = how or mode()
     allowed = sorted(os.sched_getaffinity(0))
     folder = slots_dir()
-    own = claim(folder, allowed, n, wait_s) if n < len(allowed) else {}
+    own = claim(folder, allowed, n, wait_s) if claim_slots and n < len(allowed) else {}
     share = Share(folder, allowed, own, how)
     stop = threading.Event()
     watcher = threading.Thread(target=_watch, args=(share, stop, poll_s), name="spot-cpus", daemon=True)

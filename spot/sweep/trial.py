@@ -17,7 +17,7 @@ opened dataset carry over; the process settings are made once per process (:func
 Each trial is timed by phase (:mod:`spot.phases`: start-up, dataset, compile, train, evaluate,
 tracking, other) and the breakdown is logged to every run the trial ran as ``time/trial_<phase>_s``,
 ``time/trial_wall_s``, ``time/trial_cpu_s`` (CPU seconds of the trial's process, all threads),
-``time/trial_cpus`` (the CPUs it had) and the tags ``spot.trial_device`` (``jax.devices()``) and
+``time/trial_cpus`` (the CPUs it had, :func:`_cpus_had`) and the tags ``spot.trial_device`` (``jax.devices()``) and
 ``spot.trial_process`` (``new`` or ``reused``). ``spot sweep`` prints the totals at the end,
 ``spot bench sweep`` each trial's row (:func:`spot.sweep.summary.format_breakdown`).
 
@@ -66,6 +66,16 @@ class SweepContext:
     metric: str | None = None  # the metric of search:/scheduler: (reports without it are not sent to Tune)
     stopper: str = ""  # who stops trials early (ASHA, median stopping): named in a stopped run's failure_reason
     created_at: float = field(default_factory=time.time)  # when the driver set the launch up (start-up's origin)
+
+
+def _cpus_had(share: Any, cpus: int, cpu_s: float, wall_s: float) -> float:
+    """The CPUs a trial had, averaged over its time: its slots (and borrowed ones,
+    :meth:`spot.sweep.cpus.Share.mean_cpus`); for a trial that held no slot and shared the node's
+    cores with other trials as the OS scheduled them (a fraction of a CPU asked, or no slot free),
+    the CPU seconds it used over its wall time: the node's cores are not all its own."""
+    if not share.own and cpus < len(share.allowed):
+        return cpu_s / max(wall_s, 1e-9)
+    return share.mean_cpus()
 
 
 # --------------------------------------------------------------------------- process setup
@@ -399,11 +409,12 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
 
     context = tune.get_context()
     need = context.get_trial_resources().required_resources
-    cpus, gpus = max(1, int(need.get("CPU", 1))), float(need.get("GPU", 0.0))
+    asked = float(need.get("CPU", 1))
+    cpus, gpus = max(1, int(asked)), float(need.get("GPU", 0.0))
     startup, cpu0 = _startup_s(ctx, called_at), _cpu_s()
     reused = _PROCESS["settings"] is not None
     try:
-        with phases.measure("other") as clock, trial_cpus(cpus) as share:  # threads follow the free CPUs
+        with phases.measure("other") as clock, trial_cpus(cpus, claim_slots=asked.is_integer()) as share:
             with phases.phase("startup"):
                 _configure_once(share.xla_cpus(cpus), gpus, ctx.fast_compile)
                 if run_fn is None:  # the pipeline's imports, timed as start-up
@@ -432,7 +443,7 @@ def _trainable(config: dict[str, Any], ctx: SweepContext, run_fn: RunFn | None =
                 {
                     "time/trial_wall_s": startup + clock.read_wall,
                     "time/trial_cpu_s": cpu_s,
-                    "time/trial_cpus": share.mean_cpus(),  # averaged over the trial (spot.sweep.cpus)
+                    "time/trial_cpus": _cpus_had(share, cpus, cpu_s, clock.read_wall),
                 }
             )
             values["trial/cpu_util"] = cpu_s / max(clock.read_wall * values["time/trial_cpus"], 1e-9)
