@@ -13,7 +13,11 @@ from spot import SpotError
 from spot.data import build_child, registry
 from spot.recipes import locomotion
 
-FAST = ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true")
+FAST = (
+    "--xla_backend_optimization_level=0",
+    "--xla_llvm_disable_expensive_passes=true",
+    "--xla_cpu_use_fusion_emitters=false",
+)
 NAME, SEED = "hopper-medium-replay", 0
 SHIPPED = Path(__file__).resolve().parents[1] / "spot" / "data" / "embedded" / f"{NAME}__small__seed{SEED}.hdf5"
 
