@@ -17,6 +17,7 @@ FAST = (
     "--xla_backend_optimization_level=0",
     "--xla_llvm_disable_expensive_passes=true",
     "--xla_cpu_use_fusion_emitters=false",
+    "--xla_cpu_parallel_codegen_split_count=1",
 )
 NAME, SEED = "hopper-medium-replay", 0
 SHIPPED = Path(__file__).resolve().parents[1] / "spot" / "data" / "embedded" / f"{NAME}__small__seed{SEED}.hdf5"

@@ -146,6 +146,7 @@ def test_fast_compile_appends_its_flags_and_a_sweep_trial_sets_the_switch(tmp_pa
         "--xla_backend_optimization_level=0",
         "--xla_llvm_disable_expensive_passes=true",
         "--xla_cpu_use_fusion_emitters=false",
+        "--xla_cpu_parallel_codegen_split_count=1",
     ]
     plain = json.loads(_python(code, _cache_env(tmp_path)).stdout.strip().splitlines()[-1])
     assert plain["XLA_FLAGS"].split() == [runtime.YNN_FLAG]
