@@ -19,8 +19,10 @@ environment are neighbours in the grid, and so started together.
 
 The reward model's users then start as late as the sweep allows
 (their producer has had the longest time to store it), and what can run beside it (Oracle's IQL
-beside PT's reward model) does: on 2 cores the quickstart starts PT and Oracle together and SPOT
-when one of them ends. Only the start order changes: every run's config, seed and stage-cache keys
+beside PT's reward model) does. A sweep with one slot per core (two 1-CPU trials on 2 cores) starts
+PT and Oracle together and SPOT when one of them ends; the quickstart starts all three at once (half
+a CPU each), and SPOT waits on the stage cache's lock until PT's reward model is stored. Only the
+start order changes: every run's config, seed and stage-cache keys
 are those of the grid, and the summary lists the runs in the grid's order.
 """
 
