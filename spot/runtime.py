@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -202,32 +203,48 @@ def exit_interrupted(code: int) -> None:
         os._exit(code)
 
 
-def redeliver_swallowed_interrupts() -> None:
-    """Make a Ctrl-C or SIGTERM that lands inside a garbage-collector callback stop the command.
+def resend_swallowed_signal(name: str, signal_of: Callable[[Any], int | None]) -> None:
+    """Make a signal whose handler raised inside a garbage-collector callback take effect.
 
     Python runs signal handlers in the main thread between bytecodes, also inside a callback the
-    garbage collector calls (jax's ``_xla_gc_callback``, a ``WeakSet``'s ``_remove``). A
-    KeyboardInterrupt raised there cannot propagate: Python prints ``Exception ignored in: ...`` and
-    the command went on to finish with exit 0 (seen in 1 of 14 runs stopped in their first seconds).
-    This :data:`sys.unraisablehook` takes such a KeyboardInterrupt, prints nothing and sends the same
-    signal again 50 ms later, outside the callback (SIGTERM when :func:`spot.cli.run`'s handler raised
-    it, whose message is ``signal SIGTERM``; SIGINT otherwise); anything else goes to the hook that
-    was there. Set once per process, by the ``spot`` command's own process only."""
-    import signal
+    garbage collector calls (jax's ``_xla_gc_callback``, a ``WeakSet``'s ``_remove``). An exception
+    raised there cannot propagate: Python prints ``Exception ignored in: ...`` and the process goes
+    on. This :data:`sys.unraisablehook` asks ``signal_of`` which signal raised such an exception
+    (None: not one of ours), prints nothing and sends that signal again 50 ms later, outside the
+    callback; anything else goes to the hook that was there. Set once per process and ``name``."""
     import threading
 
     previous = sys.unraisablehook
-    if getattr(previous, "spot_interrupts", False):
+    names = getattr(previous, "spot_resends", ())
+    if name in names:
         return
 
     def hook(unraisable: Any) -> None:
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            signum = signal.SIGTERM if str(unraisable.exc_value) == "signal SIGTERM" else signal.SIGINT
-            timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
-            timer.daemon = True
-            timer.start()
+        signum = signal_of(unraisable)
+        if signum is None:
+            previous(unraisable)
             return
-        previous(unraisable)
+        timer = threading.Timer(0.05, os.kill, (os.getpid(), signum))
+        timer.daemon = True
+        timer.start()
 
-    hook.spot_interrupts = True  # type: ignore[attr-defined]
+    hook.spot_resends = (*names, name)  # type: ignore[attr-defined]
     sys.unraisablehook = hook
+
+
+def _interrupt_signal(unraisable: Any) -> int | None:
+    """SIGTERM for the KeyboardInterrupt :func:`spot.cli.run`'s handler raises (``signal SIGTERM``),
+    SIGINT for Ctrl-C's, None for anything else."""
+    import signal
+
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        return None
+    return signal.SIGTERM if str(unraisable.exc_value) == "signal SIGTERM" else signal.SIGINT
+
+
+def redeliver_swallowed_interrupts() -> None:
+    """A Ctrl-C or SIGTERM that lands inside a garbage-collector callback still stops the command
+    (:func:`resend_swallowed_signal`): without this the KeyboardInterrupt was swallowed and the
+    command went on to finish with exit 0 (seen in 1 of 14 runs stopped in their first seconds).
+    Set by the ``spot`` command's own process only."""
+    resend_swallowed_signal("interrupts", _interrupt_signal)

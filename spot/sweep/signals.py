@@ -27,20 +27,13 @@ def quiet_ray_sigterm() -> None:
     Ray's ``sigterm_handler``), prints nothing and sends the SIGTERM again a moment later, outside the
     callback, where Ray's handler ends the process as it meant to; anything else goes to the hook
     that was there. Set once per process."""
-    previous = sys.unraisablehook
-    if getattr(previous, "spot_ray_sigterm", False):
-        return
+    from spot import runtime
 
-    def hook(unraisable: Any) -> None:
-        if isinstance(unraisable.exc_value, SystemExit) and _raised_by_ray_sigterm(unraisable.exc_traceback):
-            timer = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM))
-            timer.daemon = True
-            timer.start()
-            return
-        previous(unraisable)
+    def ray_sigterm(unraisable: Any) -> int | None:
+        ok = isinstance(unraisable.exc_value, SystemExit) and _raised_by_ray_sigterm(unraisable.exc_traceback)
+        return signal.SIGTERM if ok else None
 
-    hook.spot_ray_sigterm = True  # type: ignore[attr-defined]
-    sys.unraisablehook = hook
+    runtime.resend_swallowed_signal("ray_sigterm", ray_sigterm)
 
 
 def _raised_by_ray_sigterm(tb: Any) -> bool:
