@@ -19,7 +19,7 @@ parallel code generation, which a one-CPU trial cannot use). A tiny SPOT run's ~
 compile in about 14 s instead of 30 with the first two flags (cold cache, 2 CPU cores); the third
 halves the XLA compile time of a tiny PT, HPL or IPL run again (PT 9.2 to 4.9 s) and the fourth
 takes another fifth off (PT 4.7 to 3.7 s). The programs run slower (IQL at its default
-sizes: 87 updates/s with all three, 122 without the third, 151 without any) and round differently,
+sizes: 87 updates/s with the first three, 122 with the first two, 151 without any) and round differently,
 so it is for smoke runs (a sweep file's
 ``fast_compile: true``), never for results; the flags are in every run's ``environment.json`` and
 in the compilation cache's key. docs/benchmarks.md has the figures.
