@@ -186,6 +186,11 @@ class Share:
             self._account()
             return self._cpu_time / max(self._since - self._start, 1e-9) if self._since > self._start else 0.0
 
+    def shares_node(self, cpus: int) -> bool:
+        """Whether a trial of ``cpus`` CPUs holding this share runs unpinned beside other trials: it
+        holds no slot (a fraction of a CPU asked, or none free) and is smaller than the node."""
+        return not self.own and cpus < len(self.allowed)
+
     def xla_cpus(self, cpus: int) -> int:
         """Before jax starts: ``NPROC`` for XLA's pool in the ``follow`` modes (:func:`pool_size`
         threads), and in ``pinned`` mode for a trial that holds no slot (``cpus`` threads, as a
@@ -195,7 +200,7 @@ class Share:
         (:func:`spot.sweep.trial.configure_process`): the trial's ``cpus``, or its pool's in
         ``follow-eigen`` (Eigen then stays multi-threaded)."""
         if not self.borrow:
-            if not self.own and cpus < len(self.allowed):  # no slot: a pool the size of a pinned trial's
+            if self.shares_node(cpus):  # no slot: a pool the size of a pinned trial's
                 os.environ.setdefault("NPROC", str(cpus))
             return cpus
         pool = pool_size(cpus, len(self.allowed))

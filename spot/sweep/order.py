@@ -112,10 +112,10 @@ def trial_order(trials: list[Any]) -> list[Any]:
     compiled: set[str] = set()
     ordered: list[Any] = []
     for group in groups:  # within each group: trials with programs of their own first
-        keys = [program_identity(config_lib.resolve(t.overrides, {"seed": t.seeds[0]})) for t in group]
-        first = [k not in compiled and k not in keys[:i] for i, k in enumerate(keys)]
-        ordered += [t for t, f in zip(group, first, strict=True) if f] + [
-            t for t, f in zip(group, first, strict=True) if not f
-        ]
-        compiled |= set(keys)
+        own, again = [], []
+        for trial in group:
+            key = program_identity(config_lib.resolve(trial.overrides, {"seed": trial.seeds[0]}))
+            (again if key in compiled else own).append(trial)
+            compiled.add(key)
+        ordered += own + again
     return ordered

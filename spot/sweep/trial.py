@@ -73,7 +73,7 @@ def _cpus_had(share: Any, cpus: int, cpu_s: float, wall_s: float) -> float:
     :meth:`spot.sweep.cpus.Share.mean_cpus`); for a trial that held no slot and shared the node's
     cores with other trials as the OS scheduled them (a fraction of a CPU asked, or no slot free),
     the CPU seconds it used over its wall time: the node's cores are not all its own."""
-    if not share.own and cpus < len(share.allowed):
+    if share.shares_node(cpus):
         return cpu_s / max(wall_s, 1e-9)
     return share.mean_cpus()
 
